@@ -1,0 +1,223 @@
+"""The reference rig of ``shared/spec/rig.md``: parameters, channels, sampling and linear matrices.
+
+Every model quantity has one name used everywhere: in config, in the kernel's flat parameter
+vector, in file attributes and in the calibration.  A model instance is just a mapping from these
+names to values; :func:`parameter_vector` packs it for the compiled kernel.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from types import MappingProxyType
+from typing import Mapping
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Parameter:
+    name: str
+    default: float
+    unit: str
+    description: str
+    group: str  # "rig", "operating" or "fault"
+    lower: float = 0.0  # exclusive unless ``lower_inclusive``
+    upper: float = math.inf
+    lower_inclusive: bool = False
+    upper_inclusive: bool = False
+    integer: bool = False
+
+    def problem(self, value: float) -> str | None:
+        """Why ``value`` is not physical for this parameter, or None when it is."""
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            return f"must be a number (got {value!r})"
+        if not math.isfinite(value):
+            return f"must be a finite number (got {value})"
+        if self.integer and value != int(value):
+            return f"must be a whole number (got {value})"
+        low_ok = value >= self.lower if self.lower_inclusive else value > self.lower
+        high_ok = value <= self.upper if self.upper_inclusive else value < self.upper
+        if not (low_ok and high_ok):
+            interval = "[("[not self.lower_inclusive] + f"{self.lower:g}, {self.upper:g}" + "])"[not self.upper_inclusive]
+            unit = "" if self.unit == "-" else f" {self.unit}"
+            return f"must lie in {interval}{unit} (got {value:g})"
+        return None
+
+
+def _p(group: str, rows: list[tuple]) -> list[Parameter]:
+    """Rows of (name, default, unit, description[, bounds as keyword dict])."""
+    return [Parameter(r[0], float(r[1]), r[2], r[3], group, **(r[4] if len(r) > 4 else {})) for r in rows]
+
+
+_NON_NEGATIVE = {"lower_inclusive": True}
+
+
+# Order matters: it is the layout of the kernel's parameter vector.
+PARAMETERS: tuple[Parameter, ...] = tuple(
+    _p(
+        "rig",
+        [
+            ("J1", 4.0, "kg·m²", "motor rotor inertia (total, with imbalance mass)"),
+            ("J2a", 0.05, "kg·m²", "motor shaft end inertia (stick-slip side a)"),
+            ("J2b", 0.10, "kg·m²", "motor-side coupling hub inertia (stick-slip side b)"),
+            ("J3", 0.15, "kg·m²", "load-side coupling hub inertia"),
+            ("J4", 6.0, "kg·m²", "load inertia (total, with imbalance mass)"),
+            ("m1", 300.0, "kg", "motor rotor node mass"),
+            ("m2", 20.0, "kg", "motor-side coupling hub node mass"),
+            ("m3", 20.0, "kg", "load-side coupling hub node mass"),
+            ("m4", 400.0, "kg", "load node mass"),
+            ("m_b", 50.0, "kg", "mass of each bearing node"),
+            ("kT1", 3.0e6, "N·m/rad", "motor shaft torsional stiffness (1–2)"),
+            ("kT2", 1.0e6, "N·m/rad", "coupling element torsional stiffness (2–3)"),
+            ("kT3", 2.5e6, "N·m/rad", "load shaft torsional stiffness (3–4)"),
+            ("k_s", 2.0e8, "N/m", "lateral shaft stiffness b1–m1, m1–b2, b3–m4, m4–b4"),
+            ("k_h", 5.0e7, "N/m", "lateral hub stiffness b2–m2, m3–b3"),
+            ("k_c", 1.0e7, "N/m", "lateral coupling stiffness m2–m3"),
+            ("k_bx", 5.0e8, "N/m", "bearing-to-ground stiffness, horizontal x"),
+            ("k_by", 6.0e8, "N/m", "bearing-to-ground stiffness, vertical y"),
+            ("beta", 3.0e-5, "s", "stiffness-proportional damping: every spring k has a damper beta·k", _NON_NEGATIVE),
+            ("slip", 0.02, "-", "induction-motor slip s at T0 (sets the torque slope c_m = T0/(s·Omega))", {"upper": 1.0}),
+            ("u1", 4.8e-3, "kg·m", "imbalance m·e at the motor rotor (node m1, disk 1)", _NON_NEGATIVE),
+            ("u4", 6.4e-3, "kg·m", "imbalance m·e at the load (node m4, disk 4)", _NON_NEGATIVE),
+        ],
+    )
+    + _p(
+        "operating",
+        [
+            ("speed_rpm", 1480.0, "rpm", "synchronous motor speed Omega = 2·pi·speed_rpm/60"),
+            ("T0", 1613.0, "N·m", "mean motor and load torque"),
+            ("load_amp", 0.3, "-", "load pulsation amplitude a", _NON_NEGATIVE),
+            ("load_freq", 12.0, "Hz", "load pulsation base frequency f_l"),
+            ("load_harm", 6.0, "-", "number of load harmonics H", {"lower": 1.0, "lower_inclusive": True, "integer": True}),
+        ],
+    )
+    + _p(
+        "fault",
+        [
+            ("T_max", math.inf, "N·m", "stick-slip: static friction torque limit (inf: never slips)"),
+            ("r_k", 1.0, "-", "stick-slip: kinetic/static friction ratio", {"upper": 1.0, "upper_inclusive": True}),
+            ("crack_alpha", 0.0, "-", "breathing crack: relative kT3 loss when fully open", {**_NON_NEGATIVE, "upper": 1.0}),
+            ("cubic_gamma", 0.0, "-", "cubic coupling: hardening coefficient gamma", _NON_NEGATIVE),
+            ("bearing_gap", 0.0, "m", "loose bearing: clearance g of the b1 housing in x", _NON_NEGATIVE),
+        ],
+    )
+)
+
+PARAMETER_NAMES: tuple[str, ...] = tuple(p.name for p in PARAMETERS)
+PARAMETER_BY_NAME: Mapping[str, Parameter] = MappingProxyType({p.name: p for p in PARAMETERS})
+PARAMETER_INDEX: Mapping[str, int] = MappingProxyType({n: i for i, n in enumerate(PARAMETER_NAMES)})
+DEFAULTS: Mapping[str, float] = MappingProxyType({p.name: p.default for p in PARAMETERS})
+RIG_PARAMETERS = tuple(p.name for p in PARAMETERS if p.group == "rig")
+OPERATING_PARAMETERS = tuple(p.name for p in PARAMETERS if p.group == "operating")
+
+# Lateral nodes in shaft order and the springs between them (same in x and y).
+NODES = ("b1", "m1", "b2", "m2", "m3", "b3", "m4", "b4")
+BEARING_NODES = (0, 2, 5, 7)
+DISK_NODES = {"1": 1, "4": 6}  # imbalance disks 1 and 4 sit at nodes m1 and m4
+LATERAL_SPRINGS = ((0, 1, "k_s"), (1, 2, "k_s"), (2, 3, "k_h"), (3, 4, "k_c"), (4, 5, "k_h"), (5, 6, "k_s"), (6, 7, "k_s"))
+NODE_MASSES = ("m_b", "m1", "m_b", "m2", "m3", "m_b", "m4", "m_b")
+
+CHANNELS: tuple[str, ...] = tuple(f"{NODES[n]}_{d}" for n in BEARING_NODES for d in "xy") + ("w1", "w4", "torque_c")
+CHANNEL_UNITS = MappingProxyType({**{c: "m" for c in CHANNELS[:8]}, "w1": "rad/s", "w4": "rad/s", "torque_c": "N·m"})
+DEFAULT_MEASURED_CHANNELS = ("b1_x", "w1")
+
+
+def omega(values: Mapping[str, float]) -> float:
+    """Synchronous speed Omega [rad/s]."""
+    return 2.0 * math.pi * values["speed_rpm"] / 60.0
+
+
+def complete(values: Mapping[str, float] | None = None) -> dict[str, float]:
+    """All parameters: the rig.md defaults overridden by ``values``; unknown names are an error."""
+    values = dict(values or {})
+    unknown = sorted(set(values) - set(PARAMETER_NAMES))
+    if unknown:
+        raise KeyError(f"unknown model parameter(s): {', '.join(unknown)}")
+    return {name: float(values.get(name, DEFAULTS[name])) for name in PARAMETER_NAMES}
+
+
+def parameter_vector(values: Mapping[str, float] | None = None) -> np.ndarray:
+    """The kernel's flat parameter vector for ``values`` (missing names take their defaults)."""
+    full = complete(values)
+    return np.array([full[name] for name in PARAMETER_NAMES], dtype=np.float64)
+
+
+@dataclass(frozen=True)
+class Sampling:
+    """Recorded samples: ``t_k = t_first + k / fs`` for ``k = 0 … n_samples-1``; the model starts at t = 0."""
+
+    fs: float = 5000.0
+    t_first: float = 0.5
+    n_samples: int = 5000
+
+    @classmethod
+    def from_window(cls, fs: float, t_warm: float, t_rec: float) -> "Sampling":
+        return cls(fs=float(fs), t_first=float(t_warm), n_samples=int(round(t_rec * fs)))
+
+    @property
+    def times(self) -> np.ndarray:
+        return self.t_first + np.arange(self.n_samples) / self.fs
+
+
+def linear_matrices(values: Mapping[str, float] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Mass, damping and stiffness matrices of the healthy rig linearized without imbalance.
+
+    DOF order: θ1 θ2 θ3 θ4 (J2 = J2a + J2b as one body), then x at the 8 nodes, then y.
+    The motor's torque slope c_m acts as a viscous damper on θ1 to ground.
+    Independent of the compiled kernel, so it serves as a check on it.
+    """
+    v = complete(values)
+    n = 20
+    M = np.zeros((n, n))
+    K = np.zeros((n, n))
+    M[:4, :4] = np.diag([v["J1"], v["J2a"] + v["J2b"], v["J3"], v["J4"]])
+    for i, k in enumerate((v["kT1"], v["kT2"], v["kT3"])):
+        K[np.ix_([i, i + 1], [i, i + 1])] += k * np.array([[1.0, -1.0], [-1.0, 1.0]])
+    for offset, ground in ((4, v["k_bx"]), (12, v["k_by"])):
+        for node, mass in enumerate(NODE_MASSES):
+            M[offset + node, offset + node] = v[mass]
+        for a, b, name in LATERAL_SPRINGS:
+            K[np.ix_([offset + a, offset + b], [offset + a, offset + b])] += v[name] * np.array([[1.0, -1.0], [-1.0, 1.0]])
+        for node in BEARING_NODES:
+            K[offset + node, offset + node] += ground
+    C = v["beta"] * K
+    C[0, 0] += motor_slope(v)
+    return M, C, K
+
+
+def motor_slope(values: Mapping[str, float]) -> float:
+    """c_m = T0 / (s·Omega): the induction motor's torque drop per rad/s above synchronous speed."""
+    return values["T0"] / (values["slip"] * omega(values))
+
+
+def natural_frequencies(values: Mapping[str, float] | None = None, damped: bool = True) -> np.ndarray:
+    """Natural frequencies [Hz] of the linearized rig, ascending, rigid-body/overdamped modes excluded.
+
+    ``damped=True`` takes the imaginary parts of the state-space eigenvalues (with β and the motor
+    slope); ``damped=False`` the undamped generalized eigenproblem K φ = ω² M φ.
+    """
+    M, C, K = linear_matrices(values)
+    if not damped:
+        from scipy.linalg import eigh
+
+        w2 = eigh(K, M, eigvals_only=True)
+        return np.sort(np.sqrt(w2[w2 > 1e-6 * w2.max()])) / (2 * np.pi)
+    n = M.shape[0]
+    Minv = np.linalg.inv(M)
+    A = np.block([[np.zeros((n, n)), np.eye(n)], [-Minv @ K, -Minv @ C]])
+    lam = np.linalg.eigvals(A)
+    return np.sort(lam.imag[lam.imag > 1e-9 * np.abs(lam).max()]) / (2 * np.pi)
+
+
+def initial_state(values: Mapping[str, float]) -> np.ndarray:
+    """State at t = 0 (rig.md): speeds Omega, θ4 = 0, shafts pre-twisted by T0, lateral at rest.
+
+    Layout (42): positions θ1 θ2a θ2b θ3 θ4, x[8], y[8]; then the same velocities.
+    """
+    q = np.zeros(42)
+    theta3 = values["T0"] / values["kT3"]
+    theta2 = theta3 + values["T0"] / values["kT2"]
+    q[0:5] = (theta2 + values["T0"] / values["kT1"], theta2, theta2, theta3, 0.0)
+    q[21:26] = omega(values)
+    return q
