@@ -1,0 +1,444 @@
+"""The study configuration: load it, check it, and derive what the workflow needs from it.
+
+A study config (``config/config.yaml``; every key is documented in ``config/README.md``) has six
+sections: ``rig`` and ``operating`` (model parameter values, :mod:`newdyn.model` names), ``sampling``,
+``simulation``, ``noise`` and ``scenarios`` (name -> optional ``description``, ``overrides`` of rig or
+operating parameters and a ``fault`` from :mod:`newdyn.faults`).
+
+:func:`check` validates in two stages and raises :class:`ConfigError` for the first problem, as one line
+``<file>: <dotted.field>: <problem>``:
+
+1. structure, against the JSON schema ``workflow/schemas/config.schema.yaml`` (the single source of the
+   keys, types and enums);
+2. physics: every rig and operating value, every override and every fault against the bounds in
+   :mod:`newdyn.model` / :mod:`newdyn.faults`; the sampling window; finite SNRs; and the resulting model
+   values of every scenario (after overrides and fault).
+
+The helpers (:func:`base_values`, :func:`sampling`, :func:`scenario_values`, :func:`canonical_json`)
+turn a checked config into model values and a canonical text, so that the order of keys in the YAML
+or the spelling of a number (``3.25e+6`` or ``3250000``) changes nothing downstream.
+
+Note on YAML numbers: YAML 1.1 (PyYAML, and so Snakemake) reads ``3.25e6`` as *text*; write exponents
+with a sign, ``3.25e+6``.  The check says so when it meets such a string.
+"""
+
+from __future__ import annotations
+
+import difflib
+import json
+import math
+import numbers
+import re
+from collections.abc import Iterator, Mapping
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from . import faults, model
+
+#: The schema of the source tree this module lives in (src/newdyn/config.py -> workflow/schemas/...).
+#: From an installed (non-editable) package, pass ``schema_path`` explicitly.
+SCHEMA_PATH = Path(__file__).resolve().parents[2] / "workflow" / "schemas" / "config.schema.yaml"
+
+#: Parameters a scenario may override (fault parameters are set through ``fault:`` only).
+OVERRIDABLE: tuple[str, ...] = model.RIG_PARAMETERS + model.OPERATING_PARAMETERS
+
+#: Model parameters owned by a (new-dynamics) fault kind -> that kind's name.
+_FAULT_PARAMETER_OWNER = {
+    slot: kind.name
+    for kind in faults.FAULT_KINDS.values()
+    if kind.name != "parameter_change"
+    for slot in kind.slots.values()
+}
+
+_TYPE_NAMES = {
+    "number": "a number",
+    "integer": "a whole number",
+    "object": "a mapping",
+    "array": "a list",
+    "string": "text",
+    "boolean": "true or false",
+    "null": "empty",
+}
+
+
+class ConfigError(ValueError):
+    """A config problem, reported as one line ``<file>: <dotted.field>: <problem>``."""
+
+    def __init__(self, source: str, field: str, problem: str):
+        self.source = str(source)
+        self.field = field or "(top level)"
+        self.problem = " ".join(str(problem).split())  # one line, whatever the message held
+        super().__init__(f"{self.source}: {self.field}: {self.problem}")
+
+
+# ----------------------------------------------------------------------------------------------------
+# loading and checking
+
+
+def load(path: str | Path, schema_path: str | Path | None = None) -> dict:
+    """Read a YAML config file, :func:`check` it and return it (a plain dict)."""
+    source = str(path)
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(source, "(file)", f"cannot read: {exc.strerror or exc}") from None
+    try:
+        node = yaml.compose(text, Loader=yaml.SafeLoader)
+        for parts, line in _duplicate_keys(node, []):
+            raise ConfigError(
+                source, _field(parts), f"duplicate key on line {line} (YAML would keep only the last one)"
+            )
+        config = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        what = getattr(exc, "problem", None) or str(exc)
+        raise ConfigError(source, "(file)", f"not valid YAML: {what}{where}") from None
+    check(config, source, schema_path)
+    return config
+
+
+def check(config: Any, source: str, schema_path: str | Path | None = None) -> None:
+    """Raise :class:`ConfigError` for the first problem of ``config`` (read from ``source``).
+
+    ``schema_path`` defaults to :data:`SCHEMA_PATH`.  Structure is checked first (JSON schema), then
+    physics, so the physical checks can rely on every key being present with the right type.
+    """
+    for parts, key in _non_text_keys(config, []):
+        raise ConfigError(source, _field(parts), f"key {key!r} must be text, not {type(key).__name__} (quote it)")
+    error = _schema_error(config, schema_path)
+    if error is not None:
+        raise ConfigError(source, *error)
+    for field, problem in _physical_problems(config):
+        raise ConfigError(source, field, problem)
+
+
+def _schema_error(config: Any, schema_path: str | Path | None) -> tuple[str, str] | None:
+    """(field, problem) of the most relevant schema violation, or None."""
+    from jsonschema.exceptions import best_match, by_relevance
+    from jsonschema.validators import validator_for
+
+    with open(schema_path or SCHEMA_PATH, encoding="utf-8") as f:
+        schema = yaml.safe_load(f)
+    cls = validator_for(schema)
+    cls.check_schema(schema)
+    # Among errors on the same object prefer an unexpected (e.g. mistyped) key over the key it lacks.
+    error = best_match(cls(schema).iter_errors(config), key=by_relevance(strong=frozenset({"additionalProperties"})))
+    if error is None:
+        return None
+    parts, problem = _describe(error)
+    return _field(parts), problem
+
+
+def _describe(error) -> tuple[list, str]:
+    """Path parts and a one-line problem for a jsonschema ValidationError."""
+    parts = list(error.absolute_path)
+    kind, value, instance, schema = error.validator, error.validator_value, error.instance, error.schema
+
+    if kind == "additionalProperties" and value is False and isinstance(instance, Mapping):
+        known = list(schema.get("properties", {}))
+        patterns = list(schema.get("patternProperties", {}))
+        extras = [k for k in instance if k not in known and not any(re.search(p, str(k)) for p in patterns)]
+        key = extras[0] if extras else "?"
+        problem = f"unknown key{_did_you_mean(key, known)} (allowed: {', '.join(known)})"
+        return parts + [key], problem
+
+    if kind == "required" and isinstance(instance, Mapping):
+        missing = [k for k in value if k not in instance]
+        problem = "missing required key"
+        if len(missing) > 1:
+            problem += f" (also missing: {', '.join(missing[1:])})"
+        return parts + [missing[0] if missing else "?"], problem
+
+    if kind == "type":
+        expected = " or ".join(_TYPE_NAMES.get(t, t) for t in ([value] if isinstance(value, str) else value))
+        return parts, f"must be {expected} (got {_show(instance)}){_number_text_hint(instance)}"
+
+    if kind == "enum":
+        allowed = ", ".join(str(v) for v in value)
+        return parts, f"must be one of {allowed} (got {_show(instance)}){_did_you_mean(instance, value)}"
+
+    if "propertyNames" in error.relative_schema_path or "propertyNames" in error.schema_path:
+        # The name itself is wrong: point at it.
+        what = schema.get("description", "") if isinstance(schema, Mapping) else ""
+        problem = f"invalid name: must match {schema.get('pattern', value)}"
+        if what:
+            problem += f"; {what.rstrip('.')}"
+        return parts + [instance], problem
+
+    if kind == "uniqueItems" and isinstance(instance, list):
+        for j, item in enumerate(instance):
+            for i in range(j):
+                if _same(instance[i], item):
+                    return parts + [j], f"duplicate of {_field(parts + [i])} ({_show(item)})"
+
+    if kind == "minItems":
+        return parts, f"must list at least {value} item{'s' if value != 1 else ''}"
+    if kind == "minProperties":
+        return parts, f"must have at least {value} entr{'ies' if value != 1 else 'y'}"
+    if kind == "minimum":
+        return parts, f"must be ≥ {value} (got {_show(instance)})"
+    return parts, error.message
+
+
+def _physical_problems(config: Mapping) -> Iterator[tuple[str, str]]:
+    """(field, problem) pairs for a config that already matches the schema.
+
+    Stages run in order and stop after the first stage with problems, so every later stage can
+    rely on what the earlier ones checked (e.g. load_freq > 0 before the load-cycle check).
+    """
+    for stage in (_value_problems, _sampling_problems, _noise_problems, _all_scenario_problems):
+        problems = list(stage(config))
+        if problems:
+            yield from problems
+            return
+
+
+def _value_problems(config: Mapping) -> Iterator[tuple[str, str]]:
+    for section, names in (("rig", model.RIG_PARAMETERS), ("operating", model.OPERATING_PARAMETERS)):
+        for name in names:
+            problem = model.PARAMETER_BY_NAME[name].problem(config[section][name])
+            if problem is not None:
+                yield f"{section}.{name}", problem
+
+
+def _sampling_problems(config: Mapping) -> Iterator[tuple[str, str]]:
+    s = config["sampling"]
+    fs, t_warm, t_rec = s["fs"], s["t_warm"], s["t_rec"]
+    bad = False
+    for key, value, positive, unit in (
+        ("fs", fs, True, "Hz"),
+        ("t_warm", t_warm, False, "s"),
+        ("t_rec", t_rec, True, "s"),
+    ):
+        if not math.isfinite(value) or value < 0 or (positive and value == 0):
+            bad = True
+            yield f"sampling.{key}", f"must be a finite number {'>' if positive else '≥'} 0 {unit} (got {value})"
+    if bad:
+        return
+    n = fs * t_rec
+    if abs(n - round(n)) > 1e-6 * max(1.0, n):
+        yield "sampling.t_rec", f"fs·t_rec = {n:.10g} must be a whole number of samples (fs = {fs:g} Hz, t_rec = {t_rec:g} s)"
+    yield from _load_cycle_problem("sampling.t_rec", fs, t_rec, config["operating"]["load_freq"])
+
+
+def _noise_problems(config: Mapping) -> Iterator[tuple[str, str]]:
+    for i, snr in enumerate(config["noise"]["snr_db"]):
+        if not math.isfinite(snr):
+            yield f"noise.snr_db[{i}]", f"must be a finite number of dB (got {snr})"
+
+
+def _all_scenario_problems(config: Mapping) -> Iterator[tuple[str, str]]:
+    base = base_values(config)
+    s = config["sampling"]
+    for name, scenario in config["scenarios"].items():
+        yield from _scenario_problems(f"scenarios.{name}", scenario, base, s["fs"], s["t_rec"])
+
+
+def _scenario_problems(
+    where: str, scenario: Mapping, base: Mapping[str, float], fs: float, t_rec: float
+) -> Iterator[tuple[str, str]]:
+    spec = list(_scenario_spec_problems(where, scenario, base))
+    if spec:
+        yield from spec
+        return  # the resulting values cannot be computed from a broken spec
+
+    # The resulting model values (overrides and fault combined, fault defaults derived from the base).
+    overrides = scenario.get("overrides", {})
+    fault = scenario.get("fault")
+    fault_params: Mapping[str, float] = fault.get("parameters", {}) if fault else {}
+    values = faults.scenario_values(scenario, base)
+    set_by_fault = {}
+    if fault:
+        kind = faults.FAULT_KINDS[fault["kind"]]
+        set_by_fault = {
+            slot: name for name, slot in kind.slots.items() if slot in kind.model_values(fault_params, values)
+        }
+    for name, value in values.items():
+        if value == model.DEFAULTS[name]:
+            continue  # a model default is physical by definition (T_max = inf: never slips)
+        problem = model.PARAMETER_BY_NAME[name].problem(value)
+        if problem is None:
+            continue
+        if name in set_by_fault:
+            fault_name = set_by_fault[name]
+            field = f"{where}.fault.parameters.{fault_name}" if fault_name in fault_params else f"{where}.fault"
+        elif name in overrides:
+            field = f"{where}.overrides.{name}"
+        else:
+            field = f"{'rig' if name in model.RIG_PARAMETERS else 'operating'}.{name}"
+        yield field, f"resulting {name} {problem}"
+
+    if "load_freq" in overrides:
+        yield from _load_cycle_problem(f"{where}.overrides.load_freq", fs, t_rec, values["load_freq"])
+
+
+def _scenario_spec_problems(where: str, scenario: Mapping, base: Mapping[str, float]) -> Iterator[tuple[str, str]]:
+    """Problems of a scenario's overrides and fault taken one by one."""
+    overrides = scenario.get("overrides", {})
+    for key, value in overrides.items():
+        field = f"{where}.overrides.{key}"
+        if key in _FAULT_PARAMETER_OWNER:
+            yield field, f"is a parameter of the {_FAULT_PARAMETER_OWNER[key]} fault: set it under fault.parameters, not overrides"
+        elif key not in OVERRIDABLE:
+            yield field, f"unknown rig or operating parameter{_did_you_mean(key, OVERRIDABLE)} (known: {', '.join(OVERRIDABLE)})"
+        elif (problem := model.PARAMETER_BY_NAME[key].problem(value)) is not None:
+            yield field, problem
+
+    fault = scenario.get("fault")
+    if fault:
+        with_overrides = {**base, **overrides}  # override problems, if any, were reported first
+        for sub, problem in faults.fault_problems(fault["kind"], fault.get("parameters", {}), with_overrides):
+            yield f"{where}.fault.{sub}", problem
+
+
+def _load_cycle_problem(field: str, fs: float, t_rec: float, load_freq: float) -> Iterator[tuple[str, str]]:
+    """The recorded window must hold at least one load cycle, i.e. fs·t_rec ≥ fs/load_freq samples."""
+    cycle = 1.0 / load_freq
+    if t_rec * fs < fs * cycle * (1.0 - 1e-9):
+        yield field, (
+            f"the record of {t_rec:g} s ({round(t_rec * fs)} samples) is shorter than one load cycle "
+            f"1/load_freq = {cycle:.6g} s ({fs * cycle:.6g} samples at fs = {fs:g} Hz)"
+        )
+
+
+# ----------------------------------------------------------------------------------------------------
+# helpers for the workflow
+
+
+def base_values(config: Mapping) -> dict[str, float]:
+    """Rig and operating values of the config merged into one mapping of model names to floats."""
+    return {name: float(value) for section in ("rig", "operating") for name, value in config[section].items()}
+
+
+def sampling(config: Mapping) -> model.Sampling:
+    """The recorded samples of the study."""
+    s = config["sampling"]
+    return model.Sampling.from_window(s["fs"], s["t_warm"], s["t_rec"])
+
+
+def scenario_names(config: Mapping) -> list[str]:
+    """Scenario names in config order."""
+    return list(config["scenarios"])
+
+
+def scenario_values(config: Mapping, name: str) -> dict[str, float]:
+    """All model parameter values of scenario ``name``: rig and operating, its overrides, its fault."""
+    scenarios = config["scenarios"]
+    if name not in scenarios:
+        raise KeyError(f"unknown scenario {name!r} (known: {', '.join(scenarios)})")
+    return faults.scenario_values(scenarios[name], base_values(config))
+
+
+def canonical_json(obj: Any) -> str:
+    """Canonical JSON text of ``obj``: sorted keys, no spaces, every number as a float.
+
+    ``{"b": 3.25e6, "a": 1}`` and ``{"a": 1.0, "b": 3250000}`` give the same text, so reordering YAML
+    keys or respelling a number changes nothing downstream (hashes, file attributes).  Non-finite
+    floats come out as ``Infinity`` / ``NaN`` (as Python's json writes and reads them).
+    """
+    return json.dumps(_normalise(obj), sort_keys=True, separators=(",", ":"), ensure_ascii=True)
+
+
+def _normalise(obj: Any) -> Any:
+    if obj is None or isinstance(obj, (bool, str)):
+        return obj
+    if isinstance(obj, numbers.Real):
+        value = float(obj)
+        return 0.0 if value == 0.0 else value  # -0.0 and 0 -> 0.0
+    if isinstance(obj, Mapping):
+        return {str(k): _normalise(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_normalise(v) for v in obj]
+    if hasattr(obj, "tolist"):  # numpy arrays, numpy bools
+        return _normalise(obj.tolist())
+    raise TypeError(f"canonical_json cannot encode {type(obj).__name__}")
+
+
+# ----------------------------------------------------------------------------------------------------
+# small formatting helpers
+
+
+def _field(parts: list) -> str:
+    """Dotted field path; list indices in brackets: ``noise.snr_db[1]``."""
+    text = ""
+    for part in parts:
+        if isinstance(part, int) and not isinstance(part, bool):
+            text += f"[{part}]"
+        else:
+            text += ("." if text else "") + str(part)
+    return text
+
+
+def _show(value: Any) -> str:
+    if value is None:
+        return "an empty value"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return f"the text {_short(repr(value))}"
+    if isinstance(value, Mapping):
+        return "a mapping"
+    if isinstance(value, list):
+        return "a list"
+    return _short(repr(value))
+
+
+def _short(text: str, limit: int = 60) -> str:
+    return text if len(text) <= limit else text[: limit - 1] + "…"
+
+
+def _number_text_hint(value: Any) -> str:
+    if not isinstance(value, str):
+        return ""
+    try:
+        float(value)
+    except ValueError:
+        return ""
+    if re.fullmatch(r"\s*[+-]?(\d+\.?\d*|\.\d+)[eE]\d+\s*", value):
+        return f"; YAML reads an exponent without a sign as text: write {value.strip().replace('e', 'e+').replace('E', 'E+')}"
+    return "; remove the quotes to make it a number"
+
+
+def _did_you_mean(value: Any, choices) -> str:
+    if not isinstance(value, str):
+        return ""
+    close = difflib.get_close_matches(value, [str(c) for c in choices], n=1, cutoff=0.6)
+    return f"; did you mean {close[0]!r}?" if close else ""
+
+
+def _same(a: Any, b: Any) -> bool:
+    """Equality as JSON Schema's uniqueItems sees it (1 == 1.0, but True != 1)."""
+    if isinstance(a, bool) or isinstance(b, bool):
+        return type(a) is type(b) and a == b
+    return a == b
+
+
+def _non_text_keys(obj: Any, parts: list) -> Iterator[tuple[list, Any]]:
+    """(path of the mapping, key) for every key that is not a string (YAML reads ``1:`` as a number)."""
+    if isinstance(obj, Mapping):
+        for key, value in obj.items():
+            if not isinstance(key, str):
+                yield parts, key
+            else:
+                yield from _non_text_keys(value, parts + [key])
+    elif isinstance(obj, list):
+        for i, value in enumerate(obj):
+            yield from _non_text_keys(value, parts + [i])
+
+
+def _duplicate_keys(node: yaml.Node | None, parts: list) -> Iterator[tuple[list, int]]:
+    """(path, line) of every key that appears twice in the same YAML mapping."""
+    if isinstance(node, yaml.MappingNode):
+        seen = set()
+        for key_node, value_node in node.value:
+            key = key_node.value if isinstance(key_node, yaml.ScalarNode) else None
+            if key is not None and key in seen:
+                yield parts + [key], key_node.start_mark.line + 1
+            seen.add(key)
+            yield from _duplicate_keys(value_node, parts + [key])
+    elif isinstance(node, yaml.SequenceNode):
+        for i, item in enumerate(node.value):
+            yield from _duplicate_keys(item, parts + [i])

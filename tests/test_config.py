@@ -1,0 +1,558 @@
+"""Tests of the study configuration layer (newdyn.config, config/*.yaml, the config schema)."""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import math
+import re
+from pathlib import Path
+
+import pytest
+import yaml
+
+from newdyn import config as cfg
+from newdyn import faults, model
+
+ROOT = Path(__file__).resolve().parents[1]
+DEFAULT = ROOT / "config" / "config.yaml"
+CI = ROOT / ".test" / "config.yaml"
+SCHEMA = ROOT / "workflow" / "schemas" / "config.schema.yaml"
+README = ROOT / "config" / "README.md"
+SOURCE = "config/config.yaml"
+
+
+@pytest.fixture(scope="module")
+def default_config() -> dict:
+    return cfg.load(DEFAULT, SCHEMA)
+
+
+def error_of(config: object, source: str = SOURCE) -> cfg.ConfigError:
+    with pytest.raises(cfg.ConfigError) as info:
+        cfg.check(config, source, SCHEMA)
+    return info.value
+
+
+def assert_one_line(err: cfg.ConfigError, source: str, field: str, *words: str) -> None:
+    text = str(err)
+    assert "\n" not in text and "\r" not in text, text
+    assert text.startswith(f"{source}: {field}: "), text
+    assert (err.source, err.field) == (source, field)
+    for word in words:
+        assert word in err.problem, text
+
+
+# --------------------------------------------------------------------------------------------------
+# the shipped configs
+
+
+@pytest.mark.parametrize("path", [DEFAULT, CI], ids=["default", "ci"])
+def test_shipped_configs_pass(path):
+    config = cfg.load(path, SCHEMA)
+    assert set(config) == {"rig", "operating", "sampling", "simulation", "noise", "scenarios"}
+    for name in config["scenarios"]:
+        values = cfg.scenario_values(config, name)
+        assert set(values) == set(model.PARAMETER_NAMES)
+
+
+def test_default_schema_path_is_the_repository_schema(default_config):
+    assert cfg.SCHEMA_PATH == SCHEMA
+    cfg.check(copy.deepcopy(default_config), SOURCE)  # default schema_path
+
+
+def test_default_config_is_rig_md(default_config):
+    for name in model.RIG_PARAMETERS + model.OPERATING_PARAMETERS:
+        assert cfg.base_values(default_config)[name] == pytest.approx(model.DEFAULTS[name], rel=1e-12), name
+    assert default_config["simulation"]["channels"] == list(model.CHANNELS)
+    assert default_config["simulation"]["max_step"] == 1.0e-4
+    assert default_config["noise"] == {"snr_db": [40, 20], "seeds": [1]}
+    assert list(default_config["scenarios"]) == [
+        "healthy",
+        "kT1_up",
+        "kT3_down",
+        "stick_slip",
+        "breathing_crack",
+        "cubic_coupling",
+        "loose_bearing",
+    ]
+    s = cfg.sampling(default_config)
+    assert (s.fs, s.t_first, s.n_samples) == (5000.0, 0.5, 5000)
+
+
+def test_ci_config(default_config):
+    ci = cfg.load(CI, SCHEMA)
+    assert ci["rig"] == default_config["rig"] and ci["operating"] == default_config["operating"]
+    assert cfg.sampling(ci).n_samples == 500
+    assert ci["simulation"] == {"channels": ["b1_x", "w1", "torque_c"], "max_step": 1.0e-4}
+    assert ci["noise"] == {"snr_db": [40], "seeds": [1]}
+    assert list(ci["scenarios"]) == ["healthy", "kT1_up", "stick_slip"]
+
+
+# --------------------------------------------------------------------------------------------------
+# bad configs: one ConfigError line naming the file and the field
+
+
+def _set(path: str, value):
+    """Mutation setting a dotted path (created if missing)."""
+
+    def mutate(c):
+        *parents, last = path.split(".")
+        node = c
+        for key in parents:
+            node = node.setdefault(key, {})
+        node[last] = value
+
+    return mutate
+
+
+def _del(path: str):
+    def mutate(c):
+        *parents, last = path.split(".")
+        node = c
+        for key in parents:
+            node = node[key]
+        del node[last]
+
+    return mutate
+
+
+def _rename(path: str, new: str):
+    def mutate(c):
+        *parents, last = path.split(".")
+        node = c
+        for key in parents:
+            node = node[key]
+        node[new] = node.pop(last)
+
+    return mutate
+
+
+def _fault(scenario: str, kind: str, **parameters):
+    return _set(f"scenarios.{scenario}.fault", {"kind": kind, "parameters": parameters})
+
+
+BAD = {
+    # structure (schema)
+    "missing sampling.fs": (_del("sampling.fs"), "sampling.fs", "missing required key"),
+    "missing section": (_del("noise"), "noise", "missing required key"),
+    "missing rig value": (_del("rig.k_bx"), "rig.k_bx", "missing required key"),
+    "missing fault kind": (_del("scenarios.kT1_up.fault.kind"), "scenarios.kT1_up.fault.kind", "missing"),
+    "extra rig key": (_set("rig.kT11", 3.0e6), "rig.kT11", "unknown key", "kT1"),
+    "mistyped rig key": (_rename("rig.kT1", "kT11"), "rig.kT11", "unknown key", "did you mean 'kT1'"),
+    "mistyped top-level key": (_rename("noise", "nosie"), "nosie", "unknown key", "noise"),
+    "mistyped sampling key": (_rename("sampling.t_rec", "t_record"), "sampling.t_record", "unknown key"),
+    "mistyped scenario key": (_rename("scenarios.kT1_up.fault", "falt"), "scenarios.kT1_up.falt", "unknown key"),
+    "mistyped fault key": (
+        _rename("scenarios.kT1_up.fault.parameters", "params"),
+        "scenarios.kT1_up.fault.params",
+        "unknown key",
+    ),
+    "string for a number": (_set("rig.J1", "heavy"), "rig.J1", "must be a number", "'heavy'"),
+    "exponent without sign": (_set("rig.kT1", "3.0e6"), "rig.kT1", "must be a number", "3.0e+6"),
+    "string for an operating value": (_set("operating.speed_rpm", "fast"), "operating.speed_rpm", "must be a number"),
+    "bool for a number": (_set("sampling.fs", True), "sampling.fs", "must be a number"),
+    "list for a mapping": (_set("rig", [1, 2]), "rig", "must be a mapping"),
+    "string for a fault parameter": (
+        _fault("stick_slip", "stick_slip", T_max="high"),
+        "scenarios.stick_slip.fault.parameters.T_max",
+        "number",
+    ),
+    "string for an override": (
+        _set("scenarios.healthy.overrides", {"J1": "4"}),
+        "scenarios.healthy.overrides.J1",
+        "number",
+    ),
+    "text max_step": (_set("simulation.max_step", "1e-4"), "simulation.max_step", "number"),
+    "zero max_step": (_set("simulation.max_step", 0), "simulation.max_step", "minimum"),
+    "string seed": (_set("noise.seeds", ["a"]), "noise.seeds[0]", "whole number"),
+    "negative seed": (_set("noise.seeds", [1, -1]), "noise.seeds[1]", "≥ 0"),
+    "duplicate seed": (_set("noise.seeds", [1, 2, 1]), "noise.seeds[2]", "duplicate of noise.seeds[0]"),
+    "duplicate snr": (_set("noise.snr_db", [40, 40.0]), "noise.snr_db[1]", "duplicate"),
+    "empty snr list": (_set("noise.snr_db", []), "noise.snr_db", "at least 1"),
+    "unknown channel": (
+        _set("simulation.channels", ["b1_x", "b5_x"]),
+        "simulation.channels[1]",
+        "must be one of",
+        "b5_x",
+    ),
+    "duplicate channel": (_set("simulation.channels", ["w1", "b1_x", "w1"]), "simulation.channels[2]", "duplicate"),
+    "bad scenario name": (_set("scenarios.bad name", {}), "scenarios.bad name", "must match"),
+    "scenario name with a slash": (_set("scenarios.a/b", {}), "scenarios.a/b", "must match"),
+    "no scenarios": (_set("scenarios", {}), "scenarios", "at least 1"),
+    "empty fault": (_set("scenarios.healthy.fault", None), "scenarios.healthy.fault", "must be a mapping"),
+    "unknown fault kind": (
+        _fault("kT1_up", "rust", depth=1.0),
+        "scenarios.kT1_up.fault.kind",
+        "must be one of",
+        "stick_slip",
+    ),
+    # physics: rig, operating, sampling, noise
+    "zero mass": (_set("rig.m1", 0.0), "rig.m1", "must lie in (0, inf) kg"),
+    "negative bearing mass": (_set("rig.m_b", -50.0), "rig.m_b", "must lie in (0, inf) kg"),
+    "zero inertia": (_set("rig.J2a", 0), "rig.J2a", "must lie in (0, inf) kg·m²"),
+    "negative inertia": (_set("rig.J4", -6.0), "rig.J4", "(got -6)"),
+    "zero torsional stiffness": (_set("rig.kT2", 0.0), "rig.kT2", "must lie in (0, inf) N·m/rad"),
+    "negative lateral stiffness": (_set("rig.k_s", -2.0e8), "rig.k_s", "must lie in (0, inf) N/m"),
+    "slip of one": (_set("rig.slip", 1.0), "rig.slip", "must lie in"),
+    "negative damping": (_set("rig.beta", -1e-5), "rig.beta", "[0, inf)"),
+    "non-finite rig value": (_set("rig.J1", math.inf), "rig.J1", "finite"),
+    "fractional harmonics": (_set("operating.load_harm", 6.5), "operating.load_harm", "whole number"),
+    "zero speed": (_set("operating.speed_rpm", 0), "operating.speed_rpm", "must lie in"),
+    "zero fs": (_set("sampling.fs", 0), "sampling.fs", "> 0"),
+    "infinite fs": (_set("sampling.fs", math.inf), "sampling.fs", "finite"),
+    "negative warm-up": (_set("sampling.t_warm", -0.1), "sampling.t_warm", "≥ 0"),
+    "fractional sample count": (_set("sampling.t_rec", 1.00001), "sampling.t_rec", "whole number of samples"),
+    "t_rec shorter than one load cycle": (
+        _set("sampling.t_rec", 0.05),
+        "sampling.t_rec",
+        "shorter than one load cycle",
+    ),
+    "infinite snr": (_set("noise.snr_db", [40, math.inf]), "noise.snr_db[1]", "finite", "inf"),
+    "minus infinite snr": (_set("noise.snr_db", [-math.inf]), "noise.snr_db[0]", "finite"),
+    "nan snr": (_set("noise.snr_db", [math.nan, 20]), "noise.snr_db[0]", "finite", "nan"),
+    # physics: scenarios
+    "zero mass override": (
+        _set("scenarios.healthy.overrides", {"m4": 0.0}),
+        "scenarios.healthy.overrides.m4",
+        "(0, inf) kg",
+    ),
+    "negative inertia override": (
+        _set("scenarios.stick_slip.overrides", {"J2b": -0.1}),
+        "scenarios.stick_slip.overrides.J2b",
+        "(0, inf)",
+    ),
+    "zero stiffness override": (
+        _set("scenarios.kT1_up.overrides", {"kT3": 0}),
+        "scenarios.kT1_up.overrides.kT3",
+        "(0, inf)",
+    ),
+    "non-finite override": (
+        _set("scenarios.healthy.overrides", {"T0": math.nan}),
+        "scenarios.healthy.overrides.T0",
+        "finite",
+    ),
+    "unknown override": (
+        _set("scenarios.healthy.overrides", {"kT9": 1.0}),
+        "scenarios.healthy.overrides.kT9",
+        "unknown rig or operating",
+    ),
+    "fault parameter as override": (
+        _set("scenarios.healthy.overrides", {"T_max": 100.0}),
+        "scenarios.healthy.overrides.T_max",
+        "stick_slip fault",
+    ),
+    "override load cycle longer than the record": (
+        _set("scenarios.healthy.overrides", {"load_freq": 0.5}),
+        "scenarios.healthy.overrides.load_freq",
+        "shorter than one load cycle",
+    ),
+    "parameter_change to negative stiffness": (
+        _fault("kT1_up", "parameter_change", kT1=-1.0),
+        "scenarios.kT1_up.fault.parameters.kT1",
+        "(0, inf) N·m/rad",
+    ),
+    "parameter_change to zero mass": (
+        _fault("kT1_up", "parameter_change", m2=0.0),
+        "scenarios.kT1_up.fault.parameters.m2",
+        "(0, inf) kg",
+    ),
+    "parameter_change to zero inertia": (
+        _fault("kT1_up", "parameter_change", J3=0.0),
+        "scenarios.kT1_up.fault.parameters.J3",
+        "(0, inf) kg·m²",
+    ),
+    "parameter_change of an unknown parameter": (
+        _fault("kT1_up", "parameter_change", kT11=3.0e6),
+        "scenarios.kT1_up.fault.parameters.kT11",
+        "unknown parameter",
+    ),
+    "parameter_change of an operating parameter": (
+        _fault("kT1_up", "parameter_change", speed_rpm=1500.0),
+        "scenarios.kT1_up.fault.parameters.speed_rpm",
+        "unknown",
+    ),
+    "parameter_change of nothing": (
+        _fault("kT1_up", "parameter_change"),
+        "scenarios.kT1_up.fault.parameters",
+        "at least one",
+    ),
+    "unknown fault parameter": (
+        _fault("stick_slip", "stick_slip", T_maxx=1854.95),
+        "scenarios.stick_slip.fault.parameters.T_maxx",
+        "unknown parameter",
+    ),
+    "crack parameter on stick_slip": (
+        _fault("stick_slip", "stick_slip", alpha=0.2),
+        "scenarios.stick_slip.fault.parameters.alpha",
+        "unknown parameter",
+    ),
+    "zero T_max": (
+        _fault("stick_slip", "stick_slip", T_max=0.0),
+        "scenarios.stick_slip.fault.parameters.T_max",
+        "(0, inf) N·m",
+    ),
+    "negative T_max": (
+        _fault("stick_slip", "stick_slip", T_max=-5.0),
+        "scenarios.stick_slip.fault.parameters.T_max",
+        "(got -5)",
+    ),
+    "infinite T_max": (
+        _fault("stick_slip", "stick_slip", T_max=math.inf),
+        "scenarios.stick_slip.fault.parameters.T_max",
+        "finite",
+    ),
+    "zero r_k": (
+        _fault("stick_slip", "stick_slip", r_k=0.0),
+        "scenarios.stick_slip.fault.parameters.r_k",
+        "must lie in",
+    ),
+    "crack alpha of one": (
+        _fault("breathing_crack", "breathing_crack", alpha=1.0),
+        "scenarios.breathing_crack.fault.parameters.alpha",
+        "[0, 1)",
+    ),
+    "negative gap": (
+        _fault("loose_bearing", "loose_bearing", gap=-1e-7),
+        "scenarios.loose_bearing.fault.parameters.gap",
+        "[0, inf) m",
+    ),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD), ids=list(BAD))
+def test_bad_config_gives_one_line_naming_file_and_field(default_config, case):
+    mutate, field, *words = BAD[case]
+    config = copy.deepcopy(default_config)
+    mutate(config)
+    assert_one_line(error_of(config), SOURCE, field, *words)
+
+
+def test_resulting_values_are_checked(default_config, monkeypatch):
+    """A value derived from the base (here a broken stick-slip default) is checked after combining."""
+    kind = faults.FAULT_KINDS["stick_slip"]
+    broken = dataclasses.replace(kind, defaults={**kind.defaults, "r_k": lambda base: 2.0})
+    monkeypatch.setitem(faults.FAULT_KINDS, "stick_slip", broken)
+    config = copy.deepcopy(default_config)
+    del config["scenarios"]["stick_slip"]["fault"]["parameters"]["r_k"]
+    assert_one_line(error_of(config), SOURCE, "scenarios.stick_slip.fault", "resulting r_k", "(got 2)")
+
+
+def test_config_error_is_a_value_error():
+    err = cfg.ConfigError("a.yaml", "rig.J1", "bad\nthing")
+    assert isinstance(err, ValueError)
+    assert str(err) == "a.yaml: rig.J1: bad thing"
+
+
+def test_not_a_mapping():
+    assert_one_line(error_of([1, 2]), SOURCE, "(top level)", "must be a mapping")
+    assert_one_line(error_of(None), SOURCE, "(top level)", "must be a mapping")
+
+
+def test_non_text_key(default_config):
+    config = copy.deepcopy(default_config)
+    config["scenarios"][1] = {}
+    assert_one_line(error_of(config), SOURCE, "scenarios", "key 1 must be text")
+
+
+# --------------------------------------------------------------------------------------------------
+# errors in YAML text, through load()
+
+
+def _write(tmp_path: Path, text: str) -> Path:
+    path = tmp_path / "my.yaml"
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+def _default_text_with(old: str, new: str) -> str:
+    text = DEFAULT.read_text(encoding="utf-8")
+    assert text.count(old) == 1, old
+    return text.replace(old, new)
+
+
+@pytest.mark.parametrize(
+    "old, new, field, words",
+    [
+        ("snr_db: [40, 20]", "snr_db: [40, .inf]", "noise.snr_db[1]", ["finite", "inf"]),
+        ("snr_db: [40, 20]", "snr_db: [.nan]", "noise.snr_db[0]", ["finite", "nan"]),
+        ("snr_db: [40, 20]", "snr_db: [-.inf]", "noise.snr_db[0]", ["finite"]),
+        ("kT1: 3.25e+6", "kT1: 3.25e6", "scenarios.kT1_up.fault.parameters.kT1", ["must be a number", "3.25e+6"]),
+        ("  fs: 5000.0 ", "  fs: .inf ", "sampling.fs", ["finite"]),
+        ("  J3: 0.15 ", "  J3: 0.15\n  J3: 0.25 ", "rig.J3", ["duplicate key"]),
+        ("  kT3_down:\n", "  kT1_up:\n", "scenarios.kT1_up", ["duplicate key"]),
+        ("  t_rec: 1.0 ", "  t_rec: 0.05 ", "sampling.t_rec", ["load cycle"]),
+        ("    - w4 ", "    - w5 ", "simulation.channels[9]", ["must be one of"]),
+    ],
+)
+def test_yaml_file_errors(tmp_path, old, new, field, words):
+    path = _write(tmp_path, _default_text_with(old, new))
+    with pytest.raises(cfg.ConfigError) as info:
+        cfg.load(path, SCHEMA)
+    assert_one_line(info.value, str(path), field, *words)
+
+
+def test_invalid_yaml_and_missing_file(tmp_path):
+    path = _write(tmp_path, "rig: {J1: 4.0\nsampling: [")
+    with pytest.raises(cfg.ConfigError) as info:
+        cfg.load(path, SCHEMA)
+    assert_one_line(info.value, str(path), "(file)", "not valid YAML", "line")
+    missing = tmp_path / "nope.yaml"
+    with pytest.raises(cfg.ConfigError) as info:
+        cfg.load(missing, SCHEMA)
+    assert_one_line(info.value, str(missing), "(file)", "cannot read")
+
+
+# --------------------------------------------------------------------------------------------------
+# helpers
+
+
+def test_scenario_values(default_config):
+    c = copy.deepcopy(default_config)
+    assert cfg.scenario_values(c, "kT1_up")["kT1"] == 3.25e6
+    assert cfg.scenario_values(c, "healthy") == model.complete(cfg.base_values(c))
+    assert cfg.scenario_values(c, "breathing_crack")["crack_alpha"] == 0.2
+    assert cfg.scenario_values(c, "loose_bearing")["bearing_gap"] == 1e-7
+    # overrides come before the fault; the stick-slip default T_max = 1.15 T0 uses the overridden T0
+    c["scenarios"]["slow"] = {"overrides": {"T0": 1000.0, "speed_rpm": 990.0}, "fault": {"kind": "stick_slip"}}
+    cfg.check(c, SOURCE, SCHEMA)
+    values = cfg.scenario_values(c, "slow")
+    assert (values["T0"], values["speed_rpm"], values["T_max"], values["r_k"]) == (
+        1000.0,
+        990.0,
+        pytest.approx(1150.0),
+        1.0,
+    )
+    # a parameter_change wins over an override of the same parameter
+    c["scenarios"]["both"] = {
+        "overrides": {"kT1": 2.0e6},
+        "fault": {"kind": "parameter_change", "parameters": {"kT1": 4.0e6}},
+    }
+    assert cfg.scenario_values(c, "both")["kT1"] == 4.0e6
+    with pytest.raises(KeyError, match="unknown scenario"):
+        cfg.scenario_values(c, "nope")
+
+
+def test_sampling_helper(default_config):
+    c = copy.deepcopy(default_config)
+    c["sampling"].update(fs=2000, t_warm=0.25, t_rec=0.5)
+    cfg.check(c, SOURCE, SCHEMA)
+    s = cfg.sampling(c)
+    assert (s.fs, s.t_first, s.n_samples) == (2000.0, 0.25, 1000)
+    assert s.times[1] == pytest.approx(0.25 + 1 / 2000)
+
+
+@pytest.mark.parametrize(
+    "a, b",
+    [
+        ({"b": 3.25e6, "a": 1}, {"a": 1.0, "b": 3250000}),
+        ({"kT1": 3.25e6}, {"kT1": 3250000.0}),
+        ({"x": {"z": [1, 2.0], "y": 0}, "w": -0.0}, {"w": 0, "x": {"y": 0.0, "z": [1.0, 2]}}),
+    ],
+)
+def test_canonical_json_same_text(a, b):
+    assert cfg.canonical_json(a) == cfg.canonical_json(b)
+
+
+def test_canonical_json_form():
+    assert cfg.canonical_json({"b": 3.25e6, "a": [1, True, None, "s"]}) == '{"a":[1.0,true,null,"s"],"b":3250000.0}'
+    assert cfg.canonical_json({"a": 1}) != cfg.canonical_json({"a": 1.5})
+
+
+def test_reordered_yaml_changes_nothing_downstream(tmp_path, default_config):
+    reordered = {key: default_config[key] for key in reversed(list(default_config))}
+    reordered["rig"] = {
+        k: (int(v) if float(v).is_integer() else v) for k, v in reversed(list(default_config["rig"].items()))
+    }
+    reordered["scenarios"] = {k: default_config["scenarios"][k] for k in reversed(list(default_config["scenarios"]))}
+    path = tmp_path / "reordered.yaml"
+    path.write_text(yaml.safe_dump(reordered, sort_keys=False, allow_unicode=True), encoding="utf-8")
+    loaded = cfg.load(path, SCHEMA)
+    for name in default_config["scenarios"]:
+        assert cfg.canonical_json(cfg.scenario_values(loaded, name)) == cfg.canonical_json(
+            cfg.scenario_values(default_config, name)
+        )
+    assert cfg.canonical_json(loaded) == cfg.canonical_json(default_config)
+
+
+# --------------------------------------------------------------------------------------------------
+# schema and documentation stay in sync with the model
+
+
+def _schema() -> dict:
+    return yaml.safe_load(SCHEMA.read_text(encoding="utf-8"))
+
+
+def test_schema_matches_model():
+    schema = _schema()
+    props = schema["properties"]
+    assert list(props["rig"]["properties"]) == list(model.RIG_PARAMETERS)
+    assert props["rig"]["required"] == list(model.RIG_PARAMETERS)
+    assert list(props["operating"]["properties"]) == list(model.OPERATING_PARAMETERS)
+    assert props["operating"]["required"] == list(model.OPERATING_PARAMETERS)
+    assert props["simulation"]["properties"]["channels"]["items"]["enum"] == list(model.CHANNELS)
+    assert schema["$defs"]["fault"]["properties"]["kind"]["enum"] == list(faults.FAULT_KINDS)
+
+
+def _subschemas(node, path="#"):
+    if isinstance(node, dict):
+        yield path, node
+        for key, value in node.items():
+            yield from _subschemas(value, f"{path}/{key}")
+    elif isinstance(node, list):
+        for i, value in enumerate(node):
+            yield from _subschemas(value, f"{path}/{i}")
+
+
+def test_schema_is_closed_and_described():
+    for path, node in _subschemas(_schema()):
+        if path.endswith("/properties") or path.endswith("/$defs"):
+            continue  # maps of names, not schemas
+        if node.get("type") == "object":
+            assert "additionalProperties" in node, path
+            if "properties" in node:
+                assert node["additionalProperties"] is False, path
+        if path != "#" and ("type" in node or "enum" in node or "$ref" in node):
+            assert "description" in node or "$ref" in node, path
+    for path, node in _subschemas(_schema()):
+        if path.endswith("/properties"):
+            for key, sub in node.items():
+                assert "description" in sub or "$ref" in sub, f"{path}/{key}"
+
+
+def _leaf_keys(node, prefix=""):
+    for key, value in node.items():
+        yield key
+        if isinstance(value, dict) and prefix != "scenarios":
+            yield from _leaf_keys(value, key)
+
+
+def test_readme_documents_every_key(default_config):
+    readme = README.read_text(encoding="utf-8")
+    keys = set(_leaf_keys(default_config)) - set(default_config["scenarios"]) | {
+        "overrides",
+        "description",
+        "fault",
+        "kind",
+        "parameters",
+    }
+    for kind in faults.FAULT_KINDS.values():
+        keys |= {kind.name} | set(kind.slots) if kind.name != "parameter_change" else {kind.name}
+    missing = sorted(k for k in keys if not re.search(rf"`{re.escape(k)}`", readme))
+    assert not missing, f"config/README.md does not document: {missing}"
+    assert "--configfile" in readme
+
+
+@pytest.mark.parametrize(
+    "kind, parameters, field, problem",
+    [
+        ("breathing_crack", {}, "parameters.alpha", "needs its parameter alpha"),
+        ("loose_bearing", {}, "parameters.gap", "needs its parameter gap"),
+        ("stick_slip", {"T_max": 1500.0}, "parameters.T_max", "must exceed T0"),
+        ("stick_slip", {"T_max": 2000.0, "r_k": 0.5}, "parameters.T_max", "stalls"),
+        ("stick_slip", {"r_k": 1.5}, "parameters.r_k", "(0, 1]"),
+    ],
+)
+def test_fault_without_severity_or_unable_to_carry_the_load_is_rejected(default_config, kind, parameters, field, problem):
+    config = copy.deepcopy(default_config)
+    config["scenarios"]["x"] = {"fault": {"kind": kind, "parameters": parameters}}
+    assert_one_line(error_of(config), SOURCE, f"scenarios.x.fault.{field}", problem)
