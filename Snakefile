@@ -1,0 +1,21 @@
+# newdyn: find new dynamics in machines. Run: snakemake --cores 2
+# (another study: snakemake --cores 2 --configfile my.yaml; it replaces config/config.yaml whole)
+from snakemake.utils import min_version
+
+min_version("9.0")
+
+
+if not workflow.overwrite_configfiles:
+
+    configfile: "config/config.yaml"
+
+
+include: "workflow/rules/common.smk"
+include: "workflow/rules/simulate.smk"
+include: "workflow/rules/noise.smk"
+
+
+rule all:
+    input:
+        simulation_targets(),
+    default_target: True

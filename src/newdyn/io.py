@@ -1,0 +1,189 @@
+"""Measurement files (``shared/spec/measurements.md``): write simulated ones, read and check users'.
+
+A measurement is ``y`` (channel, time) with coordinates ``time`` [s] (the rig's clock: the model starts
+at t = 0) and ``channel``; optional operating-condition attributes, ``snr_db`` or a per-channel
+``sigma``.  Every problem with a file is one :class:`MeasurementError` line naming the file.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Mapping, Sequence
+
+import numpy as np
+import xarray as xr
+
+from . import model
+
+OPERATING_ATTRS = model.OPERATING_PARAMETERS  # speed_rpm, T0, load_amp, load_freq, load_harm
+TIME_JITTER = 1e-2  # allowed deviation of a time stamp from the uniform grid, in sample intervals
+FS_MAX = 1.0e6  # above this the fixed-step kernel would need too many steps to be useful
+
+
+class MeasurementError(ValueError):
+    """A bad measurement file; its message is one line: ``<file>: <problem>``."""
+
+    def __init__(self, path: str | os.PathLike, problem: str):
+        super().__init__(f"{path}: {problem}")
+
+
+@dataclass(frozen=True)
+class Measurement:
+    name: str
+    channels: tuple[str, ...]
+    y: np.ndarray  # (channel, time)
+    sampling: model.Sampling
+    operating: dict[str, float]
+    sigma: np.ndarray | None = None  # known per-channel noise σ, else None (to be inferred)
+    attrs: dict = field(default_factory=dict)
+
+
+def measurement_dataset(
+    y: np.ndarray,
+    channels: Sequence[str],
+    sampling: model.Sampling,
+    operating: Mapping[str, float],
+    attrs: Mapping[str, object] = {},
+    sigma: np.ndarray | None = None,
+) -> xr.Dataset:
+    """A measurement as an xarray Dataset; dict/list attributes are stored as JSON text."""
+    data = xr.DataArray(
+        np.asarray(y, dtype=np.float64),
+        dims=("channel", "time"),
+        coords={"channel": list(channels), "time": sampling.times},
+        attrs={"long_name": "measured signal", "units": json.dumps({c: model.CHANNEL_UNITS[c] for c in channels})},
+    )
+    ds = xr.Dataset({"y": data})
+    ds["time"].attrs.update(units="s", long_name="rig clock (model starts at t = 0)")
+    if sigma is not None:
+        ds = ds.assign_coords(sigma=("channel", np.asarray(sigma, dtype=np.float64)))
+        ds["sigma"].attrs.update(long_name="noise standard deviation", units="channel units")
+    ds.attrs.update({name: float(operating[name]) for name in OPERATING_ATTRS})
+    ds.attrs.update(
+        {k: json.dumps(v, sort_keys=True) if isinstance(v, (dict, list, tuple)) else v for k, v in attrs.items()}
+    )
+    return ds
+
+
+def write_netcdf(ds: xr.Dataset, path: str | os.PathLike) -> None:
+    """Write atomically: a crash leaves either the old file or none, never half a file."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    try:
+        ds.to_netcdf(tmp, engine="netcdf4")
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def read_measurement(path: str | os.PathLike, operating_defaults: Mapping[str, float] | None = None) -> Measurement:
+    """Read and check a ``.nc`` or ``.csv`` measurement; operating values missing from it take the defaults."""
+    path = Path(path)
+    if not path.is_file():
+        raise MeasurementError(path, "file not found")
+    suffix = path.suffix.lower()
+    if suffix == ".nc":
+        channels, times, y, attrs, sigma = _read_netcdf(path)
+    elif suffix == ".csv":
+        channels, times, y = _read_csv(path)
+        attrs, sigma = {}, None
+    else:
+        raise MeasurementError(path, f"unsupported file type '{suffix}' (expected .nc or .csv)")
+
+    unknown = [c for c in channels if c not in model.CHANNELS]
+    if unknown:
+        raise MeasurementError(path, f"unknown channel '{unknown[0]}' (known: {', '.join(model.CHANNELS)})")
+    if len(set(channels)) != len(channels):
+        raise MeasurementError(path, "a channel appears twice")
+    if not np.all(np.isfinite(y)):
+        c, k = np.argwhere(~np.isfinite(y))[0]
+        raise MeasurementError(path, f"non-finite value {y[c, k]} in channel '{channels[c]}' at sample {k}")
+
+    operating = dict(operating_defaults or {name: model.DEFAULTS[name] for name in OPERATING_ATTRS})
+    for name in OPERATING_ATTRS:
+        if name in attrs:
+            value = attrs[name]
+            problem = model.PARAMETER_BY_NAME[name].problem(value.item() if isinstance(value, np.generic) else value)
+            if problem:
+                raise MeasurementError(path, f"attribute {name} {problem}")
+            operating[name] = float(value)
+
+    sampling = _check_time(path, times, operating["load_freq"])
+    snr = attrs.get("snr_db")
+    if sigma is None and snr is not None:
+        if isinstance(snr, str) or not math.isfinite(float(snr)):
+            raise MeasurementError(path, f"attribute snr_db must be a finite number (got {snr!r})")
+    if sigma is not None and not (np.all(np.isfinite(sigma)) and np.all(sigma > 0)):
+        raise MeasurementError(path, "coordinate sigma must be finite and positive")
+    return Measurement(path.stem, tuple(channels), y, sampling, operating, sigma, dict(attrs))
+
+
+def _read_netcdf(path: Path):
+    try:
+        with xr.open_dataset(path, engine="netcdf4") as ds:
+            ds.load()
+    except Exception as exc:  # netCDF4 raises OSError, ValueError or RuntimeError for damaged files
+        raise MeasurementError(path, f"unreadable or truncated NetCDF ({type(exc).__name__}: {exc})") from None
+    if "y" not in ds:
+        raise MeasurementError(path, "no variable 'y'")
+    y = ds["y"]
+    if set(y.dims) != {"channel", "time"}:
+        raise MeasurementError(path, f"variable 'y' must have dims (channel, time), has {y.dims}")
+    y = y.transpose("channel", "time")
+    if "channel" not in y.coords or "time" not in y.coords:
+        raise MeasurementError(path, "variable 'y' needs coordinates 'channel' and 'time'")
+    channels = [str(c) for c in y["channel"].values]
+    times = np.asarray(y["time"].values)
+    if not np.issubdtype(times.dtype, np.number):
+        raise MeasurementError(path, f"coordinate 'time' must be numeric seconds (is {times.dtype})")
+    sigma = np.asarray(ds["sigma"].values, dtype=float) if "sigma" in y.coords else None
+    return channels, times.astype(float), np.asarray(y.values, dtype=float), dict(ds.attrs), sigma
+
+
+def _read_csv(path: Path):
+    try:
+        with open(path, newline="") as f:
+            header = f.readline().strip().split(",")
+        data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise MeasurementError(path, f"unreadable or truncated CSV ({exc})") from None
+    header = [h.strip() for h in header]
+    if header[:1] != ["time"]:
+        raise MeasurementError(path, "header must start with 'time'")
+    if len(header) < 2:
+        raise MeasurementError(path, "no channel columns")
+    if data.shape[1] != len(header):
+        raise MeasurementError(path, f"rows have {data.shape[1]} columns, header has {len(header)}")
+    return header[1:], data[:, 0], data[:, 1:].T.copy()
+
+
+def _check_time(path: Path, times: np.ndarray, load_freq: float) -> model.Sampling:
+    if times.size < 2:
+        raise MeasurementError(path, f"only {times.size} sample(s)")
+    if not np.all(np.isfinite(times)):
+        raise MeasurementError(path, "non-finite time stamp")
+    steps = np.diff(times)
+    if np.any(steps <= 0):
+        raise MeasurementError(path, f"time is not increasing (at sample {int(np.argmax(steps <= 0)) + 1})")
+    dt = (times[-1] - times[0]) / (times.size - 1)
+    worst = np.max(np.abs(times - (times[0] + dt * np.arange(times.size))))
+    if worst > TIME_JITTER * dt:
+        raise MeasurementError(path, f"time is not uniform (a stamp is {worst / dt:.3g} sample intervals off the grid)")
+    fs = 1.0 / dt
+    if times.size * dt < 1.0 / load_freq:
+        raise MeasurementError(
+            path, f"{times.size} samples span {times.size * dt:.4g} s, less than one load cycle (1/{load_freq:g} Hz)"
+        )
+    if times[0] < 0:
+        raise MeasurementError(path, f"time starts at {times[0]:g} s, before the model's start at t = 0")
+    if fs > FS_MAX:
+        raise MeasurementError(path, f"sampling rate {fs:.6g} Hz is above the {FS_MAX:.0e} Hz the simulator reproduces")
+    return model.Sampling(fs=fs, t_first=float(times[0]), n_samples=int(times.size))

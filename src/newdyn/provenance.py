@@ -1,0 +1,38 @@
+"""What produced a result: package and dependency versions, and a hash of the science code.
+
+Snakemake reruns a job when its rule text or params change but cannot see the modules a rule
+imports; passing :func:`source_hash` of those modules as a param makes a model edit rerun exactly
+the jobs that depend on it.  Kept free of heavy imports: the Snakefile imports it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import platform
+from importlib import metadata
+from importlib.util import find_spec
+
+_DEPENDENCIES = ("numpy", "scipy", "numba", "xarray", "netCDF4")
+
+
+def source_hash(*modules: str) -> str:
+    """SHA-256 (first 16 hex digits) over the source files of ``newdyn.<module>`` for each module."""
+    digest = hashlib.sha256()
+    for name in sorted(modules):
+        spec = find_spec(f"newdyn.{name}")
+        if spec is None or spec.origin is None:
+            raise ModuleNotFoundError(f"newdyn.{name}")
+        with open(spec.origin, "rb") as source:
+            digest.update(name.encode() + b"\0" + source.read())
+    return digest.hexdigest()[:16]
+
+
+def versions() -> dict[str, str]:
+    """Versions of newdyn, Python and the numerical dependencies, for file attributes."""
+    found = {"python": platform.python_version()}
+    for package in ("newdyn", *_DEPENDENCIES):
+        try:
+            found[package] = metadata.version(package)
+        except metadata.PackageNotFoundError:
+            found[package] = "not installed"
+    return found

@@ -1,0 +1,50 @@
+# Config checking and the helpers rules share. Runs at parse time, before any job starts.
+import sys
+
+import newdyn.config
+import newdyn.provenance
+
+CONFIG_SOURCE = ", ".join(map(str, workflow.overwrite_configfiles or ["config/config.yaml"]))
+
+try:
+    newdyn.config.check(config, CONFIG_SOURCE, workflow.source_path("../schemas/config.schema.yaml"))
+except newdyn.config.ConfigError as error:
+    sys.exit(f"newdyn: bad config: {error}")
+
+SCENARIOS = newdyn.config.scenario_names(config)
+SNRS = [f"{snr:g}" for snr in config["noise"]["snr_db"]]
+SEEDS = [str(seed) for seed in config["noise"]["seeds"]]
+
+# Rules pass these as params so that an edit of the science code reruns exactly its jobs.
+SIMULATION_CODE = newdyn.provenance.source_hash("model", "faults", "kernels", "simulation", "io")
+NOISE_CODE = newdyn.provenance.source_hash("noise", "io")
+
+
+wildcard_constraints:
+    scenario="|".join(SCENARIOS) or "[A-Za-z0-9_-]+",
+    snr=r"-?\d+(\.\d+)?",
+    seed=r"\d+",
+
+
+def simulation_spec(wildcards):
+    """Everything that determines one scenario's simulation, as canonical JSON."""
+    sampling = newdyn.config.sampling(config)
+    return newdyn.config.canonical_json(
+        {
+            "scenario": wildcards.scenario,
+            "definition": config["scenarios"][wildcards.scenario] or {},
+            "values": newdyn.config.scenario_values(config, wildcards.scenario),
+            "sampling": {"fs": sampling.fs, "t_first": sampling.t_first, "n_samples": sampling.n_samples},
+            "channels": config["simulation"]["channels"],
+            "max_step": config["simulation"]["max_step"],
+        }
+    )
+
+
+def simulation_targets():
+    return expand("results/simulations/{scenario}/clean.nc", scenario=SCENARIOS) + expand(
+        "results/simulations/{scenario}/snr{snr}_seed{seed}.nc",
+        scenario=SCENARIOS,
+        snr=SNRS,
+        seed=SEEDS,
+    )
