@@ -410,8 +410,8 @@ def test_scenario_values(default_config):
     c = copy.deepcopy(default_config)
     assert cfg.scenario_values(c, "kT1_up")["kT1"] == 3.25e6
     assert cfg.scenario_values(c, "healthy") == model.complete(cfg.base_values(c))
-    assert cfg.scenario_values(c, "breathing_crack")["crack_alpha"] == 0.2
-    assert cfg.scenario_values(c, "loose_bearing")["bearing_gap"] == 1e-7
+    assert cfg.scenario_values(c, "breathing_crack")["crack_alpha"] == 0.3
+    assert cfg.scenario_values(c, "loose_bearing")["bearing_gap"] == 2e-8
     # overrides come before the fault; the stick-slip default T_max = 1.15 T0 uses the overridden T0
     c["scenarios"]["slow"] = {"overrides": {"T0": 1000.0, "speed_rpm": 990.0}, "fault": {"kind": "stick_slip"}}
     cfg.check(c, SOURCE, SCHEMA)

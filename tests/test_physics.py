@@ -1,0 +1,184 @@
+"""The simulator against physics: eigen-analysis, conservation laws, equilibria, convergence, switching."""
+
+import numpy as np
+import pytest
+from scipy.linalg import eigh
+
+from newdyn import model, reference
+from newdyn.simulation import DEFAULT_MAX_STEP, STATE_NAMES, simulate
+
+DEFAULT_SAMPLING = model.Sampling()
+FAULTS = {
+    "stick_slip": {"T_max": 1.15 * 1613.0},
+    "breathing_crack": {"crack_alpha": 0.2},
+    "cubic_coupling": {"cubic_gamma": 1.0},
+    "loose_bearing": {"bearing_gap": 2e-8},
+}
+
+
+def relative_rms(y, ref):
+    """Per-channel RMS difference relative to the channel's std (the scale the noise is set on)."""
+    return np.sqrt(np.mean((y - ref) ** 2, axis=-1)) / np.std(ref, axis=-1)
+
+
+def peak_frequencies(signal, fs, near, window_hz):
+    """Spectral peak within ±window_hz of each predicted frequency, refined by a parabola through log |FFT|.
+
+    A peak on the window's edge is returned as found (not extrapolated), so a missing peak fails.
+    """
+    n = signal.size
+    spectrum = np.abs(np.fft.rfft((signal - signal.mean()) * np.hanning(n), 8 * n))
+    freqs = np.fft.rfftfreq(8 * n, 1 / fs)
+    found = []
+    for f in near:
+        band = np.flatnonzero(np.abs(freqs - f) < window_hz)
+        k = band[np.argmax(spectrum[band])]
+        if k in (band[0], band[-1]):
+            found.append(freqs[k])
+            continue
+        a, b, c = np.log(spectrum[k - 1 : k + 2])
+        found.append(freqs[k] + 0.5 * (a - c) / (a - 2 * b + c) * (freqs[1] - freqs[0]))
+    return np.array(found)
+
+
+@pytest.mark.parametrize(
+    "max_step, rtol",
+    [(DEFAULT_MAX_STEP, 5e-3), (2.5e-5, 1e-4)],  # the default step (RK4 dispersion ~8e-4 at 904 Hz), a fine one
+)
+def test_natural_frequencies_match_free_response_peaks(max_step, rtol):
+    """Every torsional and lateral eigen-frequency of the linearized rig is a peak of the simulated response.
+
+    Undamped (β = 0, constant motor torque), the start of the load pulsation and of the imbalance
+    forces excites free vibration of every mode, which then rings on; a single 12-Hz load harmonic
+    and the 24.7-Hz imbalance lines lie far below the modes.  Each mode is looked for in the DOF
+    where its mass-normalized shape is largest.
+    """
+    values = {"beta": 0.0, "slip": 1e9, "load_harm": 1}
+    sampling = model.Sampling(fs=10000.0, t_first=0.0, n_samples=80000)
+    M, _, K = model.linear_matrices(values)
+    blocks = {  # DOFs of model.linear_matrices -> the simulation output that shows them
+        "torsional": (slice(0, 4), ["dtheta1", "dtheta2a", "dtheta3", "dtheta4"]),
+        "x": (slice(4, 12), [f"x_{n}" for n in model.NODES]),
+        "y": (slice(12, 20), [f"y_{n}" for n in model.NODES]),
+    }
+    outputs = [name for _, names in blocks.values() for name in names]
+    response = dict(zip(outputs, simulate(values, sampling, outputs, max_step)))
+    checked = 0
+    for block, names in blocks.values():
+        w2, shapes = eigh(K[block, block], M[block, block])
+        freqs = np.sqrt(np.clip(w2, 0, None)) / (2 * np.pi)
+        modes = np.flatnonzero(freqs > 1.0)
+        for j in modes:
+            dof = np.argmax(np.abs(shapes[:, j]) * np.sqrt(np.diag(M[block, block])))
+            gap = min(abs(freqs[i] - freqs[j]) for i in modes if i != j)
+            window = min(2 * rtol * freqs[j], 0.45 * gap)
+            found = peak_frequencies(response[names[dof]], sampling.fs, [freqs[j]], window)
+            assert found[0] == pytest.approx(freqs[j], rel=rtol), (names[dof], freqs[j])
+            checked += 1
+    assert checked == 3 + 8 + 8
+
+
+def total_energy(values, state):
+    """Kinetic + elastic energy + potential of the constant motor/load torques, from the state outputs.
+
+    Written from the Lagrangian (eccentric masses included), independently of the kernel's forces.
+    """
+    v = model.complete(values)
+    s = dict(zip(STATE_NAMES, state))
+    kinetic = 0.5 * sum(v[J] * s["d" + th] ** 2 for J, th in
+                        (("J1", "theta1"), ("J2a", "theta2a"), ("J2b", "theta2b"), ("J3", "theta3"), ("J4", "theta4")))
+    for node, mass in zip(model.NODES, model.NODE_MASSES):
+        kinetic += 0.5 * v[mass] * (s[f"dx_{node}"] ** 2 + s[f"dy_{node}"] ** 2)
+    for u, th, node in (("u1", "theta1", "m1"), ("u4", "theta4", "m4")):
+        theta, w = s[th], s["d" + th]
+        kinetic += v[u] * w * (-np.sin(theta) * s[f"dx_{node}"] + np.cos(theta) * s[f"dy_{node}"])
+    delta, delta0 = s["theta2b"] - s["theta3"], v["T0"] / v["kT2"]
+    elastic = 0.5 * v["kT1"] * (s["theta1"] - s["theta2a"]) ** 2 + 0.5 * v["kT3"] * (s["theta3"] - s["theta4"]) ** 2
+    elastic += v["kT2"] * (0.5 * delta**2 + 0.25 * v["cubic_gamma"] * delta**4 / delta0**2)
+    for d, ground in (("x", "k_bx"), ("y", "k_by")):
+        for a, b, k in model.LATERAL_SPRINGS:
+            elastic += 0.5 * v[k] * (s[f"{d}_{model.NODES[a]}"] - s[f"{d}_{model.NODES[b]}"]) ** 2
+        for n in model.BEARING_NODES:
+            elastic += 0.5 * v[ground] * s[f"{d}_{model.NODES[n]}"] ** 2
+    return kinetic + elastic - v["T0"] * (s["theta1"] - s["theta4"]), elastic
+
+
+@pytest.mark.parametrize(
+    "case",
+    [
+        {"load_amp": 0.0},  # imbalance: lateral-torsional coupling through the eccentric masses
+        {"load_amp": 0.0, "u1": 0.0, "u4": 0.0, "cubic_gamma": 0.5},  # nonlinear coupling, off its equilibrium
+    ],
+    ids=["imbalance", "cubic_coupling"],
+)
+def test_energy_is_conserved_without_damping_and_load_pulsation(case):
+    """β = 0 and a constant motor torque (slip → ∞) leave a conservative system: E(t) = E(0).
+
+    Run at a fine step: RK4 itself dissipates ~(ωh)⁶/144 of an undamped mode's energy per step, which
+    at the default step is visible for the 904-Hz mode the cubic case excites (with the rig's β that
+    mode is damped physically far faster, so the default step stays accurate there).
+    """
+    values = {"beta": 0.0, "slip": 1e12, **case}
+    sampling = model.Sampling(fs=5000.0, t_first=0.0, n_samples=7500)
+    energy, elastic = total_energy(values, simulate(values, sampling, STATE_NAMES, max_step=1e-5))
+    drift = np.abs(energy - energy[0])
+    assert drift.max() <= 1e-8 * abs(energy[0])  # rig.md's bound, relative to the total energy
+    # ... and far below the energy that moves between the springs, so the check has teeth.
+    assert elastic.max() - elastic.min() > 1e3 * drift.max()
+
+
+def test_pre_twisted_rig_is_an_equilibrium():
+    """With no load pulsation and no imbalance the rig.md initial state never moves."""
+    values = {"load_amp": 0.0, "u1": 0.0, "u4": 0.0}
+    sampling = model.Sampling(fs=1000.0, t_first=0.0, n_samples=1500)
+    y = simulate(values, sampling, model.CHANNELS)
+    out = dict(zip(model.CHANNELS, y))
+    # Round-off only: twists are differences of absolute angles of ~230 rad (ulp 3e-14 rad).
+    np.testing.assert_allclose(out["w1"], model.omega(model.DEFAULTS), rtol=1e-12)
+    np.testing.assert_allclose(out["w4"], model.omega(model.DEFAULTS), rtol=1e-12)
+    np.testing.assert_allclose(out["torque_c"], 1613.0, rtol=1e-9)
+    assert np.all(y[:8] == 0.0)
+
+
+@pytest.mark.parametrize("fault", [None, *FAULTS])
+def test_step_halving_converges(fault):
+    """rig.md: output agrees with a step-halved run to 1e-6 (smooth models) / 1e-4 (switching faults)."""
+    values = FAULTS.get(fault, {})
+    coarse = simulate(values, DEFAULT_SAMPLING, model.CHANNELS, DEFAULT_MAX_STEP)
+    fine = simulate(values, DEFAULT_SAMPLING, model.CHANNELS, DEFAULT_MAX_STEP / 2)
+    bound = 1e-4 if fault in ("stick_slip", "loose_bearing") else 1e-6
+    assert relative_rms(coarse, fine).max() < bound
+    finer = simulate(values, DEFAULT_SAMPLING, model.CHANNELS, DEFAULT_MAX_STEP / 4)
+    ratio = relative_rms(coarse, fine).max() / relative_rms(fine, finer).max()
+    assert ratio > 10  # fourth order (16x per halving) even through switching events
+
+
+def test_stick_slip_never_slips_below_its_limit_and_then_equals_healthy():
+    sampling = model.Sampling(fs=20000.0, t_first=0.0, n_samples=30000)  # the whole run, finely
+    peak = np.abs(simulate({}, sampling, ["interface_torque"])[0]).max()
+    healthy = simulate({}, DEFAULT_SAMPLING, model.CHANNELS)
+    stuck = simulate({"T_max": 1.01 * peak}, DEFAULT_SAMPLING, [*model.CHANNELS, "slip_onsets"])
+    assert stuck[-1, -1] == 0
+    np.testing.assert_array_equal(stuck[:-1], healthy)
+
+
+def test_stick_slip_slips_in_every_load_cycle_and_obeys_karnopp():
+    values = FAULTS["stick_slip"]
+    outputs = ["slip_onsets", "slipping", "dtheta2a", "dtheta2b"]
+    onsets, slipping, w2a, w2b = simulate(values, DEFAULT_SAMPLING, outputs)
+    times = DEFAULT_SAMPLING.times
+    cycle = np.floor((times - times[0]) * 12.0).astype(int)  # 12 whole load cycles in the 1-s record
+    per_cycle = [onsets[cycle == k].max() - onsets[cycle == k].min() for k in range(12)]
+    assert min(per_cycle) >= 1
+    stuck = slipping == 0
+    np.testing.assert_array_equal(w2a[stuck], w2b[stuck])  # stuck sides share one speed exactly
+    assert np.all(np.abs(w2a - w2b)[~stuck] > 0)
+
+
+def test_loose_bearing_acts_only_beyond_its_gap():
+    gap = FAULTS["loose_bearing"]["bearing_gap"]
+    x, contact = simulate(FAULTS["loose_bearing"], DEFAULT_SAMPLING, ["b1_x", "bearing_contact"])
+    free = contact == 0
+    assert np.all(np.abs(x[free]) <= gap * (1 + 1e-9))
+    assert np.all(contact[~free] * x[~free] >= gap * (1 - 1e-9))
+    assert 0.01 < free.mean() < 0.99  # the default clearance is really crossed (free ~5 % of the time)
