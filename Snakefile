@@ -16,6 +16,6 @@ include: "workflow/rules/noise.smk"
 
 
 rule all:
+    default_target: True
     input:
         simulation_targets(),
-    default_target: True

@@ -1,0 +1,118 @@
+"""Measurement files (shared/spec/measurements.md): round trips, and one clear line for every bad file."""
+
+import numpy as np
+import pytest
+import xarray as xr
+
+from newdyn import model
+from newdyn.io import MeasurementError, measurement_dataset, read_measurement, write_netcdf
+
+SAMPLING = model.Sampling(fs=5000.0, t_first=0.5, n_samples=600)
+CHANNELS = ["b1_x", "w1"]
+OPERATING = {"speed_rpm": 1500.0, "T0": 1500.0, "load_amp": 0.2, "load_freq": 10.0, "load_harm": 4.0}
+
+
+def make_dataset(sigma=None):
+    rng = np.random.default_rng(0)
+    y = rng.standard_normal((2, SAMPLING.n_samples)) * np.array([[1e-7], [0.4]]) + np.array([[0.0], [155.0]])
+    return measurement_dataset(y, CHANNELS, SAMPLING, OPERATING, {"scenario": "x", "parameters": {"kT1": 3e6}}, sigma)
+
+
+def test_netcdf_round_trip(tmp_path):
+    ds = make_dataset(sigma=np.array([1e-9, 4e-3]))
+    write_netcdf(ds, tmp_path / "m.nc")
+    m = read_measurement(tmp_path / "m.nc")
+    assert m.name == "m" and m.channels == tuple(CHANNELS)
+    np.testing.assert_array_equal(m.y, ds["y"].values)
+    np.testing.assert_array_equal(m.sigma, [1e-9, 4e-3])
+    assert m.sampling.n_samples == SAMPLING.n_samples and m.sampling.t_first == SAMPLING.t_first
+    assert m.sampling.fs == pytest.approx(SAMPLING.fs, rel=1e-12)
+    assert m.operating == OPERATING  # attributes override the defaults
+    assert m.attrs["parameters"] == '{"kT1": 3000000.0}'
+
+
+def test_csv_takes_operating_condition_from_defaults(tmp_path):
+    ds = make_dataset()
+    rows = np.column_stack([SAMPLING.times, ds["y"].values.T])
+    np.savetxt(tmp_path / "m.csv", rows, delimiter=",", header="time,b1_x,w1", comments="", fmt="%.17g")
+    m = read_measurement(tmp_path / "m.csv", OPERATING)
+    np.testing.assert_allclose(m.y, ds["y"].values, rtol=1e-15)
+    assert m.operating == OPERATING and m.sigma is None
+
+
+def test_write_is_atomic(tmp_path, monkeypatch):
+    """A failing write leaves neither a partial file nor a temporary behind."""
+    def fail(self, path, **kwargs):
+        open(path, "w").write("partial")
+        raise OSError("disk full")
+
+    monkeypatch.setattr(xr.Dataset, "to_netcdf", fail)
+    with pytest.raises(OSError):
+        write_netcdf(make_dataset(), tmp_path / "m.nc")
+    assert list(tmp_path.iterdir()) == []
+
+
+def _nc(mutate):
+    def build(path):
+        ds = make_dataset()
+        ds = mutate(ds)
+        ds.to_netcdf(path)
+        return path
+    return build
+
+
+def _csv(text):
+    def build(path):
+        path = path.with_suffix(".csv")
+        path.write_text(text)
+        return path
+    return build
+
+
+def _cycle_csv(n, fs=5000.0, columns="time,b1_x"):
+    lines = [columns] + [f"{0.5 + k / fs!r},{float(np.sin(k))!r}" for k in range(n)]
+    return "\n".join(lines) + "\n"
+
+
+def _truncated(path):
+    make_dataset().to_netcdf(path)
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    return path
+
+
+def _retime(ds, times):
+    return ds.assign_coords(time=times)
+
+
+BAD_FILES = {
+    "missing file": (lambda p: p, "file not found"),
+    "truncated NetCDF": (_truncated, "unreadable or truncated"),
+    "not NetCDF at all": (lambda p: (p.write_text("hello"), p)[1], "unreadable or truncated"),
+    "no y": (_nc(lambda ds: ds.rename({"y": "z"})), "no variable 'y'"),
+    "no channel columns": (_csv("time\n0.5\n0.5002\n"), "no channel columns"),
+    "unknown channel": (_nc(lambda ds: ds.assign_coords(channel=["b1_x", "w9"])), "unknown channel 'w9'"),
+    "NaN": (_nc(lambda ds: ds.copy(data={"y": np.where(np.arange(600) == 7, np.nan, ds["y"].values)})), "non-finite"),
+    "infinity in CSV": (_csv("time,w1\n0.5,1\n0.5002,inf\n"), "non-finite"),
+    "non-increasing time": (_nc(lambda ds: _retime(ds, SAMPLING.times[::-1])), "not increasing"),
+    "non-uniform time": (_nc(lambda ds: _retime(ds, SAMPLING.times ** 1.01)), "not uniform"),
+    "shorter than a load cycle": (_csv(_cycle_csv(300)), "less than one load cycle"),
+    "sampling rate out of reach": (_csv(_cycle_csv(200000, fs=2e6)), "sampling rate"),
+    "time before the model's start": (_nc(lambda ds: _retime(ds, SAMPLING.times - 1.0)), "before the model's start"),
+    "operating attribute not a number": (_nc(lambda ds: ds.assign_attrs(T0="fast")), "attribute T0"),
+    "operating attribute infinite": (_nc(lambda ds: ds.assign_attrs(speed_rpm=np.inf)), "attribute speed_rpm"),
+    "ragged CSV": (_csv("time,b1_x,w1\n0.5,1\n"), "rows have 2 columns, header has 3"),
+    "unsupported type": (lambda p: (p.with_suffix(".mat").write_text("x"), p.with_suffix(".mat"))[1], "unsupported file type"),
+}
+
+
+@pytest.mark.parametrize("case", BAD_FILES)
+def test_bad_file_gets_one_line_naming_it(tmp_path, case):
+    build, problem = BAD_FILES[case]
+    path = build(tmp_path / "bad.nc")
+    with pytest.raises(MeasurementError) as error:
+        read_measurement(path)
+    message = str(error.value)
+    assert "\n" not in message
+    assert message.startswith(f"{path}: ")
+    assert problem in message
