@@ -19,7 +19,8 @@ def simulate_scenario(spec: dict, output: str, code_hash: str) -> None:
     """Write the clean simulated measurement of one scenario (spec built by the workflow)."""
     from . import io, model, provenance, simulation
 
-    sampling = model.Sampling(**spec["sampling"])
+    window = spec["sampling"]  # canonical JSON holds every number as a float
+    sampling = model.Sampling(fs=window["fs"], t_first=window["t_first"], n_samples=int(window["n_samples"]))
     values = spec["values"]
     start = time.perf_counter()
     y = simulation.simulate(values, sampling, spec["channels"], spec["max_step"])

@@ -1,0 +1,124 @@
+"""The Snakemake study end to end on the small CI config (.test/config.yaml)."""
+
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from newdyn import model
+from newdyn.io import read_measurement
+
+ROOT = Path(__file__).resolve().parents[1]
+TEST_CONFIG = ROOT / ".test" / "config.yaml"
+
+
+def snakemake(workdir, *args, config=TEST_CONFIG):
+    """Run snakemake from this interpreter's environment; returns the completed process."""
+    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"}
+    return subprocess.run(
+        [sys.executable, "-m", "snakemake", "-s", str(ROOT / "Snakefile"), "-d", str(workdir),
+         "--configfile", str(config), "--cores", "2", *args],
+        capture_output=True, text=True, env=env, timeout=600,
+    )
+
+
+def planned_outputs(workdir, config=TEST_CONFIG):
+    """Files a dry run would (re)create."""
+    run = snakemake(workdir, "--dry-run", config=config)
+    assert run.returncode == 0, run.stderr
+    return sorted(set(re.findall(r"^\s+output: (\S+)", run.stdout, re.MULTILINE)))
+
+
+@pytest.fixture(scope="module")
+def study(tmp_path_factory):
+    workdir = tmp_path_factory.mktemp("study")
+    run = snakemake(workdir)
+    assert run.returncode == 0, run.stderr[-3000:]
+    return workdir
+
+
+def test_study_writes_every_scenario_clean_and_noisy_with_provenance(study):
+    config = yaml.safe_load(TEST_CONFIG.read_text())
+    channels = tuple(config["simulation"]["channels"])
+    for scenario in config["scenarios"]:
+        folder = study / "results" / "simulations" / scenario
+        clean = read_measurement(folder / "clean.nc")
+        assert clean.channels == channels and clean.sampling.n_samples == 500
+        assert clean.attrs["scenario"] == scenario and clean.attrs["newdyn_version"]
+        assert len(clean.attrs["code_hash"]) == 16
+        assert (study / "results" / "logs" / "simulate" / f"{scenario}.log").stat().st_size > 0
+        assert (study / "results" / "benchmarks" / "simulate" / f"{scenario}.tsv").exists()
+        for snr in config["noise"]["snr_db"]:
+            for seed in config["noise"]["seeds"]:
+                noisy = read_measurement(folder / f"snr{snr:g}_seed{seed}.nc")
+                assert noisy.attrs["snr_db"] == snr and noisy.attrs["seed"] == seed
+                assert noisy.sigma is not None and noisy.attrs["scenario"] == scenario
+                residual = noisy.y - clean.y
+                assert 0.8 < residual.std(axis=1).mean() / noisy.sigma.mean() < 1.2
+    kT1 = read_measurement(study / "results" / "simulations" / "kT1_up" / "clean.nc")
+    assert '"kT1": 3250000.0' in kT1.attrs["parameters"]
+
+
+def test_immediate_rerun_has_nothing_to_do(study):
+    run = snakemake(study, "--dry-run")
+    assert "Nothing to be done" in run.stdout + run.stderr
+
+
+def test_reordering_config_keys_reruns_nothing(study, tmp_path):
+    config = yaml.safe_load(TEST_CONFIG.read_text())
+    reordered = {key: config[key] for key in reversed(list(config))}
+    reordered["rig"] = dict(reversed(list(config["rig"].items())))
+    reordered["scenarios"] = dict(reversed(list(config["scenarios"].items())))
+    path = tmp_path / "reordered.yaml"
+    path.write_text(yaml.safe_dump(reordered, sort_keys=False))
+    assert planned_outputs(study, path) == []
+
+
+def test_changing_one_scenario_reruns_only_that_scenario(study, tmp_path):
+    config = yaml.safe_load(TEST_CONFIG.read_text())
+    config["scenarios"]["kT1_up"]["fault"]["parameters"]["kT1"] = 3.3e6
+    path = tmp_path / "changed.yaml"
+    path.write_text(yaml.safe_dump(config, sort_keys=False))
+    planned = planned_outputs(study, path)
+    assert planned and all(p.startswith("results/simulations/kT1_up/") for p in planned)
+    assert "results/simulations/kT1_up/clean.nc" in planned
+
+
+def test_changing_a_rig_value_reruns_every_scenario(study, tmp_path):
+    config = yaml.safe_load(TEST_CONFIG.read_text())
+    config["rig"]["beta"] = 2.0e-5
+    path = tmp_path / "changed.yaml"
+    path.write_text(yaml.safe_dump(config, sort_keys=False))
+    planned = planned_outputs(study, path)
+    assert {p.split("/")[2] for p in planned} == set(config["scenarios"])
+
+
+def test_bad_config_fails_in_one_line_before_any_job(tmp_path):
+    config = yaml.safe_load(TEST_CONFIG.read_text())
+    config["scenarios"]["stick_slip"]["fault"]["parameters"]["T_max"] = -5.0
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(config, sort_keys=False))
+    run = snakemake(tmp_path / "work", config=path)
+    assert run.returncode != 0
+    lines = [line for line in run.stderr.splitlines() if "bad config" in line]
+    assert lines == [f"newdyn: bad config: {path}: scenarios.stick_slip.fault.parameters.T_max: "
+                     "must lie in (0, inf) N·m (got -5)"]
+    assert not (tmp_path / "work" / "results").exists()
+
+
+def test_workflow_is_lint_clean_and_snakefmt_formatted():
+    lint = subprocess.run([sys.executable, "-m", "snakemake", "--lint"], cwd=ROOT, capture_output=True, text=True)
+    assert lint.returncode == 0 and "Lints for" not in lint.stdout + lint.stderr, lint.stdout + lint.stderr
+    files = [ROOT / "Snakefile", *sorted((ROOT / "workflow" / "rules").glob("*.smk"))]
+    fmt = subprocess.run([Path(sys.executable).parent / "snakefmt", "--check", *map(str, files)],
+                         capture_output=True, text=True)
+    assert fmt.returncode == 0, fmt.stderr
+
+
+def test_every_default_channel_is_a_model_channel():
+    config = yaml.safe_load((ROOT / "config" / "config.yaml").read_text())
+    assert set(config["simulation"]["channels"]) <= set(model.CHANNELS)
