@@ -2,6 +2,7 @@
 
 import os
 import re
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -16,9 +17,11 @@ ROOT = Path(__file__).resolve().parents[1]
 TEST_CONFIG = ROOT / ".test" / "config.yaml"
 
 
-def snakemake(workdir, *args, config=TEST_CONFIG):
+def snakemake(workdir, *args, config=TEST_CONFIG, pythonpath=None):
     """Run snakemake from this interpreter's environment; returns the completed process."""
     env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"}
+    if pythonpath:
+        env["PYTHONPATH"] = str(pythonpath)
     return subprocess.run(
         [sys.executable, "-m", "snakemake", "-s", str(ROOT / "Snakefile"), "-d", str(workdir),
          "--configfile", str(config), "--cores", "2", *args],
@@ -26,9 +29,9 @@ def snakemake(workdir, *args, config=TEST_CONFIG):
     )
 
 
-def planned_outputs(workdir, config=TEST_CONFIG):
+def planned_outputs(workdir, config=TEST_CONFIG, pythonpath=None):
     """Files a dry run would (re)create."""
-    run = snakemake(workdir, "--dry-run", config=config)
+    run = snakemake(workdir, "--dry-run", config=config, pythonpath=pythonpath)
     assert run.returncode == 0, run.stderr
     return sorted(set(re.findall(r"^\s+output: (\S+)", run.stdout, re.MULTILINE)))
 
@@ -95,6 +98,22 @@ def test_changing_a_rig_value_reruns_every_scenario(study, tmp_path):
     path.write_text(yaml.safe_dump(config, sort_keys=False))
     planned = planned_outputs(study, path)
     assert {p.split("/")[2] for p in planned} == set(config["scenarios"])
+
+
+@pytest.mark.parametrize(
+    "module, rules",
+    [("kernels.py", {"clean.nc", "snr40_seed1.nc"}), ("noise.py", {"snr40_seed1.nc"}), ("plots_unused.py", set())],
+)
+def test_editing_science_code_reruns_exactly_the_jobs_that_use_it(study, tmp_path, module, rules):
+    """A copy of the package with one module edited, first on PYTHONPATH, is what the workflow imports."""
+    package = tmp_path / "newdyn"
+    shutil.copytree(ROOT / "src" / "newdyn", package, ignore=shutil.ignore_patterns("__pycache__"))
+    with open(package / module, "a") as source:
+        source.write("\n# an edit\n")
+    planned = planned_outputs(study, pythonpath=tmp_path)
+    assert {p.split("/")[-1] for p in planned} == rules
+    if rules:
+        assert {p.split("/")[2] for p in planned} == set(yaml.safe_load(TEST_CONFIG.read_text())["scenarios"])
 
 
 def test_bad_config_fails_in_one_line_before_any_job(tmp_path):

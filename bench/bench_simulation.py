@@ -1,0 +1,70 @@
+"""Speed of the compiled kernel against SciPy's DOP853 on the same equations (issue #2 goals).
+
+Run: python bench/bench_simulation.py [--batch 64] [--repeat 5]
+Prints the measured figures side by side with the baseline and the goals; README quotes them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import time
+
+import numba
+import numpy as np
+
+from newdyn import model, reference
+from newdyn.simulation import DEFAULT_MAX_STEP, simulate, simulate_batch
+
+SAMPLING = model.Sampling()  # the default 1.5-s simulation: 0.5 s warm-up, 1 s recorded at 5 kHz
+
+
+def best_of(repeat, run):
+    times = []
+    for _ in range(repeat):
+        start = time.perf_counter()
+        result = run()
+        times.append(time.perf_counter() - start)
+    return min(times), result
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--batch", type=int, default=64, help="parameter sets in the batched timing")
+    parser.add_argument("--repeat", type=int, default=5, help="timings per figure (best is kept)")
+    args = parser.parse_args()
+
+    simulate({}, SAMPLING)  # compile (or load from cache) outside the timings
+    baseline_s, ref = best_of(1, lambda: reference.simulate_reference({}, SAMPLING, rtol=1e-10, method="DOP853"))
+    single_s, ours = best_of(args.repeat, lambda: simulate({}, SAMPLING))
+    error = np.max(np.sqrt(np.mean((ours - ref) ** 2, axis=-1)) / np.std(ref, axis=-1))
+
+    kT1 = np.linspace(2.0e6, 4.0e6, args.batch)
+    batch = np.tile(model.parameter_vector(), (args.batch, 1))
+    batch[:, model.PARAMETER_INDEX["kT1"]] = kT1
+    threads = numba.get_num_threads()
+    numba.set_num_threads(1)
+    one_core_s, _ = best_of(args.repeat, lambda: simulate_batch(batch, SAMPLING))
+    numba.set_num_threads(threads)
+    all_cores_s, _ = best_of(args.repeat, lambda: simulate_batch(batch, SAMPLING))
+
+    per_sim_ms = 1e3 * one_core_s / args.batch
+    rows = [
+        ("SciPy solve_ivp DOP853, rtol 1e-10 (baseline)", f"{baseline_s * 1e3:9.1f} ms", "1x", ""),
+        ("newdyn kernel, one simulation", f"{single_s * 1e3:9.2f} ms", f"{baseline_s / single_s:,.0f}x", ">= 1000x"),
+        (f"newdyn kernel, batch of {args.batch}, 1 core, per simulation", f"{per_sim_ms:9.2f} ms",
+         f"{baseline_s / (per_sim_ms / 1e3):,.0f}x", "<= 2 ms"),
+        (f"newdyn kernel, batch of {args.batch}, {threads} cores, per simulation",
+         f"{1e3 * all_cores_s / args.batch:9.2f} ms", f"{baseline_s * args.batch / all_cores_s:,.0f}x", ""),
+    ]
+    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores; "
+          f"numba {numba.__version__}; max_step {DEFAULT_MAX_STEP:g} s; 1.5-s simulation, 11 channels")
+    print(f"{'':58s} {'time':>12s} {'speed-up':>10s} {'goal':>9s}")
+    for name, t, ratio, goal in rows:
+        print(f"{name:58s} {t:>12s} {ratio:>10s} {goal:>9s}")
+    print(f"agreement with the baseline: max relative RMS over channels {error:.2e} (goal <= 1e-6)")
+
+
+if __name__ == "__main__":
+    main()
