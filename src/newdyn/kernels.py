@@ -2,9 +2,18 @@
 
 Fixed-step classical Runge-Kutta (RK4) with exact event location: a switching fault (stick-slip
 onset and re-stick, loose-bearing contact) changes the force law only at a located event, so each
-step integrates a smooth right-hand side and keeps fourth-order accuracy.  The inference stages call
-:func:`simulate_batch` tens of thousands of times; it runs parameter sets in parallel threads
-(``NUMBA_NUM_THREADS``).
+step integrates a smooth right-hand side and keeps fourth-order accuracy.
+
+Design for speed: up to ``LANES`` parameter sets are integrated together as the lanes of a block.
+Every per-lane quantity (parameters, modes, state, stage values) is a row of one flat work array
+indexed ``row * LANES + lane``, and the hot loops run over lanes with bodies that have no calls and
+no data-dependent branches (mode switches are selects, sin/cos is the inline :func:`_sincos`), so
+LLVM turns them into AVX lanes.  After each step the event functions of all lanes are checked
+together; a lane whose step crosses an event is redone by the event-locating path, which runs the
+same RK4 and RHS code on a one-lane scratch block.  The arithmetic is that of the scalar original,
+operation for operation (no fast-math), so results do not depend on how simulations are grouped
+into lanes; only sin/cos of the disk angles may differ from libm's by an ulp.  Blocks run in
+parallel threads (``NUMBA_NUM_THREADS``).
 
 State layout (42): positions θ1 θ2a θ2b θ3 θ4, x[8], y[8] (nodes b1 m1 b2 m2 m3 b3 m4 b4), then
 the same velocities.  θ2a/θ2b move as one body J2a + J2b while stuck.
@@ -15,11 +24,12 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import get_num_threads, njit, prange
 
 from .model import PARAMETER_INDEX as _I
+from .model import PARAMETER_NAMES as _NAMES
 
-# Parameter slots (compile-time constants for numba).
+# Parameter slots (compile-time constants for numba); parameter k of a lane lives in work row k.
 J1, J2A, J2B, J3, J4 = _I["J1"], _I["J2a"], _I["J2b"], _I["J3"], _I["J4"]
 M1, M2, M3, M4, MB = _I["m1"], _I["m2"], _I["m3"], _I["m4"], _I["m_b"]
 KT1, KT2, KT3 = _I["kT1"], _I["kT2"], _I["kT3"]
@@ -27,6 +37,7 @@ KS, KH, KC, KBX, KBY = _I["k_s"], _I["k_h"], _I["k_c"], _I["k_bx"], _I["k_by"]
 BETA, SLIP, U1, U4 = _I["beta"], _I["slip"], _I["u1"], _I["u4"]
 SPEED, T0, LOAD_AMP, LOAD_FREQ, LOAD_HARM = _I["speed_rpm"], _I["T0"], _I["load_amp"], _I["load_freq"], _I["load_harm"]
 TMAX, RK, ALPHA, GAMMA, GAP = _I["T_max"], _I["r_k"], _I["crack_alpha"], _I["cubic_gamma"], _I["bearing_gap"]
+N_PAR = len(_NAMES)
 
 NQ = 21  # positions
 NY = 42  # state
@@ -38,209 +49,406 @@ OUT_INTERFACE_TORQUE = 13  # the torque the interface would carry if stuck (the 
 OUT_BEARING_CONTACT = 14  # loose-bearing contact state -1, 0, +1
 OUT_STATE = 100
 
-# Derived-quantity slots computed once per simulation.
-D_OMEGA, D_CM, D_INVJ2, D_MU2, D_DELTA0 = 0, 1, 2, 3, 4
-D_INVM = 5  # 8 inverse node masses
-D_KLAT = 13  # 7 lateral spring stiffnesses
-D_SIZE = 20
+# Lanes per block: four AVX2 vectors of doubles.  Fewer lanes share the per-step scalar work (the
+# load torque) among fewer simulations; 32 lanes no longer fit the work array in L1 (measured slower).
+LANES = 16
+
+# Rows of the work array.  Per-lane constants come first (parameters, then derived quantities),
+# then the modes, so that the event path sets up its scratch lane by copying two ranges of rows.
+R_OMEGA = N_PAR  # synchronous speed Ω
+R_CM = R_OMEGA + 1  # motor torque slope c_m
+R_INVJ2 = R_CM + 1  # 1 / (J2a + J2b)
+R_MU2 = R_INVJ2 + 1  # J2a J2b / (J2a + J2b)
+R_DELTA0 = R_MU2 + 1  # coupling reference twist T0 / kT2
+R_INVM = R_DELTA0 + 1  # 8 inverse node masses
+R_KLAT = R_INVM + 8  # 7 lateral spring stiffnesses
+R_JRED1 = R_KLAT + 7  # J1 - u1² / m1: the disk-1 inertia left by the imbalance coupling
+R_JRED4 = R_JRED1 + 1  # J4 - u4² / m4
+R_SAME_LOAD = R_JRED4 + 1  # 1 if the load parameters equal those of the lane to the left, else 0
+N_CONST = R_SAME_LOAD + 1
+R_SLIP = N_CONST  # stick-slip mode: 0 stuck, ±1 slipping (the sign d of T_f at the onset)
+R_CONTACT = R_SLIP + 1  # loose-bearing contact: -1, 0, +1
+R_ONSETS = R_CONTACT + 1  # number of slip onsets so far
+N_MODES = 3
+R_TL = R_ONSETS + 1  # load torque T_l at the stage time
+R_TL_TIME = R_TL + 1  # lane 0 only: the time of the values in row R_TL (NaN: none)
+R_G = R_TL_TIME + 1  # event function value (> 0: an event lies inside the step)
+R_WHICH = R_G + 1  # which event: 0 none, 1 slip onset, 2 re-stick, 3 bearing contact change
+R_Y = R_WHICH + 1  # state at the step start
+R_TRIAL = R_Y + NY  # state at the step end while events are checked
+R_STAGE = R_TRIAL + NY  # RK4 stage state
+R_ACC = R_STAGE + NY  # RHS output: the 21 accelerations (dq/dt is the stage velocity itself)
+R_K1V = R_ACC + NQ  # k1, velocity part (its position part is the velocity in R_Y)
+R_K23 = R_K1V + NQ  # k2 + k3
+N_ROWS = R_K23 + NY
+
+# Options of every kernel function: 'numpy' error model so that x / 0 gives inf instead of a branch
+# to a ZeroDivisionError (such a branch blocks vectorization); no fast-math, so every operation is
+# the IEEE operation of the scalar original and vector and scalar lanes agree bit for bit.
+_JIT = dict(cache=True, error_model="numpy")
 
 
-@njit(cache=True)
-def _derived(p):
-    d = np.empty(D_SIZE)
-    d[D_OMEGA] = 2.0 * math.pi * p[SPEED] / 60.0
-    d[D_CM] = p[T0] / (p[SLIP] * d[D_OMEGA])
-    d[D_INVJ2] = 1.0 / (p[J2A] + p[J2B])
-    d[D_MU2] = p[J2A] * p[J2B] / (p[J2A] + p[J2B])
-    d[D_DELTA0] = p[T0] / p[KT2]
-    masses = (p[MB], p[M1], p[MB], p[M2], p[M3], p[MB], p[M4], p[MB])
-    for i in range(8):
-        d[D_INVM + i] = 1.0 / masses[i]
-    springs = (p[KS], p[KS], p[KH], p[KC], p[KH], p[KS], p[KS])
-    for i in range(7):
-        d[D_KLAT + i] = springs[i]
-    return d
+@njit(**_JIT, inline="always")
+def _at(row, lane):
+    """Flat index of (row, lane).  Unsigned, so numba emits no negative-index wraparound select,
+    which would hide the unit lane stride from LLVM's vectorizer."""
+    return np.uint64(row * LANES + lane)
 
 
-@njit(cache=True)
-def _shaft_torques(y, p, d):
-    """Torques of shaft 1 on disk 1 (+), of the coupling element on disk 3 (+), of shaft 3 on disk 4 (+)."""
-    beta = p[BETA]
-    t_s1 = p[KT1] * ((y[1] - y[0]) + beta * (y[NQ + 1] - y[NQ]))
-    delta = y[2] - y[3]
-    cubic = 1.0 + p[GAMMA] * (delta / d[D_DELTA0]) ** 2 if p[GAMMA] != 0.0 else 1.0
-    t_c = p[KT2] * (delta * cubic + beta * (y[NQ + 2] - y[NQ + 3]))
-    k3 = p[KT3]
-    if p[ALPHA] != 0.0:
-        k3 *= 1.0 - 0.5 * p[ALPHA] * (1.0 - math.cos(y[4]))
-    t_s3 = k3 * ((y[3] - y[4]) + beta * (y[NQ + 3] - y[NQ + 4]))
-    return t_s1, t_c, t_s3
+# --- sin and cos that vectorize -------------------------------------------------------------------
+# Cody-Waite reduction by π/2 and the fdlibm (musl) kernels.  Error ≤ 1 ulp, ≤ 1.2e-16 absolute, for
+# |x| < 1e6 (k·_PIO2_HI stays exact); libm's result differs by one ulp in ~3 % of arguments.
+_INV_PIO2 = 6.36619772367581382433e-01
+_PIO2_HI = 1.57079632673412561417e00  # first 33 bits of π/2
+_PIO2_LO = 6.07710050650619224932e-11  # π/2 - _PIO2_HI
+_ROUNDER = 6755399441055744.0  # 1.5·2^52: (x + R) - R rounds x to the nearest integer
+_S1, _S2, _S3 = -1.66666666666666324348e-01, 8.33333333332248946124e-03, -1.98412698298579493134e-04
+_S4, _S5, _S6 = 2.75573137070700676789e-06, -2.50507602534068634195e-08, 1.58969099521155010221e-10
+_C1, _C2, _C3 = 4.16666666666666019037e-02, -1.38888888888741095749e-03, 2.48015872894767294178e-05
+_C4, _C5, _C6 = -2.75573143513906633035e-07, 2.08757232129817482790e-09, -1.13596475577881948265e-11
 
 
-@njit(cache=True)
-def _stick_torque(t_s1, t_c, p, d):
+@njit(**_JIT, inline="always")
+def _sincos(x):
+    """(sin x, cos x) without calls or branches (math.sin/cos would block vectorization)."""
+    k = (x * _INV_PIO2 + _ROUNDER) - _ROUNDER  # nearest integer to x / (π/2)
+    r = x - k * _PIO2_HI  # exact
+    tail = k * _PIO2_LO
+    hi = r - tail  # reduced argument hi + lo, |hi| ≤ π/4
+    lo = (r - hi) - tail
+    z = hi * hi
+    zz = z * z
+    v = z * hi
+    rs = _S2 + z * (_S3 + z * _S4) + z * zz * (_S5 + z * _S6)
+    sin_r = hi - ((z * (0.5 * lo - v * rs) - lo) - v * _S1)
+    rc = z * (_C1 + z * (_C2 + z * _C3)) + zz * zz * (_C4 + z * (_C5 + z * _C6))
+    half_z = 0.5 * z
+    one_minus = 1.0 - half_z
+    cos_r = one_minus + (((1.0 - one_minus) - half_z) + (z * rc - hi * lo))
+    quadrant = k - 4.0 * (((k * 0.25 - 0.375) + _ROUNDER) - _ROUNDER)  # k mod 4 (floor by rounding)
+    odd = (quadrant == 1.0) | (quadrant == 3.0)
+    s = cos_r if odd else sin_r
+    c = sin_r if odd else cos_r
+    s = -s if quadrant >= 2.0 else s
+    c = -c if (quadrant == 1.0) | (quadrant == 2.0) else c
+    return s, c
+
+
+# --- the physics: one lane at state rows ``src`` ---------------------------------------------------
+@njit(**_JIT, inline="always")
+def _shaft_torques(w, lane, src):
+    """(t_s1, t_c): torque of shaft 1 on disk 1 (+) and of the coupling element on disk 3 (+)."""
+    beta = w[_at(BETA, lane)]
+    t_s1 = w[_at(KT1, lane)] * (
+        (w[_at(src + 1, lane)] - w[_at(src, lane)]) + beta * (w[_at(src + NQ + 1, lane)] - w[_at(src + NQ, lane)])
+    )
+    delta = w[_at(src + 2, lane)] - w[_at(src + 3, lane)]
+    ratio = delta / w[_at(R_DELTA0, lane)]
+    cubic = 1.0 + w[_at(GAMMA, lane)] * (ratio * ratio)  # exactly 1 when γ = 0
+    t_c = w[_at(KT2, lane)] * (delta * cubic + beta * (w[_at(src + NQ + 2, lane)] - w[_at(src + NQ + 3, lane)]))
+    return t_s1, t_c
+
+
+@njit(**_JIT, inline="always")
+def _load_shaft_torque(w, lane, src, cos4):
+    """Torque of shaft 3 on disk 4 (+); the breathing crack softens kT3 with cos θ4 (exactly kT3 if α = 0)."""
+    k3 = w[_at(KT3, lane)] * (1.0 - 0.5 * w[_at(ALPHA, lane)] * (1.0 - cos4))
+    beta = w[_at(BETA, lane)]
+    return k3 * ((w[_at(src + 3, lane)] - w[_at(src + 4, lane)]) + beta * (w[_at(src + NQ + 3, lane)] - w[_at(src + NQ + 4, lane)]))
+
+
+@njit(**_JIT, inline="always")
+def _stick_torque(w, lane, t_s1, t_c):
     """Interface torque T_f while stuck (paper Eq. 3b): F_2a = -t_s1 on 2a, F_2b = -t_c on 2b."""
-    return (-t_s1 / p[J2A] + t_c / p[J2B]) * d[D_MU2]
+    return (-t_s1 / w[_at(J2A, lane)] + t_c / w[_at(J2B, lane)]) * w[_at(R_MU2, lane)]
 
 
-@njit(cache=True)
-def _load_torque(t, p):
+@njit(**_JIT, inline="always")
+def _spring(w, lane, pos, s, beta):
+    """Force of lateral spring s (with its damper) between nodes s and s+1: + on s, - on s+1."""
+    vel = pos + NQ
+    return w[_at(R_KLAT + s, lane)] * (
+        (w[_at(pos + s + 1, lane)] - w[_at(pos + s, lane)]) + beta * (w[_at(vel + s + 1, lane)] - w[_at(vel + s, lane)])
+    )
+
+
+@njit(**_JIT, inline="always")
+def _ground(w, lane, pos, node, beta, k_ground):
+    """Force of the ground spring (with its damper) at bearing ``node``, negated."""
+    return k_ground * (w[_at(pos + node, lane)] + beta * w[_at(pos + NQ + node, lane)])
+
+
+@njit(**_JIT, inline="always")
+def _lateral(w, lane, pos, k_ground, b1_grounded, b1_offset):
+    """Spring + damper forces (f0, ..., f7) on the 8 nodes of one direction (position rows pos..,
+    velocities NQ further).  Bearings b2, b3, b4 have their ground spring; b1's acts only while
+    ``b1_grounded``, relative to ``b1_offset`` (the loose-bearing dead zone).  Returned as values,
+    not stored, so that they can stay in registers."""
+    beta = w[_at(BETA, lane)]
+    s0, s1, s2, s3 = _spring(w, lane, pos, 0, beta), _spring(w, lane, pos, 1, beta), _spring(w, lane, pos, 2, beta), _spring(w, lane, pos, 3, beta)
+    s4, s5, s6 = _spring(w, lane, pos, 4, beta), _spring(w, lane, pos, 5, beta), _spring(w, lane, pos, 6, beta)
+    ground_b1 = k_ground * ((w[_at(pos, lane)] - b1_offset) + beta * w[_at(pos + NQ, lane)])
+    f0 = s0 - ground_b1 if b1_grounded else s0
+    f2 = (-s1 + s2) - _ground(w, lane, pos, 2, beta, k_ground)
+    f5 = (-s4 + s5) - _ground(w, lane, pos, 5, beta, k_ground)
+    f7 = -s6 - _ground(w, lane, pos, 7, beta, k_ground)
+    return f0, -s0 + s1, f2, -s2 + s3, -s3 + s4, f5, -s5 + s6, f7
+
+
+@njit(**_JIT, inline="always")
+def _disk(w, lane, src, theta, node, u, jred, torque, s, c, fx, fy):
+    """Imbalance disk with angle θ_theta at ``node``: exact 3×3 Lagrange solve (rig.md).  Returns
+    its angular acceleration and the node forces (fx, fy) with the imbalance reaction added."""
+    inv_m = w[_at(R_INVM + node, lane)]
+    speed = w[_at(src + NQ + theta, lane)]
+    acc = (torque + u * (s * fx - c * fy) * inv_m) / jred
+    return acc, fx + u * (speed * speed * c + s * acc), fy + u * (speed * speed * s - c * acc)
+
+
+@njit(**_JIT, inline="always")
+def _node_accelerations(w, lane, out, node, fx, fy):
+    inv_m = w[_at(R_INVM + node, lane)]
+    w[_at(out + 5 + node, lane)] = fx * inv_m
+    w[_at(out + 13 + node, lane)] = fy * inv_m
+
+
+@njit(**_JIT, inline="always")
+def _rhs(w, lane, src, out):
+    """The right-hand side: the 21 accelerations of one lane at state rows src.., into rows out..
+    (the other half of dy/dt, dq/dt, is the velocity itself).  The load torque is row R_TL.
+
+    Straight-line code: both sides of a mode switch are computed and one is selected, so that lane
+    loops vectorize.
+    """
+    s1, c1 = _sincos(w[_at(src, lane)])
+    s4, c4 = _sincos(w[_at(src + 4, lane)])
+    t_s1, t_c = _shaft_torques(w, lane, src)
+    t_s3 = _load_shaft_torque(w, lane, src, c4)
+    t_motor = w[_at(T0, lane)] - w[_at(R_CM, lane)] * (w[_at(src + NQ, lane)] - w[_at(R_OMEGA, lane)])
+    torque1 = t_s1 + t_motor
+    torque4 = t_s3 - w[_at(R_TL, lane)]
+
+    # Lateral springs; with a clearance g > 0 b1's ground spring in x acts only in contact, from the
+    # housing wall at contact·g.
+    gap = w[_at(GAP, lane)]
+    contact = w[_at(R_CONTACT, lane)]
+    fx = _lateral(w, lane, src + 5, w[_at(KBX, lane)], (gap == 0.0) | (contact != 0.0), contact * gap)
+    fy = _lateral(w, lane, src + 13, w[_at(KBY, lane)], True, 0.0)
+    acc1, fx1, fy1 = _disk(w, lane, src, 0, 1, w[_at(U1, lane)], w[_at(R_JRED1, lane)], torque1, s1, c1, fx[1], fy[1])
+    acc4, fx6, fy6 = _disk(w, lane, src, 4, 6, w[_at(U4, lane)], w[_at(R_JRED4, lane)], torque4, s4, c4, fx[6], fy[6])
+
+    # Stick-slip interface: stuck, 2a and 2b move as one body; slipping, each feels ±r_k T_max.
+    slip = w[_at(R_SLIP, lane)]
+    common = (-t_s1 - t_c) * w[_at(R_INVJ2, lane)]
+    friction = w[_at(RK, lane)] * w[_at(TMAX, lane)] * slip  # NaN if stuck with T_max = inf: unused then
+    acc_2a = (-t_s1 - friction) / w[_at(J2A, lane)]
+    acc_2b = (-t_c + friction) / w[_at(J2B, lane)]
+    w[_at(out, lane)] = acc1
+    w[_at(out + 1, lane)] = common if slip == 0.0 else acc_2a
+    w[_at(out + 2, lane)] = common if slip == 0.0 else acc_2b
+    w[_at(out + 3, lane)] = (t_c - t_s3) / w[_at(J3, lane)]
+    w[_at(out + 4, lane)] = acc4
+    _node_accelerations(w, lane, out, 0, fx[0], fy[0])
+    _node_accelerations(w, lane, out, 1, fx1, fy1)
+    _node_accelerations(w, lane, out, 2, fx[2], fy[2])
+    _node_accelerations(w, lane, out, 3, fx[3], fy[3])
+    _node_accelerations(w, lane, out, 4, fx[4], fy[4])
+    _node_accelerations(w, lane, out, 5, fx[5], fy[5])
+    _node_accelerations(w, lane, out, 6, fx6, fy6)
+    _node_accelerations(w, lane, out, 7, fx[7], fy[7])
+
+
+@njit(**_JIT)
+def _load_torque(t, w, lane):
     """T_l(t) = T0 [1 + a Σ_h sin(2π h f_l t)/h]; sin(hx) by the Chebyshev recurrence (one sin/cos)."""
-    x = 2.0 * math.pi * p[LOAD_FREQ] * t
+    x = 2.0 * math.pi * w[_at(LOAD_FREQ, lane)] * t
     s1, c1 = math.sin(x), math.cos(x)
     s_prev, s_h, total = 0.0, s1, 0.0
-    for h in range(1, int(p[LOAD_HARM]) + 1):
+    for h in range(1, int(w[_at(LOAD_HARM, lane)]) + 1):
         total += s_h / h
         s_prev, s_h = s_h, 2.0 * c1 * s_h - s_prev
-    return p[T0] * (1.0 + p[LOAD_AMP] * total)
+    return w[_at(T0, lane)] * (1.0 + w[_at(LOAD_AMP, lane)] * total)
 
 
-@njit(cache=True)
-def _lateral(pos, vel, k_ground, beta, d, force, gap, contact):
-    """Spring + damper forces on the 8 nodes of one direction; ``gap`` > 0 makes b1's ground spring a dead zone."""
-    for i in range(8):
-        force[i] = 0.0
-    for s in range(7):
-        f = d[D_KLAT + s] * ((pos[s + 1] - pos[s]) + beta * (vel[s + 1] - vel[s]))
-        force[s] += f
-        force[s + 1] -= f
-    for n in (2, 5, 7):
-        force[n] -= k_ground * (pos[n] + beta * vel[n])
-    if gap == 0.0:
-        force[0] -= k_ground * (pos[0] + beta * vel[0])
-    elif contact != 0:
-        force[0] -= k_ground * ((pos[0] - contact * gap) + beta * vel[0])
+# --- RK4 over the lanes of a block ------------------------------------------------------------------
+@njit(**_JIT)
+def _accelerations_at_stage(w, n_lanes):
+    """Rows R_ACC ← the RHS at the stage state rows R_STAGE, for lanes 0..n_lanes-1 (vectorized).
 
-
-@njit(cache=True)
-def _rhs(t, y, p, d, slip_dir, contact, dydt, fx, fy):
-    """dy/dt for fixed switching modes ``slip_dir`` (0 stuck, ±1 slipping) and ``contact`` (-1, 0, +1)."""
-    for i in range(NQ):
-        dydt[i] = y[NQ + i]
-    beta = p[BETA]
-    t_s1, t_c, t_s3 = _shaft_torques(y, p, d)
-    t_motor = p[T0] - d[D_CM] * (y[NQ] - d[D_OMEGA])
-    torque1 = t_s1 + t_motor
-    torque4 = t_s3 - _load_torque(t, p)
-
-    _lateral(y[5:13], y[NQ + 5 : NQ + 13], p[KBX], beta, d, fx, p[GAP], contact)
-    _lateral(y[13:21], y[NQ + 13 : NQ + 21], p[KBY], beta, d, fy, 0.0, 0)
-
-    # Imbalance disks (θ index, node, u, J): exact 3×3 Lagrange solve, rig.md.
-    for th, node, u, inertia, torque in ((0, 1, p[U1], p[J1], torque1), (4, 6, p[U4], p[J4], torque4)):
-        inv_m = d[D_INVM + node]
-        w = y[NQ + th]
-        s, c = math.sin(y[th]), math.cos(y[th])
-        acc = (torque + u * (s * fx[node] - c * fy[node]) * inv_m) / (inertia - u * u * inv_m)
-        dydt[NQ + th] = acc
-        fx[node] += u * (w * w * c + s * acc)
-        fy[node] += u * (w * w * s - c * acc)
-
-    if slip_dir == 0:
-        common = (-t_s1 - t_c) * d[D_INVJ2]
-        dydt[NQ + 1] = common
-        dydt[NQ + 2] = common
-    else:
-        friction = p[RK] * p[TMAX] * slip_dir
-        dydt[NQ + 1] = (-t_s1 - friction) / p[J2A]
-        dydt[NQ + 2] = (-t_c + friction) / p[J2B]
-    dydt[NQ + 3] = (t_c - t_s3) / p[J3]
-    for i in range(8):
-        dydt[NQ + 5 + i] = fx[i] * d[D_INVM + i]
-        dydt[NQ + 13 + i] = fy[i] * d[D_INVM + i]
-
-
-@njit(cache=True)
-def _rk4(t, y, h, p, d, slip_dir, contact, out, w):
-    """One RK4 step of size h from (t, y) into ``out``; ``w`` is a (6, NY) work array."""
-    k1, k2, k3, k4, tmp = w[0], w[1], w[2], w[3], w[4]
-    fx, fy = w[5, :8], w[5, 8:16]
-    _rhs(t, y, p, d, slip_dir, contact, k1, fx, fy)
-    for i in range(NY):
-        tmp[i] = y[i] + 0.5 * h * k1[i]
-    _rhs(t + 0.5 * h, tmp, p, d, slip_dir, contact, k2, fx, fy)
-    for i in range(NY):
-        tmp[i] = y[i] + 0.5 * h * k2[i]
-    _rhs(t + 0.5 * h, tmp, p, d, slip_dir, contact, k3, fx, fy)
-    for i in range(NY):
-        tmp[i] = y[i] + h * k3[i]
-    _rhs(t + h, tmp, p, d, slip_dir, contact, k4, fx, fy)
-    for i in range(NY):
-        out[i] = y[i] + h / 6.0 * (k1[i] + 2.0 * (k2[i] + k3[i]) + k4[i])
-
-
-@njit(cache=True)
-def _event(y, p, d, slip_dir, contact):
-    """Event function of the current modes: an event lies where it turns positive.
-
-    Returns the largest of the active event functions and which one (0 none, 1 slip onset,
-    2 re-stick, 3 bearing contact change).
+    Stages 2-4 share this one compiled loop: a copy per stage would no longer fit the CPU's
+    micro-op cache (measured slower).
     """
-    best, which = -math.inf, 0
-    if p[TMAX] < math.inf:
-        if slip_dir == 0:
-            t_s1, t_c, _ = _shaft_torques(y, p, d)
-            g = (abs(_stick_torque(t_s1, t_c, p, d)) - p[TMAX]) / p[TMAX]
-            best, which = g, 1
+    for lane in range(n_lanes):
+        _rhs(w, lane, R_STAGE, R_ACC)
+
+
+@njit(**_JIT)
+def _accelerations_at_start(w, n_lanes):
+    """Rows R_ACC ← the RHS at the step start (rows R_Y); saves stage 1 a copy of the state."""
+    for lane in range(n_lanes):
+        _rhs(w, lane, R_Y, R_ACC)
+
+
+@njit(**_JIT)
+def _set_load_torques(w, t, n_lanes):
+    """Row R_TL ← T_l(t) per lane.
+
+    T_l costs a libm sin and cos (kept for exact agreement with the scalar code), so it is skipped
+    when the row already holds time t (stage 4 of a step and stage 1 of the next share their time),
+    and a lane with the same load parameters as its left neighbour (R_SAME_LOAD) copies its value.
+    """
+    if w[_at(R_TL_TIME, 0)] == t:
+        return
+    w[_at(R_TL_TIME, 0)] = t
+    for lane in range(n_lanes):
+        if lane > 0 and w[_at(R_SAME_LOAD, lane)] != 0.0:
+            w[_at(R_TL, lane)] = w[_at(R_TL, lane - 1)]
         else:
-            g = -(y[NQ + 1] - y[NQ + 2]) * slip_dir / d[D_OMEGA]
-            best, which = g, 2
-    if p[GAP] > 0.0:
-        x = y[5] / p[GAP]
-        g = abs(x) - 1.0 if contact == 0 else 1.0 - contact * x
-        if g > best:
-            best, which = g, 3
-    return best, which
+            w[_at(R_TL, lane)] = _load_torque(t, w, lane)
 
 
-@njit(cache=True)
-def _switch(y, p, d, slip_dir, contact, which):
-    """Apply the mode change of event ``which`` at the located state ``y``; returns the new modes."""
-    if which == 3:
-        contact = 0 if contact != 0 else (1 if y[5] > 0.0 else -1)
-        return slip_dir, contact
-    if which == 2:  # re-stick: both sides take the momentum-weighted common speed
-        common = (p[J2A] * y[NQ + 1] + p[J2B] * y[NQ + 2]) * d[D_INVJ2]
-        y[NQ + 1] = common
-        y[NQ + 2] = common
-        slip_dir = 0
-    t_s1, t_c, _ = _shaft_torques(y, p, d)
-    t_f = _stick_torque(t_s1, t_c, p, d)
-    if abs(t_f) > p[TMAX] or which == 1:
-        slip_dir = 1 if t_f > 0.0 else -1
-    return slip_dir, contact
+@njit(**_JIT)
+def _rk4(w, t, h, n_lanes, in_place):
+    """One RK4 step of size h from (t, rows R_Y) into rows R_TRIAL, or into R_Y if ``in_place``,
+    for lanes 0..n_lanes-1.
 
-
-@njit(cache=True)
-def _advance(t, y, h, p, d, modes, w, onsets):
-    """Advance (t, y) by h in place, locating and applying every event on the way.
-
-    ``modes`` = [slip_dir, contact]; ``onsets`` [0] counts slip onsets.  Returns the new time.
+    A stage derivative is k = (stage velocity, accelerations), so only accelerations are stored, and
+    k2's position part is recomputed rather than stored (these loops are bound by stores).  Each
+    combination loop handles position row i with its velocity row NQ+i; the operations are the
+    scalar original's (stage = y + c k, then y + h/6 (k1 + 2 (k2 + k3) + k4)), so the rounding is the
+    same.
     """
-    trial = w[6]
+    half = 0.5 * h
+    _set_load_torques(w, t, n_lanes)
+    _accelerations_at_start(w, n_lanes)
+    for i in range(NQ):  # k1 = (y', a1); stage 2 at y + h/2 k1
+        for lane in range(n_lanes):
+            a = w[_at(R_ACC + i, lane)]
+            w[_at(R_K1V + i, lane)] = a
+            w[_at(R_STAGE + i, lane)] = w[_at(R_Y + i, lane)] + half * w[_at(R_Y + NQ + i, lane)]
+            w[_at(R_STAGE + NQ + i, lane)] = w[_at(R_Y + NQ + i, lane)] + half * a
+    _set_load_torques(w, t + 0.5 * h, n_lanes)
+    _accelerations_at_stage(w, n_lanes)
+    for i in range(NQ):  # k2 = (stage-2 velocity, a2); stage 3 at y + h/2 k2
+        for lane in range(n_lanes):
+            v = w[_at(R_STAGE + NQ + i, lane)]
+            a = w[_at(R_ACC + i, lane)]
+            w[_at(R_K23 + NQ + i, lane)] = a
+            w[_at(R_STAGE + i, lane)] = w[_at(R_Y + i, lane)] + half * v
+            w[_at(R_STAGE + NQ + i, lane)] = w[_at(R_Y + NQ + i, lane)] + half * a
+    _accelerations_at_stage(w, n_lanes)
+    for i in range(NQ):  # k2 + k3, the stage-2 velocity recomputed; stage 4 at y + h k3
+        for lane in range(n_lanes):
+            v = w[_at(R_STAGE + NQ + i, lane)]
+            a = w[_at(R_ACC + i, lane)]
+            v2 = w[_at(R_Y + NQ + i, lane)] + half * w[_at(R_K1V + i, lane)]
+            w[_at(R_K23 + i, lane)] = v2 + v
+            w[_at(R_K23 + NQ + i, lane)] += a
+            w[_at(R_STAGE + i, lane)] = w[_at(R_Y + i, lane)] + h * v
+            w[_at(R_STAGE + NQ + i, lane)] = w[_at(R_Y + NQ + i, lane)] + h * a
+    _set_load_torques(w, t + h, n_lanes)
+    _accelerations_at_stage(w, n_lanes)
+    if in_place:  # two inlined copies, so that each loop has constant rows
+        _finish_step(w, h, n_lanes, R_Y)
+    else:
+        _finish_step(w, h, n_lanes, R_TRIAL)
+
+
+@njit(**_JIT, inline="always")
+def _finish_step(w, h, n_lanes, out):
+    """Rows out ← y + h/6 (k1 + 2 (k2 + k3) + k4), with k4 = (stage velocity, R_ACC); out may be R_Y."""
+    sixth = h / 6.0
+    for i in range(NQ):
+        for lane in range(n_lanes):
+            q = w[_at(R_Y + i, lane)]
+            v = w[_at(R_Y + NQ + i, lane)]
+            q_new = q + sixth * (v + 2.0 * w[_at(R_K23 + i, lane)] + w[_at(R_STAGE + NQ + i, lane)])
+            v_new = v + sixth * (w[_at(R_K1V + i, lane)] + 2.0 * w[_at(R_K23 + NQ + i, lane)] + w[_at(R_ACC + i, lane)])
+            w[_at(out + i, lane)] = q_new
+            w[_at(out + NQ + i, lane)] = v_new
+
+
+# --- events -------------------------------------------------------------------------------------------
+@njit(**_JIT)
+def _events(w, src, n_lanes):
+    """Event function of the current modes at state rows src, per lane, into rows R_G and R_WHICH.
+
+    An event lies where the function turns positive: the larger of the active ones (slip onset or
+    re-stick; bearing contact change) is stored with its number (1, 2; 3), or -inf and 0 when no
+    fault is active.  Straight-line code, so that it vectorizes.
+    """
+    for lane in range(n_lanes):
+        t_max = w[_at(TMAX, lane)]
+        slip = w[_at(R_SLIP, lane)]
+        t_s1, t_c = _shaft_torques(w, lane, src)
+        g_onset = (abs(_stick_torque(w, lane, t_s1, t_c)) - t_max) / t_max
+        g_restick = -(w[_at(src + NQ + 1, lane)] - w[_at(src + NQ + 2, lane)]) * slip / w[_at(R_OMEGA, lane)]
+        stuck = slip == 0.0
+        has_stick_slip = t_max < math.inf
+        g = (g_onset if stuck else g_restick) if has_stick_slip else -math.inf
+        which = (1.0 if stuck else 2.0) if has_stick_slip else 0.0
+        gap = w[_at(GAP, lane)]
+        contact = w[_at(R_CONTACT, lane)]
+        x = w[_at(src + 5, lane)] / gap
+        g_gap = abs(x) - 1.0 if contact == 0.0 else 1.0 - contact * x
+        gap_first = (gap > 0.0) & (g_gap > g)
+        w[_at(R_G, lane)] = g_gap if gap_first else g
+        w[_at(R_WHICH, lane)] = 3.0 if gap_first else which
+
+
+@njit(**_JIT)
+def _switch(w, lane, which):
+    """Apply the mode change of event ``which`` at the located state (rows R_Y) of ``lane``."""
+    if which == 3.0:
+        contact = w[_at(R_CONTACT, lane)]
+        w[_at(R_CONTACT, lane)] = 0.0 if contact != 0.0 else (1.0 if w[_at(R_Y + 5, lane)] > 0.0 else -1.0)
+        return
+    if which == 2.0:  # re-stick: both sides take the momentum-weighted common speed
+        momentum = w[_at(J2A, lane)] * w[_at(R_Y + NQ + 1, lane)] + w[_at(J2B, lane)] * w[_at(R_Y + NQ + 2, lane)]
+        common = momentum * w[_at(R_INVJ2, lane)]
+        w[_at(R_Y + NQ + 1, lane)] = common
+        w[_at(R_Y + NQ + 2, lane)] = common
+        w[_at(R_SLIP, lane)] = 0.0
+    # Slip in the direction of T_f: at an onset, or at once again if the re-stuck interface cannot
+    # carry its torque.
+    t_s1, t_c = _shaft_torques(w, lane, R_Y)
+    t_f = _stick_torque(w, lane, t_s1, t_c)
+    if abs(t_f) > w[_at(TMAX, lane)] or which == 1.0:
+        w[_at(R_SLIP, lane)] = 1.0 if t_f > 0.0 else -1.0
+
+
+@njit(**_JIT)
+def _advance_alone(w, t, h):
+    """Advance lane 0 of block ``w`` from (t, rows R_Y) by h, locating and applying every event.
+
+    The event path, for a lane whose plain step crosses an event: Illinois regula falsi on the step
+    fraction, a stop just past the event, the mode switch, and on with the rest of the step.
+    """
     t_end = t + h
     while True:
         step = t_end - t
         if step <= 0.0:
-            return t_end
-        _rk4(t, y, step, p, d, modes[0], modes[1], trial, w)
-        g_end, which = _event(trial, p, d, modes[0], modes[1])
+            return
+        _rk4(w, t, step, 1, False)
+        _events(w, R_TRIAL, 1)
+        g_end, which = w[_at(R_G, 0)], w[_at(R_WHICH, 0)]
         if g_end <= 0.0:
-            y[:] = trial
-            return t_end
-        # Illinois regula falsi on the step fraction; g(0) < 0 because we start inside the mode.
-        g0, _ = _event(y, p, d, modes[0], modes[1])
-        g0 = min(g0, 0.0)
+            _copy_lane_rows(w, 0, w, 0, R_TRIAL, R_Y, NY)
+            return
+        # g(0) < 0 because we start inside the mode.
+        _events(w, R_Y, 1)
+        g0 = min(w[_at(R_G, 0)], 0.0)
         lo, hi, g_lo, g_hi, side = 0.0, 1.0, g0, g_end, 0
         for _ in range(60):
             frac = (lo * g_hi - hi * g_lo) / (g_hi - g_lo) if g_hi != g_lo else 0.5 * (lo + hi)
             if not lo < frac < hi:
                 frac = 0.5 * (lo + hi)
-            _rk4(t, y, frac * step, p, d, modes[0], modes[1], trial, w)
-            g, which_here = _event(trial, p, d, modes[0], modes[1])
+            _rk4(w, t, frac * step, 1, False)
+            _events(w, R_TRIAL, 1)
+            g = w[_at(R_G, 0)]
             if g > 0.0:
                 hi, g_hi = frac, g
-                which = which_here
+                which = w[_at(R_WHICH, 0)]
                 if side == 1:
                     g_lo *= 0.5
                 side = 1
@@ -249,83 +457,162 @@ def _advance(t, y, h, p, d, modes, w, onsets):
                 if side == -1:
                     g_hi *= 0.5
                 side = -1
-            if (hi - lo) * step < 1e-13 or g_lo > -1e-13:
+            # The switch is applied at hi, so converge there: just past the boundary, or pinned in time.
+            if g_hi < 1e-13 or (hi - lo) * step < 1e-13:
                 break
         # Stop just on the far side of the event so the new mode starts at its own boundary.
-        _rk4(t, y, hi * step, p, d, modes[0], modes[1], trial, w)
-        y[:] = trial
+        _rk4(w, t, hi * step, 1, False)
+        _copy_lane_rows(w, 0, w, 0, R_TRIAL, R_Y, NY)
         t = t + hi * step
-        modes[0], modes[1] = _switch(y, p, d, modes[0], modes[1], which)
-        if which != 3 and modes[0] != 0:
-            onsets[0] += 1
+        _switch(w, 0, which)
+        if which != 3.0 and w[_at(R_SLIP, 0)] != 0.0:
+            w[_at(R_ONSETS, 0)] += 1.0
 
 
-@njit(cache=True)
-def _record(y, p, d, modes, onsets, code):
-    if code < 8:  # bearing displacement: (node b1,b2,b3,b4) × (x,y)
-        node = (0, 2, 5, 7)[code // 2]
-        return y[5 + 8 * (code % 2) + node]
-    if code == 8:
-        return y[NQ]
-    if code == 9:
-        return y[NQ + 4]
-    t_s1, t_c, _ = _shaft_torques(y, p, d)
-    if code == 10:
-        return t_c
-    if code == OUT_SLIP_ONSETS:
-        return float(onsets[0])
-    if code == OUT_SLIPPING:
-        return 1.0 if modes[0] != 0 else 0.0
-    if code == OUT_INTERFACE_TORQUE:
-        return _stick_torque(t_s1, t_c, p, d)
-    if code == OUT_BEARING_CONTACT:
-        return float(modes[1])
-    return y[code - OUT_STATE]
+@njit(**_JIT)
+def _copy_lane_rows(a, lane_a, b, lane_b, first_a, first_b, count):
+    """Rows first_b.. of lane_b in block b ← rows first_a.. of lane_a in block a."""
+    for i in range(count):
+        b[_at(first_b + i, lane_b)] = a[_at(first_a + i, lane_a)]
 
 
-@njit(cache=True)
-def _initial_state(p, d, y):
-    y[:] = 0.0
+# --- driver ---------------------------------------------------------------------------------------
+@njit(**_JIT)
+def _step(w, alone, t, h, n_lanes, events_possible):
+    """Advance all lanes of block ``w`` from t by h; a lane whose step crosses an event is redone by
+    the event path on the one-lane scratch block ``alone``.  Returns the new time."""
+    t_end = t + h
+    step = t_end - t
+    if step <= 0.0:
+        return t_end
+    if not events_possible:
+        _rk4(w, t, step, n_lanes, True)
+        return t_end
+    _rk4(w, t, step, n_lanes, False)
+    _events(w, R_TRIAL, n_lanes)
+    for lane in range(n_lanes):
+        if not w[_at(R_G, lane)] <= 0.0:
+            _copy_lane_rows(w, lane, alone, 0, 0, 0, N_CONST + N_MODES)
+            _copy_lane_rows(w, lane, alone, 0, R_Y, R_Y, NY)
+            alone[_at(R_TL_TIME, 0)] = math.nan  # another lane's load torque
+            _advance_alone(alone, t, h)
+            _copy_lane_rows(alone, 0, w, lane, R_SLIP, R_SLIP, N_MODES)
+            _copy_lane_rows(alone, 0, w, lane, R_Y, R_TRIAL, NY)
+    for j in range(NY * LANES):
+        w[_at(R_Y, j)] = w[_at(R_TRIAL, j)]
+    return t_end
+
+
+@njit(**_JIT)
+def _setup_lane(w, lane, p):
+    """Parameters, derived quantities, modes and the rig.md initial state of one lane."""
+    for k in range(N_PAR):
+        w[_at(k, lane)] = p[k]
+    omega = 2.0 * math.pi * p[SPEED] / 60.0
+    w[_at(R_OMEGA, lane)] = omega
+    w[_at(R_CM, lane)] = p[T0] / (p[SLIP] * omega)
+    w[_at(R_INVJ2, lane)] = 1.0 / (p[J2A] + p[J2B])
+    w[_at(R_MU2, lane)] = p[J2A] * p[J2B] / (p[J2A] + p[J2B])
+    w[_at(R_DELTA0, lane)] = p[T0] / p[KT2]
+    masses = (p[MB], p[M1], p[MB], p[M2], p[M3], p[MB], p[M4], p[MB])
+    for i in range(8):
+        w[_at(R_INVM + i, lane)] = 1.0 / masses[i]
+    springs = (p[KS], p[KS], p[KH], p[KC], p[KH], p[KS], p[KS])
+    for i in range(7):
+        w[_at(R_KLAT + i, lane)] = springs[i]
+    w[_at(R_JRED1, lane)] = p[J1] - p[U1] * p[U1] * w[_at(R_INVM + 1, lane)]
+    w[_at(R_JRED4, lane)] = p[J4] - p[U4] * p[U4] * w[_at(R_INVM + 6, lane)]
+    same = lane > 0
+    for k in (T0, LOAD_AMP, LOAD_FREQ, LOAD_HARM):
+        same = same and p[k] == w[_at(k, lane - 1)]
+    w[_at(R_SAME_LOAD, lane)] = 1.0 if same else 0.0
+    for k in range(N_MODES):
+        w[_at(R_SLIP + k, lane)] = 0.0
+    for i in range(NY):
+        w[_at(R_Y + i, lane)] = 0.0
     theta3 = p[T0] / p[KT3]
     theta2 = theta3 + p[T0] / p[KT2]
-    y[0], y[1], y[2], y[3], y[4] = theta2 + p[T0] / p[KT1], theta2, theta2, theta3, 0.0
-    for i in range(5):
-        y[NQ + i] = d[D_OMEGA]
+    for i, theta in enumerate((theta2 + p[T0] / p[KT1], theta2, theta2, theta3, 0.0)):
+        w[_at(R_Y + i, lane)] = theta
+        w[_at(R_Y + NQ + i, lane)] = omega
 
 
-@njit(cache=True)
-def _simulate_one(p, t_first, fs, n_samples, substeps, codes, out):
-    d = _derived(p)
-    y = np.empty(NY)
-    _initial_state(p, d, y)
-    w = np.empty((7, NY))
-    modes = np.zeros(2, dtype=np.int64)
-    onsets = np.zeros(1, dtype=np.int64)
+@njit(**_JIT)
+def _record(w, codes, out, first, k, n_lanes):
+    """Sample k of every output code for the block's lanes (simulations first, first + 1, ...)."""
+    for c in range(codes.shape[0]):
+        code = codes[c]
+        if code == 10 or code == OUT_INTERFACE_TORQUE:
+            for lane in range(n_lanes):
+                t_s1, t_c = _shaft_torques(w, lane, R_Y)
+                out[first + lane, c, k] = t_c if code == 10 else _stick_torque(w, lane, t_s1, t_c)
+            continue
+        if code == OUT_SLIPPING:
+            for lane in range(n_lanes):
+                out[first + lane, c, k] = 1.0 if w[_at(R_SLIP, lane)] != 0.0 else 0.0
+            continue
+        if code < 8:  # bearing displacement: (node b1,b2,b3,b4) × (x,y)
+            row = R_Y + 5 + 8 * (code % 2) + (0, 2, 5, 7)[code // 2]
+        elif code == 8:
+            row = R_Y + NQ
+        elif code == 9:
+            row = R_Y + NQ + 4
+        elif code == OUT_SLIP_ONSETS:
+            row = R_ONSETS
+        elif code == OUT_BEARING_CONTACT:
+            row = R_CONTACT
+        else:
+            row = R_Y + code - OUT_STATE
+        for lane in range(n_lanes):
+            out[first + lane, c, k] = w[_at(row, lane)]
+
+
+@njit(**_JIT)
+def _simulate_block(params, first, n_lanes, t_first, fs, n_samples, substeps, codes, out):
+    """Simulate rows first .. first+n_lanes-1 of ``params`` together, one per lane."""
+    w = np.zeros(N_ROWS * LANES)  # unused lanes stay finite: the flat copy in _step reads them
+    alone = np.zeros(N_ROWS * LANES)  # scratch block of the event path (lane 0 only)
+    w[_at(R_TL_TIME, 0)] = math.nan
+    events_possible = False
+    for lane in range(n_lanes):
+        _setup_lane(w, lane, params[first + lane])
+        events_possible = events_possible or params[first + lane, TMAX] < math.inf or params[first + lane, GAP] > 0.0
     h_target = 1.0 / (fs * substeps)
     t = 0.0
     n_warm = int(math.ceil(t_first / h_target - 1e-9))
     for k in range(n_warm):
-        t = _advance(t, y, (k + 1) * t_first / n_warm - t, p, d, modes, w, onsets)
+        t = _step(w, alone, t, (k + 1) * t_first / n_warm - t, n_lanes, events_possible)
     t = t_first
     for k in range(n_samples):
         if k > 0:
             t_sample = t_first + k / fs
             for s in range(substeps):
                 t_next = t_first + (k - 1 + (s + 1) / substeps) / fs
-                t = _advance(t, y, t_next - t, p, d, modes, w, onsets)
+                t = _step(w, alone, t, t_next - t, n_lanes, events_possible)
             t = t_sample
-        for c in range(codes.shape[0]):
-            out[c, k] = _record(y, p, d, modes, onsets, codes[c])
+        _record(w, codes, out, first, k, n_lanes)
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, error_model="numpy", parallel=True)
+def _simulate_batch(params, t_first, fs, n_samples, substeps, codes, n_threads):
+    n = params.shape[0]
+    out = np.empty((n, codes.shape[0], n_samples))
+    # Blocks of at most LANES simulations, at least as many as threads while each keeps >= 4 lanes
+    # (one AVX2 vector), of equal width rounded up to a multiple of 4.
+    n_blocks = max((n + LANES - 1) // LANES, min(n_threads, (n + 3) // 4))
+    width = min(LANES, ((n + n_blocks - 1) // n_blocks + 3) // 4 * 4) if n > 0 else 1
+    for b in prange((n + width - 1) // width):
+        first = b * width
+        _simulate_block(params, first, min(width, n - first), t_first, fs, n_samples, substeps, codes, out)
+    return out
+
+
 def simulate_batch(params, t_first, fs, n_samples, substeps, codes):
     """Simulate each row of ``params`` (n, n_parameters); returns (n, len(codes), n_samples).
 
-    Samples lie at t_first + k/fs; the model starts from the rig.md initial state at t = 0.
+    Samples lie at t_first + k/fs; the model starts from the rig.md initial state at t = 0.  Each
+    sample interval takes ``substeps`` RK4 steps; the warm-up up to t_first takes steps of the same
+    length or less.
     """
-    n = params.shape[0]
-    out = np.empty((n, codes.shape[0], n_samples))
-    for i in prange(n):
-        _simulate_one(params[i], t_first, fs, n_samples, substeps, codes, out[i])
-    return out
+    # The thread count is read here: inside a compiled function it would make it uncacheable.
+    return _simulate_batch(params, t_first, fs, n_samples, substeps, codes, get_num_threads())
