@@ -48,7 +48,7 @@ def measurement_dataset(
     channels: Sequence[str],
     sampling: model.Sampling,
     operating: Mapping[str, float],
-    attrs: Mapping[str, object] = {},
+    attrs: Mapping[str, object] | None = None,
     sigma: np.ndarray | None = None,
 ) -> xr.Dataset:
     """A measurement as an xarray Dataset; dict/list attributes are stored as JSON text."""
@@ -65,7 +65,7 @@ def measurement_dataset(
         ds["sigma"].attrs.update(long_name="noise standard deviation", units="channel units")
     ds.attrs.update({name: float(operating[name]) for name in OPERATING_ATTRS})
     ds.attrs.update(
-        {k: json.dumps(v, sort_keys=True) if isinstance(v, (dict, list, tuple)) else v for k, v in attrs.items()}
+        {k: json.dumps(v, sort_keys=True) if isinstance(v, (dict, list, tuple)) else v for k, v in (attrs or {}).items()}
     )
     return ds
 
