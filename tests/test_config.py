@@ -49,7 +49,7 @@ def assert_one_line(err: cfg.ConfigError, source: str, field: str, *words: str) 
 @pytest.mark.parametrize("path", [DEFAULT, CI], ids=["default", "ci"])
 def test_shipped_configs_pass(path):
     config = cfg.load(path, SCHEMA)
-    assert set(config) == {"rig", "operating", "sampling", "simulation", "noise", "scenarios"}
+    assert set(config) == {"rig", "operating", "sampling", "simulation", "noise", "scenarios", "calibration"}
     for name in config["scenarios"]:
         values = cfg.scenario_values(config, name)
         assert set(values) == set(model.PARAMETER_NAMES)
@@ -316,6 +316,26 @@ BAD = {
         "scenarios.loose_bearing.fault.parameters.gap",
         "[0, inf) m",
     ),
+    "zero prior sd": (_set("calibration.parameters.kT1.prior.sd", 0.0), "calibration.parameters.kT1.prior.sd", "> 0"),
+    "negative prior sd": (
+        _set("calibration.parameters.kT1.prior.sd", -5.0e5),
+        "calibration.parameters.kT1.prior.sd",
+        "> 0",
+    ),
+    "grid bounds reversed": (_set("calibration.parameters.kT1.grid.low", 5.0e6), "calibration.parameters.kT1.grid", "reversed"),
+    "grid below physical range": (
+        _set("calibration.parameters.kT3.grid.low", -1.0e6),
+        "calibration.parameters.kT3.grid.low",
+        "physical only",
+    ),
+    "unknown calibration parameter": (
+        _set("calibration.parameters.kT9", {"prior": {"mean": 1.0, "sd": 1.0}, "grid": {"low": 1.0, "high": 2.0, "points": 3}}),
+        "calibration.parameters.kT9",
+        "did you mean",
+    ),
+    "calibration channel not simulated": (_set("simulation.channels", ["b1_x"]), "calibration.channels[1]", "not simulated"),
+    "chi2 threshold below 1": (_set("calibration.chi2_max", 0.9), "calibration.chi2_max", "must exceed 1"),
+    "too few grid points": (_set("calibration.parameters.kT1.grid.points", 2), "calibration.parameters.kT1.grid.points", "≥ 3"),
 }
 
 
@@ -556,3 +576,4 @@ def test_fault_without_severity_or_unable_to_carry_the_load_is_rejected(default_
     config = copy.deepcopy(default_config)
     config["scenarios"]["x"] = {"fault": {"kind": kind, "parameters": parameters}}
     assert_one_line(error_of(config), SOURCE, f"scenarios.x.fault.{field}", problem)
+

@@ -189,7 +189,7 @@ def _physical_problems(config: Mapping) -> Iterator[tuple[str, str]]:
     Stages run in order and stop after the first stage with problems, so every later stage can
     rely on what the earlier ones checked (e.g. load_freq > 0 before the load-cycle check).
     """
-    for stage in (_value_problems, _sampling_problems, _noise_problems, _all_scenario_problems):
+    for stage in (_value_problems, _sampling_problems, _noise_problems, _all_scenario_problems, _calibration_problems):
         problems = list(stage(config))
         if problems:
             yield from problems
@@ -228,6 +228,30 @@ def _noise_problems(config: Mapping) -> Iterator[tuple[str, str]]:
     for i, snr in enumerate(config["noise"]["snr_db"]):
         if not math.isfinite(snr):
             yield f"noise.snr_db[{i}]", f"must be a finite number of dB (got {snr})"
+
+
+def _calibration_problems(config: Mapping) -> Iterator[tuple[str, str]]:
+    calibration = config["calibration"]
+    simulated = config["simulation"]["channels"]
+    for i, channel in enumerate(calibration["channels"]):
+        if channel not in simulated:
+            yield f"calibration.channels[{i}]", f"'{channel}' is not simulated (simulation.channels: {', '.join(simulated)})"
+    if not calibration["chi2_max"] > 1.0:
+        yield "calibration.chi2_max", f"must exceed 1, the reduced χ² of a model that explains the data (got {calibration['chi2_max']})"
+    for name, spec in calibration["parameters"].items():
+        where = f"calibration.parameters.{name}"
+        if name not in model.RIG_PARAMETERS:
+            yield where, f"unknown rig parameter{_did_you_mean(name, model.RIG_PARAMETERS)} (known: {', '.join(model.RIG_PARAMETERS)})"
+            continue
+        bounds = model.PARAMETER_BY_NAME[name]
+        prior, grid = spec["prior"], spec["grid"]
+        if not (math.isfinite(prior["sd"]) and prior["sd"] > 0):
+            yield f"{where}.prior.sd", f"must be a finite number > 0 (got {prior['sd']})"
+        for field, value in (("prior.mean", prior["mean"]), ("grid.low", grid["low"]), ("grid.high", grid["high"])):
+            if (problem := bounds.problem(value)) is not None:
+                yield f"{where}.{field}", f"{problem}: {name} is physical only there"
+        if not grid["low"] < grid["high"]:
+            yield f"{where}.grid", f"bounds reversed or equal (low {grid['low']:g} ≥ high {grid['high']:g})"
 
 
 def _all_scenario_problems(config: Mapping) -> Iterator[tuple[str, str]]:
