@@ -1,5 +1,7 @@
 """Measurement files (shared/spec/measurements.md): round trips, and one clear line for every bad file."""
 
+import os
+
 import numpy as np
 import pytest
 import xarray as xr
@@ -116,3 +118,10 @@ def test_bad_file_gets_one_line_naming_it(tmp_path, case):
     assert "\n" not in message
     assert message.startswith(f"{path}: ")
     assert problem in message
+
+
+def test_written_files_get_ordinary_permissions(tmp_path):
+    write_netcdf(make_dataset(), tmp_path / "m.nc")
+    umask = os.umask(0)
+    os.umask(umask)
+    assert (tmp_path / "m.nc").stat().st_mode & 0o777 == 0o666 & ~umask
