@@ -13,9 +13,13 @@ if not workflow.overwrite_configfiles:
 include: "workflow/rules/common.smk"
 include: "workflow/rules/simulate.smk"
 include: "workflow/rules/noise.smk"
+include: "workflow/rules/calibrate.smk"
+include: "workflow/rules/summary.smk"
 
 
 rule all:
     default_target: True
     input:
         simulation_targets(),
+        calibration_targets(),
+        "results/summary.csv",

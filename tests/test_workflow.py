@@ -1,6 +1,7 @@
 """The Snakemake study end to end on the small CI config (.test/config.yaml)."""
 
 import os
+import csv
 import re
 import shutil
 import subprocess
@@ -10,7 +11,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from newdyn import model
+from newdyn import calibration, model
 from newdyn.io import read_measurement
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -66,6 +67,32 @@ def test_study_writes_every_scenario_clean_and_noisy_with_provenance(study):
     assert '"kT1": 3250000.0' in kT1.attrs["parameters"]
 
 
+def test_summary_table_has_a_row_per_calibration_and_the_expected_verdicts(study):
+    config = yaml.safe_load(TEST_CONFIG.read_text())
+    with open(study / "results" / "summary.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert set(calibration.SUMMARY_COLUMNS) <= set(rows[0])
+    parameters = config["calibration"]["parameters"]
+    assert len(rows) == len(config["scenarios"]) * len(parameters) * len(config["noise"]["snr_db"])
+    verdict = {(r["scenario"], r["parameter"]): r["verdict"] for r in rows}
+    assert verdict["healthy", "kT1"] == verdict["kT1_up", "kT1"] == "explained"
+    assert verdict["stick_slip", "kT1"] == verdict["stick_slip", "kT3"] == "not explained"
+    kT1_up = next(r for r in rows if r["scenario"] == "kT1_up" and r["parameter"] == "kT1")
+    assert float(kT1_up["mean"]) == pytest.approx(3.25e6, rel=0.01)
+    assert float(kT1_up["hellinger_to_healthy"]) > 0.9
+
+
+def test_changing_one_prior_reruns_only_its_calibrations(study, tmp_path):
+    config = yaml.safe_load(TEST_CONFIG.read_text())
+    config["calibration"]["parameters"]["kT1"]["prior"]["sd"] = 4.0e5
+    path = tmp_path / "prior.yaml"
+    path.write_text(yaml.safe_dump(config, sort_keys=False))
+    planned = planned_outputs(study, path)
+    calibrations = [p for p in planned if p != "results/summary.csv"]
+    assert "results/summary.csv" in planned and calibrations
+    assert all(p.startswith("results/calibration/") and "/kT1/" in p for p in calibrations)
+
+
 def test_immediate_rerun_has_nothing_to_do(study):
     run = snakemake(study, "--dry-run")
     assert "Nothing to be done" in run.stdout + run.stderr
@@ -87,7 +114,8 @@ def test_changing_one_scenario_reruns_only_that_scenario(study, tmp_path):
     path = tmp_path / "changed.yaml"
     path.write_text(yaml.safe_dump(config, sort_keys=False))
     planned = planned_outputs(study, path)
-    assert planned and all(p.startswith("results/simulations/kT1_up/") for p in planned)
+    own = ("results/simulations/kT1_up/", "results/calibration/kT1_up/", "results/summary.csv")
+    assert planned and all(p.startswith(own) for p in planned)
     assert "results/simulations/kT1_up/clean.nc" in planned
 
 
@@ -97,12 +125,17 @@ def test_changing_a_rig_value_reruns_every_scenario(study, tmp_path):
     path = tmp_path / "changed.yaml"
     path.write_text(yaml.safe_dump(config, sort_keys=False))
     planned = planned_outputs(study, path)
-    assert {p.split("/")[2] for p in planned} == set(config["scenarios"])
+    assert {p.split("/")[2] for p in planned if p.startswith("results/simulations/")} == set(config["scenarios"])
 
 
 @pytest.mark.parametrize(
     "module, rules",
-    [("kernels.py", {"clean.nc", "snr40_seed1.nc"}), ("noise.py", {"snr40_seed1.nc"}), ("plots_unused.py", set())],
+    [
+        ("kernels.py", {"clean.nc", "snr40_seed1.nc", "snr40_seed1_grid.nc", "kT1.nc", "kT3.nc", "summary.csv"}),
+        ("noise.py", {"snr40_seed1.nc", "snr40_seed1_grid.nc", "summary.csv"}),
+        ("likelihood.py", {"snr40_seed1_grid.nc", "kT1.nc", "kT3.nc", "summary.csv"}),
+        ("plots_unused.py", set()),
+    ],
 )
 def test_editing_science_code_reruns_exactly_the_jobs_that_use_it(study, tmp_path, module, rules):
     """A copy of the package with one module edited, first on PYTHONPATH, is what the workflow imports."""
@@ -112,8 +145,9 @@ def test_editing_science_code_reruns_exactly_the_jobs_that_use_it(study, tmp_pat
         source.write("\n# an edit\n")
     planned = planned_outputs(study, pythonpath=tmp_path)
     assert {p.split("/")[-1] for p in planned} == rules
-    if rules:
-        assert {p.split("/")[2] for p in planned} == set(yaml.safe_load(TEST_CONFIG.read_text())["scenarios"])
+    scenarios = set(yaml.safe_load(TEST_CONFIG.read_text())["scenarios"])
+    if "snr40_seed1.nc" in rules:
+        assert {p.split("/")[2] for p in planned if p.startswith("results/simulations/")} == scenarios
 
 
 def test_bad_config_fails_in_one_line_before_any_job(tmp_path):

@@ -19,8 +19,7 @@ def simulate_scenario(spec: dict, output: str, code_hash: str) -> None:
     """Write the clean simulated measurement of one scenario (spec built by the workflow)."""
     from . import io, model, provenance, simulation
 
-    window = spec["sampling"]  # canonical JSON holds every number as a float
-    sampling = model.Sampling(fs=window["fs"], t_first=window["t_first"], n_samples=int(window["n_samples"]))
+    sampling = _sampling(spec["sampling"])
     values = spec["values"]
     start = time.perf_counter()
     y = simulation.simulate(values, sampling, spec["channels"], spec["max_step"])
@@ -66,6 +65,129 @@ def add_noise_to_file(source: str, output: str, snr_db: float, seed: int, code_h
     log.info("added noise at %g dB (seed %d): sigma %s", snr_db, seed, {c: float(f"{s:.4g}") for c, s in zip(channels, sigma)})
 
 
+def simulate_grid_models(spec: dict, output: str, code_hash: str) -> None:
+    """Write the coarse-grid model runs of one calibration parameter (independent of any data)."""
+    import xarray as xr
+
+    from . import calibration, io, model, provenance
+
+    grid = calibration.GridSpec.from_config(spec["parameter"], spec["grid"])
+    sampling = _sampling(spec["sampling"])
+    start = time.perf_counter()
+    models = calibration.simulate_grid(spec["values"], grid.parameter, grid.axis, sampling, spec["channels"], spec["max_step"])
+    log.info("simulated %d grid points of %s in %.2f s", grid.points, grid.parameter, time.perf_counter() - start)
+    ds = xr.Dataset(
+        {"model": (("grid", "channel", "time"), models)},
+        coords={"grid": grid.axis, "channel": spec["channels"], "time": sampling.times},
+        attrs={
+            "title": f"newdyn coarse likelihood grid of {grid.parameter}: healthy-rig model runs",
+            "parameter": grid.parameter,
+            "values": json.dumps(spec["values"], sort_keys=True),
+            "max_step": spec["max_step"],
+            "code_hash": code_hash,
+            "versions": json.dumps(provenance.versions(), sort_keys=True),
+            **{name: float(spec["values"][name]) for name in model.OPERATING_PARAMETERS},
+        },
+    )
+    io.write_netcdf(ds, output)
+
+
+def calibrate_on_grid(measurement_path: str, grid_path: str, spec: dict, output: str, code_hash: str) -> None:
+    """Write the grid posterior of one parameter for one measurement, with its summary as attributes."""
+    import numpy as np
+    import xarray as xr
+
+    from . import calibration, io, model, provenance
+
+    channels = spec["channels"]
+    measurement = io.read_measurement(measurement_path, {k: spec["values"][k] for k in model.OPERATING_PARAMETERS})
+    missing = [c for c in channels if c not in measurement.channels]
+    if missing:
+        raise io.MeasurementError(measurement_path, f"has no channel {missing[0]} to calibrate on")
+    rows = [measurement.channels.index(c) for c in channels]
+    if measurement.sigma is None:
+        raise io.MeasurementError(measurement_path, "no noise level (coordinate sigma) to calibrate with")
+    data, sigma = measurement.y[rows], measurement.sigma[rows]
+    grid = calibration.GridSpec.from_config(spec["parameter"], spec["grid"])
+    prior = calibration.NormalPrior(**spec["prior"])
+    values = {**spec["values"], **measurement.operating}  # the healthy rig at the measured condition
+
+    with xr.open_dataset(grid_path, engine="netcdf4") as coarse:
+        coarse.load()
+    same_condition = (
+        np.array_equal(coarse["time"].values, measurement.sampling.times)
+        and all(float(coarse.attrs[k]) == values[k] for k in model.OPERATING_PARAMETERS)
+        and np.array_equal(coarse["grid"].values, grid.axis)
+    )
+    if same_condition:
+        coarse_models = coarse["model"].sel(channel=channels).values
+    else:  # a measurement at another operating condition or sampling needs its own coarse grid
+        log.info("measurement differs from the shared grid's condition: simulating its own coarse grid")
+        coarse_models = calibration.simulate_grid(values, grid.parameter, grid.axis, measurement.sampling, channels, spec["max_step"])
+
+    result = calibration.calibrate(
+        data, sigma, grid, prior, coarse_models, values, measurement.sampling, channels,
+        int(spec["refine_points"]), spec["chi2_max"], spec["max_step"],
+    )
+    post = result.posterior
+    summary = result.summary()
+    log.info("%s on %s: %s", grid.parameter, measurement.name, summary)
+    labels = {key: measurement.attrs[key] for key in ("scenario", "snr_db", "seed") if key in measurement.attrs}
+    ds = xr.Dataset(
+        {
+            "posterior": ("grid", post.density),
+            "log_likelihood": ("grid", post.log_likelihood),
+            "scaled_likelihood": ("grid", post.scaled_likelihood),
+            "prior": ("grid", post.prior_density),
+            "best_fit": (("channel", "time"), result.best_fit),
+        },
+        coords={"grid": post.grid, "channel": channels, "time": measurement.sampling.times},
+        attrs={
+            "title": f"newdyn grid calibration of {grid.parameter} on {measurement.name}",
+            "measurement": measurement.name,
+            **labels,
+            "parameter": grid.parameter,
+            "method": "grid",
+            **summary,
+            "settings": json.dumps(spec, sort_keys=True),
+            "code_hash": code_hash,
+            "versions": json.dumps(provenance.versions(), sort_keys=True),
+        },
+    )
+    io.write_netcdf(ds, output)
+
+
+def summarize(paths: list[str], output: str) -> None:
+    """Write the study's summary table (CSV), one row per calibration file."""
+    import xarray as xr
+
+    from . import calibration, io
+
+    results = []
+    for path in paths:
+        with xr.open_dataset(path, engine="netcdf4") as ds:
+            results.append({**ds.attrs, "grid": ds["grid"].values, "posterior": ds["posterior"].values})
+    rows = calibration.summary_rows(results)
+    io.atomic_write(output, lambda tmp: _write_csv(tmp, calibration.SUMMARY_COLUMNS, rows))
+    log.info("summarized %d calibrations into %s", len(rows), output)
+
+
+def _write_csv(path, columns, rows):
+    import csv
+
+    with open(path, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=columns)
+        writer.writeheader()
+        writer.writerows(rows)
+
+
+def _sampling(window: dict):
+    from . import model
+
+    # canonical JSON holds every number as a float
+    return model.Sampling(fs=window["fs"], t_first=window["t_first"], n_samples=int(window["n_samples"]))
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="newdyn", description=__doc__.splitlines()[0])
     commands = parser.add_subparsers(dest="command", required=True)
@@ -82,12 +204,35 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, required=True)
     p.add_argument("--code-hash", default="")
 
+    p = commands.add_parser("grid-models", help="simulate the coarse likelihood grid of a calibration parameter")
+    p.add_argument("--spec", required=True, help="grid spec as JSON (built by the workflow)")
+    p.add_argument("--output", required=True)
+    p.add_argument("--code-hash", default="")
+
+    p = commands.add_parser("calibrate-grid", help="grid posterior of a parameter for a measurement")
+    p.add_argument("--measurement", required=True)
+    p.add_argument("--grid", required=True, help="the parameter's coarse grid (from grid-models)")
+    p.add_argument("--spec", required=True, help="calibration spec as JSON (built by the workflow)")
+    p.add_argument("--output", required=True)
+    p.add_argument("--code-hash", default="")
+
+    p = commands.add_parser("summarize", help="the summary table of all calibrations")
+    p.add_argument("inputs", nargs="+", help="calibration files")
+    p.add_argument("--output", required=True)
+    p.add_argument("--code-hash", default="")
+
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s", stream=sys.stderr)
     if args.command == "simulate":
         simulate_scenario(json.loads(args.spec), args.output, args.code_hash)
     elif args.command == "add-noise":
         add_noise_to_file(args.input, args.output, args.snr_db, args.seed, args.code_hash)
+    elif args.command == "grid-models":
+        simulate_grid_models(json.loads(args.spec), args.output, args.code_hash)
+    elif args.command == "calibrate-grid":
+        calibrate_on_grid(args.measurement, args.grid, json.loads(args.spec), args.output, args.code_hash)
+    elif args.command == "summarize":
+        summarize(args.inputs, args.output)
     return 0
 
 

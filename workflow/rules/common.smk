@@ -22,6 +22,7 @@ NOISE_CODE = newdyn.provenance.source_hash("noise", "io")
 
 wildcard_constraints:
     scenario="|".join(SCENARIOS) or "[A-Za-z0-9_-]+",
+    parameter="|".join(config["calibration"]["parameters"]),
     snr=r"-?\d+(\.\d+)?",
     seed=r"\d+",
 
@@ -45,6 +46,58 @@ def simulation_targets():
     return expand("results/simulations/{scenario}/clean.nc", scenario=SCENARIOS) + expand(
         "results/simulations/{scenario}/snr{snr}_seed{seed}.nc",
         scenario=SCENARIOS,
+        snr=SNRS,
+        seed=SEEDS,
+    )
+
+
+CALIBRATION = config["calibration"]
+PARAMETERS = list(CALIBRATION["parameters"])
+CALIBRATION_CODE = newdyn.provenance.source_hash("model", "kernels", "simulation", "io", "likelihood", "calibration")
+SUMMARY_CODE = newdyn.provenance.source_hash("calibration", "comparison")
+
+
+def _sampling_spec():
+    sampling = newdyn.config.sampling(config)
+    return {"fs": sampling.fs, "t_first": sampling.t_first, "n_samples": sampling.n_samples}
+
+
+def grid_models_spec(wildcards):
+    """What the coarse grid of one parameter depends on: the healthy rig, sampling, grid, channels."""
+    return newdyn.config.canonical_json(
+        {
+            "parameter": wildcards.parameter,
+            "grid": CALIBRATION["parameters"][wildcards.parameter]["grid"],
+            "values": newdyn.config.base_values(config),
+            "sampling": _sampling_spec(),
+            "channels": CALIBRATION["channels"],
+            "max_step": config["simulation"]["max_step"],
+        }
+    )
+
+
+def calibration_spec(wildcards):
+    """What one grid calibration depends on besides its measurement and grid files."""
+    spec = CALIBRATION["parameters"][wildcards.parameter]
+    return newdyn.config.canonical_json(
+        {
+            "parameter": wildcards.parameter,
+            "prior": spec["prior"],
+            "grid": spec["grid"],
+            "values": newdyn.config.base_values(config),
+            "channels": CALIBRATION["channels"],
+            "refine_points": CALIBRATION["refine_points"],
+            "chi2_max": CALIBRATION["chi2_max"],
+            "max_step": config["simulation"]["max_step"],
+        }
+    )
+
+
+def calibration_targets():
+    return expand(
+        "results/calibration/{scenario}/{parameter}/snr{snr}_seed{seed}_grid.nc",
+        scenario=SCENARIOS,
+        parameter=PARAMETERS,
         snr=SNRS,
         seed=SEEDS,
     )

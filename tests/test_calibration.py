@@ -1,0 +1,67 @@
+"""Grid calibration on simulated measurements: the issue's expected results on a reduced record."""
+
+import numpy as np
+import pytest
+
+from newdyn import calibration, model, noise
+from newdyn.simulation import simulate
+
+SAMPLING = model.Sampling(fs=5000.0, t_first=0.5, n_samples=2500)  # half the default record
+CHANNELS = ["b1_x", "w1"]
+GRIDS = {"kT1": calibration.GridSpec("kT1", 1.5e6, 4.5e6, 151), "kT3": calibration.GridSpec("kT3", 1.3e6, 3.7e6, 121)}
+PRIORS = {"kT1": calibration.NormalPrior(3.0e6, 0.5e6), "kT3": calibration.NormalPrior(2.5e6, 0.4e6)}
+
+
+@pytest.fixture(scope="module")
+def coarse_models():
+    return {p: calibration.simulate_grid({}, p, g.axis, SAMPLING, CHANNELS) for p, g in GRIDS.items()}
+
+
+def calibrate(coarse_models, truth, parameter, snr_db=40.0, seed=1):
+    clean = simulate(truth, SAMPLING, CHANNELS)
+    data, sigma = noise.add_noise(clean, CHANNELS, snr_db, seed)
+    return calibration.calibrate(
+        data, sigma, GRIDS[parameter], PRIORS[parameter], coarse_models[parameter], {}, SAMPLING, CHANNELS, 41, 1.1
+    )
+
+
+@pytest.mark.parametrize(
+    "truth, parameter, value",
+    [({}, "kT1", 3.0e6), ({}, "kT3", 2.5e6), ({"kT1": 3.25e6}, "kT1", 3.25e6), ({"kT3": 2.3e6}, "kT3", 2.3e6)],
+    ids=["healthy-kT1", "healthy-kT3", "kT1_up", "kT3_down"],
+)
+def test_parameter_change_is_explained_by_its_parameter(coarse_models, truth, parameter, value):
+    result = calibrate(coarse_models, truth, parameter)
+    post = result.posterior
+    assert post.mean == pytest.approx(value, rel=0.01)
+    assert abs(post.mean - value) < 4 * post.sd  # and the truth lies inside the posterior
+    assert result.n_peaks == 1 and result.verdict == "explained"
+    n = SAMPLING.n_samples * len(CHANNELS)
+    assert abs(result.chi2_red - 1) < 4 * np.sqrt(2 / n)  # the best fit reaches the noise
+    # Refinement resolved the peak: several grid points within one posterior sd of the mean.
+    assert np.sum(np.abs(post.grid - post.mean) < post.sd) >= 5
+
+
+@pytest.mark.parametrize("parameter", ["kT1", "kT3"])
+def test_stick_slip_is_not_explained_by_a_stiffness(coarse_models, parameter):
+    """The paper's Fig. 4: calibrating kT1 or kT3 cannot absorb the stick-slip's new dynamics."""
+    result = calibrate(coarse_models, {"T_max": 1.15 * 1613.0}, parameter)
+    assert result.chi2_red > 10
+    assert result.verdict == "not explained"
+
+
+def test_summary_rows_carry_hellinger_distance_to_healthy():
+    grid = np.linspace(0.0, 10.0, 1001)
+
+    def result(scenario, mu):
+        density = np.exp(-0.5 * (grid - mu) ** 2) / np.sqrt(2 * np.pi)
+        return {"scenario": scenario, "parameter": "kT1", "snr_db": 40.0, "seed": 1, "method": "grid",
+                "grid": grid, "posterior": density}
+
+    rows = calibration.summary_rows([result("shifted", 6.0), result("healthy", 5.0), result("alone", 5.0) | {"seed": 2}])
+    by_scenario = {(r["scenario"], r["seed"]): r for r in rows}
+    assert by_scenario[("healthy", 1)]["hellinger_to_healthy"] == pytest.approx(0.0, abs=1e-6)
+    closed_form = np.sqrt(1 - np.exp(-1 / 8))  # two unit Gaussians one sd apart
+    assert by_scenario[("shifted", 1)]["hellinger_to_healthy"] == pytest.approx(closed_form, abs=1e-4)
+    assert np.isnan(by_scenario[("alone", 2)]["hellinger_to_healthy"])
+    assert list(rows[0]) == list(calibration.SUMMARY_COLUMNS)

@@ -1,0 +1,37 @@
+rule grid_models:
+    output:
+        "results/calibration/grids/{parameter}.nc",
+    log:
+        "results/logs/grid_models/{parameter}.log",
+    benchmark:
+        "results/benchmarks/grid_models/{parameter}.tsv"
+    conda:
+        "../envs/newdyn.yaml"
+    threads: 2
+    params:
+        spec=grid_models_spec,
+        code=CALIBRATION_CODE,
+    shell:
+        "NUMBA_NUM_THREADS={threads} newdyn grid-models --spec {params.spec:q} "
+        "--code-hash {params.code} --output {output} > {log} 2>&1"
+
+
+rule calibrate_grid:
+    input:
+        measurement="results/simulations/{scenario}/snr{snr}_seed{seed}.nc",
+        grid="results/calibration/grids/{parameter}.nc",
+    output:
+        "results/calibration/{scenario}/{parameter}/snr{snr}_seed{seed}_grid.nc",
+    log:
+        "results/logs/calibrate_grid/{scenario}/{parameter}/snr{snr}_seed{seed}.log",
+    benchmark:
+        "results/benchmarks/calibrate_grid/{scenario}/{parameter}/snr{snr}_seed{seed}.tsv"
+    conda:
+        "../envs/newdyn.yaml"
+    threads: 1
+    params:
+        spec=calibration_spec,
+        code=CALIBRATION_CODE,
+    shell:
+        "NUMBA_NUM_THREADS={threads} newdyn calibrate-grid --measurement {input.measurement} "
+        "--grid {input.grid} --spec {params.spec:q} --code-hash {params.code} --output {output} > {log} 2>&1"
