@@ -13,10 +13,12 @@ from dataclasses import dataclass
 from typing import Mapping, Sequence
 
 import numpy as np
+import xarray as xr
 
 from . import likelihood, model, simulation
 
 N_REFINED_MAXIMA = 3  # coarse likelihood maxima refined per measurement: enough to see multiple peaks
+SPAN_SD = 6.0  # refined span around each peak, in likelihood widths
 
 
 @dataclass(frozen=True)
@@ -112,31 +114,137 @@ def calibrate(
     ``coarse_models`` are :func:`simulate_grid`'s outputs on ``spec.axis`` for the model ``values``
     (the healthy rig at the measurement's operating condition and sampling).
     """
+    def run(points):
+        models = simulate_grid(values, spec.parameter, points, sampling, channels, max_step)
+        return models, likelihood.log_likelihood(data, models, sigma)
+
     coarse = spec.axis
     coarse_ll = likelihood.log_likelihood(data, coarse_models, sigma)
-    fine = _refinement(coarse, coarse_ll, refine_points)
-    fine_models = simulate_grid(values, spec.parameter, fine, sampling, channels, max_step)
-    grid, unique = np.unique(np.concatenate([coarse, fine]), return_index=True)
-    models = np.concatenate([coarse_models, fine_models])[unique]
-    ll = likelihood.log_likelihood(data, models, sigma)
+    grids, all_models, all_ll = [coarse], [coarse_models], [coarse_ll]
+    for i in _highest_maxima(coarse_ll):
+        # Pass 1 finds the peak inside its coarse cells; pass 2 covers ±SPAN_SD widths of it, so that
+        # quadrature sees the whole peak and not a linear interpolation across a coarse cell.
+        cell = np.linspace(coarse[max(i - 1, 0)], coarse[min(i + 1, coarse.size - 1)], refine_points)
+        cell_models, cell_ll = run(cell)
+        center, width = _peak_and_width(cell, cell_ll)
+        span = np.linspace(max(center - SPAN_SD * width, spec.low), min(center + SPAN_SD * width, spec.high), refine_points)
+        span_models, span_ll = run(span)
+        grids += [cell, span]
+        all_models += [cell_models, span_models]
+        all_ll += [cell_ll, span_ll]
+    grid, unique = np.unique(np.concatenate(grids), return_index=True)
+    models = np.concatenate(all_models)[unique]
+    ll = np.concatenate(all_ll)[unique]
     posterior = likelihood.grid_posterior(grid, ll, prior.log_pdf(grid))
     best = models[np.argmax(ll)]
     chi2 = float(likelihood.reduced_chi2(data, best, sigma, n_fitted=1))
     return Calibration(posterior, prior.sd, chi2, best, chi2_max)
 
 
-def _refinement(grid: np.ndarray, log_like: np.ndarray, points: int) -> np.ndarray:
-    """Points across the cells next to the highest local maxima of the coarse log-likelihood."""
+def _highest_maxima(log_like: np.ndarray) -> np.ndarray:
+    """Indices of the highest local maxima (grid ends included) of a coarse log-likelihood."""
     padded = np.concatenate(([-np.inf], log_like, [-np.inf]))
     maxima = np.flatnonzero((padded[1:-1] >= padded[:-2]) & (padded[1:-1] >= padded[2:]))
-    best = maxima[np.argsort(log_like[maxima])[::-1][:N_REFINED_MAXIMA]]
-    last = grid.size - 1
-    return np.concatenate([np.linspace(grid[max(i - 1, 0)], grid[min(i + 1, last)], points) for i in best])
+    return maxima[np.argsort(log_like[maxima])[::-1][:N_REFINED_MAXIMA]]
+
+
+def _peak_and_width(grid: np.ndarray, log_like: np.ndarray) -> tuple[float, float]:
+    """Location of the log-likelihood maximum and the Gaussian width there, 1/sqrt(-d²ℓ/dφ²).
+
+    At a grid end, or where the curvature is not negative, the width is the grid's span.
+    """
+    k = int(np.argmax(log_like))
+    if 0 < k < grid.size - 1:
+        step = grid[k + 1] - grid[k]
+        curvature = (log_like[k - 1] - 2 * log_like[k] + log_like[k + 1]) / step**2
+        if curvature < 0:
+            return float(grid[k]), float(1 / np.sqrt(-curvature))
+    return float(grid[k]), float(grid[-1] - grid[0])
+
+
+def calibrate_mcmc(
+    data: np.ndarray,
+    sigma: np.ndarray,
+    spec: GridSpec,
+    prior: NormalPrior,
+    grid_posterior: likelihood.GridPosterior,
+    values: Mapping[str, float],
+    sampling: model.Sampling,
+    channels: Sequence[str],
+    settings: "mcmc.MCMCSettings",
+    max_step: float = simulation.DEFAULT_MAX_STEP,
+    attrs: Mapping[str, object] | None = None,
+):
+    """MCMC posterior (emcee, ArviZ InferenceData) of ``spec.parameter`` on the real simulator.
+
+    The prior is the Normal prior truncated to the grid range, so MCMC and the grid target the same
+    posterior and their Hellinger distance is a check of both.  Walkers start from draws of the grid
+    posterior: the chains start stationary and need little burn-in.
+    """
+    from . import sampling as mcmc
+
+    index = model.PARAMETER_INDEX[spec.parameter]
+    base = model.parameter_vector(values)
+
+    def log_likelihood(theta):
+        params = np.tile(base, (len(theta), 1))
+        params[:, index] = theta[:, 0]
+        return likelihood.log_likelihood(data, simulation.simulate_batch(params, sampling, channels, max_step), sigma)
+
+    def log_prior(theta):
+        x = theta[:, 0]
+        return np.where((x >= spec.low) & (x <= spec.high), prior.log_pdf(x), -np.inf)
+
+    rng = np.random.default_rng(settings.seed)
+    initial = np.interp(rng.uniform(size=settings.n_walkers), grid_posterior.cdf, grid_posterior.grid)[:, None]
+    prior_draws = rng.normal(prior.mean, prior.sd, 4 * settings.n_steps)
+    prior_draws = prior_draws[(prior_draws >= spec.low) & (prior_draws <= spec.high)]
+    return mcmc.run(
+        log_likelihood, log_prior, [spec.parameter], initial, settings,
+        prior_samples={spec.parameter: prior_draws},
+        observed={"y": xr.DataArray(data, dims=("channel", "time"), coords={"channel": list(channels), "time": sampling.times})},
+        attrs=attrs,
+    )
+
+
+def mcmc_summary(
+    idata, parameter: str, prior: NormalPrior, grid_posterior: likelihood.GridPosterior, sigma: np.ndarray, chi2_max: float
+) -> dict:
+    """The summary row of an MCMC calibration, with its agreement with the grid posterior."""
+    import arviz as az
+
+    from .comparison import hellinger_samples_to_density
+
+    draws = idata.posterior[parameter].values.ravel()
+    best = np.unravel_index(np.argmax(idata.sample_stats["lp"].values), idata.sample_stats["lp"].shape)
+    n_samples = idata.observed_data["y"].shape[-1]
+    best_ll = float(idata.sample_stats["log_likelihood"].values.max())
+    chi2_red = likelihood.chi2_from_log_likelihood(best_ll, sigma, n_samples) / (sigma.size * n_samples - 1)
+    low, high = az.hdi(draws, hdi_prob=0.94)
+    converged = bool(idata.attrs["converged"])
+    n_peaks = grid_posterior.n_peaks()
+    explained = chi2_red <= chi2_max and n_peaks == 1
+    return {
+        "map": float(idata.posterior[parameter].values[best]),
+        "mean": float(draws.mean()),
+        "sd": float(draws.std(ddof=1)),
+        "hdi_low": float(low),
+        "hdi_high": float(high),
+        "sd_ratio": float(draws.std(ddof=1) / prior.sd),
+        "n_peaks": n_peaks,
+        "chi2_red": chi2_red,
+        "rhat": float(idata.attrs["rhat"]),
+        "ess_bulk": float(idata.attrs["ess_bulk"]),
+        "converged": converged,
+        "verdict": ("explained" if explained else "not explained") if converged else "unconverged",
+        "hellinger_to_grid": hellinger_samples_to_density(draws, grid_posterior.grid, grid_posterior.density),
+    }
 
 
 SUMMARY_COLUMNS = (
     "scenario", "parameter", "snr_db", "seed", "method", "map", "mean", "sd", "hdi_low", "hdi_high",
     "sd_ratio", "n_peaks", "chi2_red", "rhat", "ess_bulk", "converged", "verdict", "hellinger_to_healthy",
+    "hellinger_to_grid",
 )
 
 
