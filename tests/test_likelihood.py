@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
+from newdyn import likelihood
 from newdyn.likelihood import gaussian_log_prior, grid_posterior, log_likelihood, reduced_chi2
 
 # z such that N(0, 1) puts 0.94 between −z and z; a Gaussian's 94 % HDI is mean ± z sd.
@@ -165,3 +166,12 @@ def test_minus_infinity_is_zero_probability_but_nan_and_all_minus_infinity_are_r
         grid_posterior(GRID, np.full(GRID.size, -np.inf), 0.0)
     with pytest.raises(ValueError, match="increasing"):
         grid_posterior(GRID[::-1], log_like, 0.0)
+
+
+def test_chi2_recovered_from_log_likelihood():
+    rng = np.random.default_rng(5)
+    sigma = np.array([0.5, 2.0])
+    model = rng.normal(size=(2, 300))
+    data = model + sigma[:, None] * rng.standard_normal((2, 300))
+    chi2 = np.sum(((data - model) / sigma[:, None]) ** 2)
+    assert likelihood.chi2_from_log_likelihood(likelihood.log_likelihood(data, model, sigma), sigma, 300) == pytest.approx(chi2, rel=1e-10)

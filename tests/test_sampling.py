@@ -40,7 +40,7 @@ def conjugate_logprior(theta):
 
 
 def test_conjugate_gaussian_matches_closed_form_and_converges():
-    settings = sampling.MCMCSettings(n_walkers=8, n_steps=6000, n_burn=200, seed=1)
+    settings = sampling.MCMCSettings(n_walkers=8, n_steps=1500, n_burn=100, seed=1)
     start = np.random.default_rng(0).normal(0.0, 1.0, size=(8, 1))
     idata = sampling.run(conjugate_loglik, conjugate_logprior, ["theta"], start, settings)
 
@@ -56,9 +56,9 @@ def test_conjugate_gaussian_matches_closed_form_and_converges():
     diag = sampling.diagnostics(idata, settings)
     assert diag["converged"], diag["reason"]
     assert diag["reason"] == ""
-    assert diag["n_draws"] == 8 * 6000
+    assert diag["n_draws"] == 8 * settings.n_steps
     assert 0.2 < diag["acceptance"] < 0.95
-    assert 1 < diag["tau"] < 6000 / 50  # emcee's own criterion: run > 50 tau
+    assert 1 < diag["tau"] < settings.n_steps / 50  # emcee's own criterion: run > 50 tau
 
     # the stored blob is the log-likelihood at the stored position, lp = prior + likelihood
     flat = theta.reshape(-1, 1)
@@ -185,7 +185,7 @@ def test_correlated_2d_gaussian_means_and_covariance():
     def logprior(theta):  # flat on a wide box
         return np.where(np.all(np.abs(theta) < 50, axis=1), 0.0, -np.inf)
 
-    settings = sampling.MCMCSettings(n_walkers=16, n_steps=3000, n_burn=300, seed=2)
+    settings = sampling.MCMCSettings(n_walkers=16, n_steps=800, n_burn=100, seed=2)
     start = np.random.default_rng(3).normal(size=(16, 2))
     idata = sampling.run(loglik, logprior, ["a", "b"], start, settings)
 
@@ -213,3 +213,18 @@ def test_bad_inputs_fail_before_sampling():
         sampling.run(lambda t: np.zeros((len(t), 1)), conjugate_logprior, ["theta"], good, settings)
     with pytest.raises(ValueError, match="seed"):
         sampling.MCMCSettings(n_walkers=8, n_steps=10, n_burn=0, seed=-1)
+
+
+def test_every_move_samples_the_same_posterior():
+    """The proposal is a setting; each one must leave the posterior unchanged (here N(1, 0.5²))."""
+    def log_like(theta):
+        return -0.5 * ((theta[:, 0] - 1.0) / 0.5) ** 2
+
+    def flat(theta):
+        return np.zeros(len(theta))
+
+    initial = np.random.default_rng(0).normal(1.0, 0.5, (16, 1))
+    for move in sampling.MOVES:
+        settings = sampling.MCMCSettings(n_walkers=16, n_steps=1500, n_burn=100, seed=4, move=move)
+        draws = sampling.run(log_like, flat, ["x"], initial, settings).posterior["x"].values.ravel()
+        assert abs(draws.mean() - 1.0) < 0.05 and abs(draws.std() - 0.5) < 0.05, move

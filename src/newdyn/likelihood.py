@@ -66,6 +66,13 @@ def reduced_chi2(data, model, sigma, n_fitted: int = 0) -> np.ndarray:
     return np.sum(z**2, axis=(-2, -1)) / dof
 
 
+def chi2_from_log_likelihood(log_like: float, sigma: np.ndarray, n_samples: int) -> float:
+    """Σ((y − m)/σ)² recovered from a :func:`log_likelihood` value over n_samples per channel."""
+    sigma = np.asarray(sigma, dtype=float)
+    constant = -n_samples * (np.sum(np.log(sigma)) + 0.5 * sigma.size * np.log(2 * np.pi))
+    return float(-2.0 * (log_like - constant))
+
+
 def gaussian_log_prior(grid, mean: float, sd: float) -> np.ndarray:
     """log N(grid; mean, sd²), e.g. the paper's prior N(3e6, 0.5e6²) N/m on kT1."""
     return stats.norm.logpdf(np.asarray(grid, dtype=float), loc=mean, scale=sd)
