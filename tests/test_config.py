@@ -335,6 +335,13 @@ BAD = {
     ),
     "calibration channel not simulated": (_set("simulation.channels", ["b1_x"]), "calibration.channels[1]", "not simulated"),
     "chi2 threshold below 1": (_set("calibration.chi2_max", 0.9), "calibration.chi2_max", "must exceed 1"),
+    "odd number of walkers": (_set("calibration.mcmc.walkers", 15), "calibration.mcmc.walkers", "even"),
+    "mcmc of an uncalibrated parameter": (
+        _set("calibration.mcmc.parameters", ["kT1", "J1"]),
+        "calibration.mcmc.parameters[1]",
+        "not one of calibration.parameters",
+    ),
+    "unknown mcmc move": (_set("calibration.mcmc.move", "hmc"), "calibration.mcmc.move", "hmc"),
     "too few grid points": (_set("calibration.parameters.kT1.grid.points", 2), "calibration.parameters.kT1.grid.points", "≥ 3"),
 }
 

@@ -72,14 +72,26 @@ def test_summary_table_has_a_row_per_calibration_and_the_expected_verdicts(study
     with open(study / "results" / "summary.csv", newline="") as f:
         rows = list(csv.DictReader(f))
     assert set(calibration.SUMMARY_COLUMNS) <= set(rows[0])
-    parameters = config["calibration"]["parameters"]
-    assert len(rows) == len(config["scenarios"]) * len(parameters) * len(config["noise"]["snr_db"])
-    verdict = {(r["scenario"], r["parameter"]): r["verdict"] for r in rows}
+    calibrations = len(config["calibration"]["parameters"]) + len(config["calibration"]["mcmc"]["parameters"])
+    assert len(rows) == len(config["scenarios"]) * calibrations * len(config["noise"]["snr_db"])
+    verdict = {(r["scenario"], r["parameter"]): r["verdict"] for r in rows if r["method"] == "grid"}
     assert verdict["healthy", "kT1"] == verdict["kT1_up", "kT1"] == "explained"
     assert verdict["stick_slip", "kT1"] == verdict["stick_slip", "kT3"] == "not explained"
-    kT1_up = next(r for r in rows if r["scenario"] == "kT1_up" and r["parameter"] == "kT1")
-    assert float(kT1_up["mean"]) == pytest.approx(3.25e6, rel=0.01)
-    assert float(kT1_up["hellinger_to_healthy"]) > 0.9
+    for method in ("grid", "mcmc"):
+        kT1_up = next(r for r in rows if (r["scenario"], r["parameter"], r["method"]) == ("kT1_up", "kT1", method))
+        assert float(kT1_up["mean"]) == pytest.approx(3.25e6, rel=0.01)
+        assert float(kT1_up["hellinger_to_healthy"]) > 0.9
+    mcmc = [r for r in rows if r["method"] == "mcmc"]
+    assert mcmc and all(r["rhat"] and r["ess_bulk"] and r["converged"] in ("0", "1") for r in mcmc)
+    # The built-in cross-check, for converged runs whose posterior lies inside the grid. Stick-slip
+    # piles kT1 against the grid bound, where MCMC and grid differ slightly more (H ~ 0.07, sd 194
+    # vs 212; exact draws of the grid posterior score 0.02): an open item of issue #3.
+    def inside(r):
+        grid = config["calibration"]["parameters"][r["parameter"]]["grid"]
+        return grid["low"] + 1e-3 * (grid["high"] - grid["low"]) < float(r["map"]) < grid["high"] - 1e-3 * (grid["high"] - grid["low"])
+
+    checked = [r for r in mcmc if r["converged"] == "1" and inside(r)]
+    assert checked and all(float(r["hellinger_to_grid"]) < 0.05 for r in checked)
 
 
 def test_changing_one_prior_reruns_only_its_calibrations(study, tmp_path):
@@ -131,9 +143,10 @@ def test_changing_a_rig_value_reruns_every_scenario(study, tmp_path):
 @pytest.mark.parametrize(
     "module, rules",
     [
-        ("kernels.py", {"clean.nc", "snr40_seed1.nc", "snr40_seed1_grid.nc", "kT1.nc", "kT3.nc", "summary.csv"}),
-        ("noise.py", {"snr40_seed1.nc", "snr40_seed1_grid.nc", "summary.csv"}),
-        ("likelihood.py", {"snr40_seed1_grid.nc", "kT1.nc", "kT3.nc", "summary.csv"}),
+        ("kernels.py", {"clean.nc", "snr40_seed1.nc", "snr40_seed1_grid.nc", "snr40_seed1_mcmc.nc", "kT1.nc", "kT3.nc", "summary.csv"}),
+        ("noise.py", {"snr40_seed1.nc", "snr40_seed1_grid.nc", "snr40_seed1_mcmc.nc", "summary.csv"}),
+        ("likelihood.py", {"snr40_seed1_grid.nc", "snr40_seed1_mcmc.nc", "kT1.nc", "kT3.nc", "summary.csv"}),
+        ("sampling.py", {"snr40_seed1_mcmc.nc", "summary.csv"}),
         ("plots_unused.py", set()),
     ],
 )

@@ -149,16 +149,22 @@ def _highest_maxima(log_like: np.ndarray) -> np.ndarray:
 
 
 def _peak_and_width(grid: np.ndarray, log_like: np.ndarray) -> tuple[float, float]:
-    """Location of the log-likelihood maximum and the Gaussian width there, 1/sqrt(-d²ℓ/dφ²).
+    """Location of the log-likelihood maximum and the width of the peak there.
 
-    At a grid end, or where the curvature is not negative, the width is the grid's span.
+    Inside the grid the Gaussian width 1/sqrt(-d²ℓ/dφ²); at a grid end, where the likelihood is still
+    rising (the peak lies beyond the bound), the decay length 1/|dℓ/dφ| of the exponential tail that
+    the bound cuts.  Where neither is defined, the grid's span.
     """
-    k = int(np.argmax(log_like))
-    if 0 < k < grid.size - 1:
-        step = grid[k + 1] - grid[k]
+    k, last = int(np.argmax(log_like)), grid.size - 1
+    step = grid[1] - grid[0]
+    if 0 < k < last:
         curvature = (log_like[k - 1] - 2 * log_like[k] + log_like[k + 1]) / step**2
         if curvature < 0:
             return float(grid[k]), float(1 / np.sqrt(-curvature))
+    else:
+        slope = abs(log_like[k] - log_like[k - 1 if k else 1]) / step
+        if slope > 0:
+            return float(grid[k]), float(1 / slope)
     return float(grid[k]), float(grid[-1] - grid[0])
 
 
@@ -237,7 +243,9 @@ def mcmc_summary(
         "ess_bulk": float(idata.attrs["ess_bulk"]),
         "converged": converged,
         "verdict": ("explained" if explained else "not explained") if converged else "unconverged",
-        "hellinger_to_grid": hellinger_samples_to_density(draws, grid_posterior.grid, grid_posterior.density),
+        "hellinger_to_grid": hellinger_samples_to_density(
+            draws, grid_posterior.grid, grid_posterior.density, bounds=(grid_posterior.grid[0], grid_posterior.grid[-1])
+        ),
     }
 
 

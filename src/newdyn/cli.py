@@ -100,17 +100,9 @@ def calibrate_on_grid(measurement_path: str, grid_path: str, spec: dict, output:
     from . import calibration, io, model, provenance
 
     channels = spec["channels"]
-    measurement = io.read_measurement(measurement_path, {k: spec["values"][k] for k in model.OPERATING_PARAMETERS})
-    missing = [c for c in channels if c not in measurement.channels]
-    if missing:
-        raise io.MeasurementError(measurement_path, f"has no channel {missing[0]} to calibrate on")
-    rows = [measurement.channels.index(c) for c in channels]
-    if measurement.sigma is None:
-        raise io.MeasurementError(measurement_path, "no noise level (coordinate sigma) to calibrate with")
-    data, sigma = measurement.y[rows], measurement.sigma[rows]
+    measurement, data, sigma, values = _calibration_data(measurement_path, spec)
     grid = calibration.GridSpec.from_config(spec["parameter"], spec["grid"])
     prior = calibration.NormalPrior(**spec["prior"])
-    values = {**spec["values"], **measurement.operating}  # the healthy rig at the measured condition
 
     with xr.open_dataset(grid_path, engine="netcdf4") as coarse:
         coarse.load()
@@ -132,7 +124,6 @@ def calibrate_on_grid(measurement_path: str, grid_path: str, spec: dict, output:
     post = result.posterior
     summary = result.summary()
     log.info("%s on %s: %s", grid.parameter, measurement.name, summary)
-    labels = {key: measurement.attrs[key] for key in ("scenario", "snr_db", "seed") if key in measurement.attrs}
     ds = xr.Dataset(
         {
             "posterior": ("grid", post.density),
@@ -144,8 +135,7 @@ def calibrate_on_grid(measurement_path: str, grid_path: str, spec: dict, output:
         coords={"grid": post.grid, "channel": channels, "time": measurement.sampling.times},
         attrs={
             "title": f"newdyn grid calibration of {grid.parameter} on {measurement.name}",
-            "measurement": measurement.name,
-            **labels,
+            **_labels(measurement),
             "parameter": grid.parameter,
             "method": "grid",
             **summary,
@@ -157,16 +147,75 @@ def calibrate_on_grid(measurement_path: str, grid_path: str, spec: dict, output:
     io.write_netcdf(ds, output)
 
 
+def calibrate_with_mcmc(measurement_path: str, grid_result_path: str, spec: dict, output: str, code_hash: str) -> None:
+    """Write the MCMC posterior (ArviZ InferenceData) of one parameter for one measurement."""
+    import numpy as np
+    import xarray as xr
+
+    from . import calibration, likelihood, provenance
+    from . import sampling as mcmc
+
+    measurement, data, sigma, values = _calibration_data(measurement_path, spec)
+    grid = calibration.GridSpec.from_config(spec["parameter"], spec["grid"])
+    prior = calibration.NormalPrior(**spec["prior"])
+    with xr.open_dataset(grid_result_path, engine="netcdf4") as done:
+        grid_posterior = likelihood.grid_posterior(done["grid"].values, done["log_likelihood"].values, prior.log_pdf(done["grid"].values))
+    m = spec["mcmc"]
+    settings = mcmc.MCMCSettings(
+        n_walkers=int(m["walkers"]), n_steps=int(m["steps"]), n_burn=int(m["burn"]), seed=int(m["seed"]),
+        rhat_max=m["rhat_max"], ess_min=m["ess_min"], move=m["move"],
+    )
+    start = time.perf_counter()
+    idata = calibration.calibrate_mcmc(
+        data, sigma, grid, prior, grid_posterior, values, measurement.sampling, spec["channels"], settings, spec["max_step"],
+        attrs={"settings": json.dumps(spec, sort_keys=True), "code_hash": code_hash,
+               "versions": json.dumps(provenance.versions(), sort_keys=True)},
+    )
+    row = calibration.mcmc_summary(idata, grid.parameter, prior, grid_posterior, sigma, spec["chi2_max"])
+    log.info("MCMC of %s on %s in %.1f s: %s", grid.parameter, measurement.name, time.perf_counter() - start, row)
+    idata.attrs.update({**_labels(measurement), "parameter": grid.parameter, "method": "mcmc",
+                        **{k: int(v) if isinstance(v, (bool, np.bool_)) else v for k, v in row.items()}})
+    mcmc.save(idata, output)
+
+
+def _calibration_data(measurement_path: str, spec: dict):
+    """The measurement, its calibration channels and their σ, and the healthy model at its condition."""
+    from . import io, model
+
+    measurement = io.read_measurement(measurement_path, {k: spec["values"][k] for k in model.OPERATING_PARAMETERS})
+    missing = [c for c in spec["channels"] if c not in measurement.channels]
+    if missing:
+        raise io.MeasurementError(measurement_path, f"has no channel {missing[0]} to calibrate on")
+    if measurement.sigma is None:
+        raise io.MeasurementError(measurement_path, "no noise level (coordinate sigma) to calibrate with")
+    rows = [measurement.channels.index(c) for c in spec["channels"]]
+    values = {**spec["values"], **measurement.operating}
+    return measurement, measurement.y[rows], measurement.sigma[rows], values
+
+
+def _labels(measurement) -> dict:
+    labels = {key: measurement.attrs[key] for key in ("scenario", "snr_db", "seed") if key in measurement.attrs}
+    return {"measurement": measurement.name, **labels}
+
+
 def summarize(paths: list[str], output: str) -> None:
     """Write the study's summary table (CSV), one row per calibration file."""
     import xarray as xr
 
-    from . import calibration, io
+    from . import calibration, comparison, io
+    from . import sampling as mcmc
 
     results = []
     for path in paths:
-        with xr.open_dataset(path, engine="netcdf4") as ds:
-            results.append({**ds.attrs, "grid": ds["grid"].values, "posterior": ds["posterior"].values})
+        if path.endswith("_mcmc.nc"):
+            idata = mcmc.load(path)
+            draws = idata.posterior[idata.attrs["parameter"]].values.ravel()
+            support = json.loads(idata.attrs["settings"])["grid"]  # the prior is truncated to the grid
+            grid, density = comparison.sample_density(draws, (support["low"], support["high"]))
+            results.append({**idata.attrs, "grid": grid, "posterior": density})
+        else:
+            with xr.open_dataset(path, engine="netcdf4") as ds:
+                results.append({**ds.attrs, "grid": ds["grid"].values, "posterior": ds["posterior"].values})
     rows = calibration.summary_rows(results)
     io.atomic_write(output, lambda tmp: _write_csv(tmp, calibration.SUMMARY_COLUMNS, rows))
     log.info("summarized %d calibrations into %s", len(rows), output)
@@ -221,6 +270,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--output", required=True)
     p.add_argument("--code-hash", default="")
 
+    p = commands.add_parser("calibrate-mcmc", help="MCMC posterior of a parameter for a measurement")
+    p.add_argument("--measurement", required=True)
+    p.add_argument("--grid-result", required=True, help="the same calibration on the grid (starts the walkers)")
+    p.add_argument("--spec", required=True, help="calibration spec as JSON (built by the workflow)")
+    p.add_argument("--output", required=True)
+    p.add_argument("--code-hash", default="")
+
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s", stream=sys.stderr)
     if args.command == "simulate":
@@ -231,6 +287,8 @@ def main(argv: list[str] | None = None) -> int:
         simulate_grid_models(json.loads(args.spec), args.output, args.code_hash)
     elif args.command == "calibrate-grid":
         calibrate_on_grid(args.measurement, args.grid, json.loads(args.spec), args.output, args.code_hash)
+    elif args.command == "calibrate-mcmc":
+        calibrate_with_mcmc(args.measurement, args.grid_result, json.loads(args.spec), args.output, args.code_hash)
     elif args.command == "summarize":
         summarize(args.inputs, args.output)
     return 0

@@ -104,15 +104,26 @@ def hellinger_samples(a, b, grid=None) -> float:
     return hellinger_grid(grid, kde_a(grid), kde_b(grid))
 
 
-def hellinger_samples_to_density(samples, grid, density) -> float:
-    """Hellinger distance between the distribution of 1-D ``samples`` (via a Gaussian KDE) and ``density`` on ``grid``.
+def sample_density(samples, bounds: tuple[float, float] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(grid, density) of 1-D ``samples`` by a Gaussian KDE.
 
-    The KDE lives on its own grid, so its mass outside ``grid`` counts as disagreement; near a hard
-    bound of the samples' support the KDE spills past it, which biases H upwards slightly.
+    With ``bounds`` (the support, e.g. a truncated prior's) the KDE is reflected at them, so that
+    samples piled against a bound do not spill mass beyond it.
     """
     kde = _kde(samples)
-    kde_grid = _kde_grid(kde)
-    return hellinger_densities(kde_grid, kde(kde_grid), grid, density)
+    grid = _kde_grid(kde)
+    if bounds is None:
+        return grid, kde(grid)
+    low, high = bounds
+    grid = np.unique(np.clip(grid, low, high))
+    return grid, kde(grid) + kde(2 * low - grid) + kde(2 * high - grid)
+
+
+def hellinger_samples_to_density(samples, grid, density, bounds: tuple[float, float] | None = None) -> float:
+    """Hellinger distance between the distribution of 1-D ``samples`` (via :func:`sample_density`) and
+    ``density`` on ``grid``.  The KDE's mass outside ``grid`` counts as disagreement; pass the support
+    ``bounds`` when the samples pile against a hard bound."""
+    return hellinger_densities(*sample_density(samples, bounds), grid, density)
 
 
 def distance_matrix(densities: Mapping[str, tuple[np.ndarray, np.ndarray]]) -> tuple[list[str], np.ndarray]:

@@ -238,6 +238,14 @@ def _calibration_problems(config: Mapping) -> Iterator[tuple[str, str]]:
             yield f"calibration.channels[{i}]", f"'{channel}' is not simulated (simulation.channels: {', '.join(simulated)})"
     if not calibration["chi2_max"] > 1.0:
         yield "calibration.chi2_max", f"must exceed 1, the reduced χ² of a model that explains the data (got {calibration['chi2_max']})"
+    mcmc = calibration["mcmc"]
+    for i, name in enumerate(mcmc["parameters"]):
+        if name not in calibration["parameters"]:
+            yield f"calibration.mcmc.parameters[{i}]", f"'{name}' is not one of calibration.parameters ({', '.join(calibration['parameters'])})"
+    if mcmc["walkers"] < 2 * 1 or mcmc["walkers"] % 2:
+        yield "calibration.mcmc.walkers", f"must be even and at least twice the number of calibrated parameters (2), got {mcmc['walkers']}"
+    if not mcmc["rhat_max"] > 1.0:
+        yield "calibration.mcmc.rhat_max", f"must exceed 1 (got {mcmc['rhat_max']})"
     for name, spec in calibration["parameters"].items():
         where = f"calibration.parameters.{name}"
         if name not in model.RIG_PARAMETERS:

@@ -35,3 +35,25 @@ rule calibrate_grid:
     shell:
         "NUMBA_NUM_THREADS={threads} newdyn calibrate-grid --measurement {input.measurement} "
         "--grid {input.grid} --spec {params.spec:q} --code-hash {params.code} --output {output} > {log} 2>&1"
+
+
+rule calibrate_mcmc:
+    input:
+        measurement="results/simulations/{scenario}/snr{snr}_seed{seed}.nc",
+        grid_result="results/calibration/{scenario}/{parameter}/snr{snr}_seed{seed}_grid.nc",
+    output:
+        "results/calibration/{scenario}/{parameter}/snr{snr}_seed{seed}_mcmc.nc",
+    log:
+        "results/logs/calibrate_mcmc/{scenario}/{parameter}/snr{snr}_seed{seed}.log",
+    benchmark:
+        "results/benchmarks/calibrate_mcmc/{scenario}/{parameter}/snr{snr}_seed{seed}.tsv"
+    conda:
+        "../envs/newdyn.yaml"
+    threads: 1
+    params:
+        spec=mcmc_spec,
+        code=MCMC_CODE,
+    shell:
+        "NUMBA_NUM_THREADS={threads} newdyn calibrate-mcmc --measurement {input.measurement} "
+        "--grid-result {input.grid_result} --spec {params.spec:q} --code-hash {params.code} "
+        "--output {output} > {log} 2>&1"

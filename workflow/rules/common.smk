@@ -54,7 +54,10 @@ def simulation_targets():
 CALIBRATION = config["calibration"]
 PARAMETERS = list(CALIBRATION["parameters"])
 CALIBRATION_CODE = newdyn.provenance.source_hash("model", "kernels", "simulation", "io", "likelihood", "calibration")
-SUMMARY_CODE = newdyn.provenance.source_hash("calibration", "comparison")
+MCMC_CODE = newdyn.provenance.source_hash(
+    "model", "kernels", "simulation", "io", "likelihood", "calibration", "sampling", "comparison"
+)
+SUMMARY_CODE = newdyn.provenance.source_hash("calibration", "comparison", "sampling")
 
 
 def _sampling_spec():
@@ -76,11 +79,12 @@ def grid_models_spec(wildcards):
     )
 
 
-def calibration_spec(wildcards):
-    """What one grid calibration depends on besides its measurement and grid files."""
+def calibration_spec(wildcards, mcmc=False):
+    """What one calibration depends on besides its input files (MCMC: also the MCMC settings)."""
     spec = CALIBRATION["parameters"][wildcards.parameter]
     return newdyn.config.canonical_json(
         {
+            **({"mcmc": CALIBRATION["mcmc"]} if mcmc else {}),
             "parameter": wildcards.parameter,
             "prior": spec["prior"],
             "grid": spec["grid"],
@@ -93,11 +97,19 @@ def calibration_spec(wildcards):
     )
 
 
+def mcmc_spec(wildcards):
+    return calibration_spec(wildcards, mcmc=True)
+
+
 def calibration_targets():
-    return expand(
-        "results/calibration/{scenario}/{parameter}/snr{snr}_seed{seed}_grid.nc",
+    pattern = "results/calibration/{scenario}/{parameter}/snr{snr}_seed{seed}_{method}.nc"
+    grid = expand(pattern, scenario=SCENARIOS, parameter=PARAMETERS, snr=SNRS, seed=SEEDS, method="grid")
+    mcmc = expand(
+        pattern,
         scenario=SCENARIOS,
-        parameter=PARAMETERS,
+        parameter=CALIBRATION["mcmc"]["parameters"],
         snr=SNRS,
         seed=SEEDS,
+        method="mcmc",
     )
+    return grid + mcmc
