@@ -30,6 +30,15 @@ def snakemake(workdir, *args, config=TEST_CONFIG, pythonpath=None):
     )
 
 
+def changed_config(tmp_path, change):
+    """The CI config after ``change(config)``, written to a file."""
+    config = yaml.safe_load(TEST_CONFIG.read_text())
+    change(config)
+    path = tmp_path / "changed.yaml"
+    path.write_text(yaml.safe_dump(config, sort_keys=False))
+    return path
+
+
 def planned_outputs(workdir, config=TEST_CONFIG, pythonpath=None):
     """Files a dry run would (re)create."""
     run = snakemake(workdir, "--dry-run", config=config, pythonpath=pythonpath)
@@ -95,10 +104,7 @@ def test_summary_table_has_a_row_per_calibration_and_the_expected_verdicts(study
 
 
 def test_changing_one_prior_reruns_only_its_calibrations(study, tmp_path):
-    config = yaml.safe_load(TEST_CONFIG.read_text())
-    config["calibration"]["parameters"]["kT1"]["prior"]["sd"] = 4.0e5
-    path = tmp_path / "prior.yaml"
-    path.write_text(yaml.safe_dump(config, sort_keys=False))
+    path = changed_config(tmp_path, lambda c: c["calibration"]["parameters"]["kT1"]["prior"].update(sd=4.0e5))
     planned = planned_outputs(study, path)
     calibrations = [p for p in planned if p != "results/summary.csv"]
     assert "results/summary.csv" in planned and calibrations
@@ -121,10 +127,7 @@ def test_reordering_config_keys_reruns_nothing(study, tmp_path):
 
 
 def test_changing_one_scenario_reruns_only_that_scenario(study, tmp_path):
-    config = yaml.safe_load(TEST_CONFIG.read_text())
-    config["scenarios"]["kT1_up"]["fault"]["parameters"]["kT1"] = 3.3e6
-    path = tmp_path / "changed.yaml"
-    path.write_text(yaml.safe_dump(config, sort_keys=False))
+    path = changed_config(tmp_path, lambda c: c["scenarios"]["kT1_up"]["fault"]["parameters"].update(kT1=3.3e6))
     planned = planned_outputs(study, path)
     own = ("results/simulations/kT1_up/", "results/calibration/kT1_up/", "results/summary.csv")
     assert planned and all(p.startswith(own) for p in planned)
@@ -132,12 +135,10 @@ def test_changing_one_scenario_reruns_only_that_scenario(study, tmp_path):
 
 
 def test_changing_a_rig_value_reruns_every_scenario(study, tmp_path):
-    config = yaml.safe_load(TEST_CONFIG.read_text())
-    config["rig"]["beta"] = 2.0e-5
-    path = tmp_path / "changed.yaml"
-    path.write_text(yaml.safe_dump(config, sort_keys=False))
+    path = changed_config(tmp_path, lambda c: c["rig"].update(beta=2.0e-5))
     planned = planned_outputs(study, path)
-    assert {p.split("/")[2] for p in planned if p.startswith("results/simulations/")} == set(config["scenarios"])
+    scenarios = set(yaml.safe_load(TEST_CONFIG.read_text())["scenarios"])
+    assert {p.split("/")[2] for p in planned if p.startswith("results/simulations/")} == scenarios
 
 
 @pytest.mark.parametrize(
@@ -164,10 +165,7 @@ def test_editing_science_code_reruns_exactly_the_jobs_that_use_it(study, tmp_pat
 
 
 def test_bad_config_fails_in_one_line_before_any_job(tmp_path):
-    config = yaml.safe_load(TEST_CONFIG.read_text())
-    config["scenarios"]["stick_slip"]["fault"]["parameters"]["T_max"] = -5.0
-    path = tmp_path / "bad.yaml"
-    path.write_text(yaml.safe_dump(config, sort_keys=False))
+    path = changed_config(tmp_path, lambda c: c["scenarios"]["stick_slip"]["fault"]["parameters"].update(T_max=-5.0))
     run = snakemake(tmp_path / "work", config=path)
     assert run.returncode != 0
     lines = [line for line in run.stderr.splitlines() if "bad config" in line]

@@ -241,41 +241,29 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="newdyn", description=__doc__.splitlines()[0])
     commands = parser.add_subparsers(dest="command", required=True)
 
-    p = commands.add_parser("simulate", help="simulate one scenario into a clean measurement file")
-    p.add_argument("--spec", required=True, help="scenario spec as JSON (built by the workflow)")
-    p.add_argument("--output", required=True)
-    p.add_argument("--code-hash", default="")
+    def command(name, help, spec=None):
+        """A subcommand with the --output and --code-hash every workflow job passes (and --spec if given)."""
+        p = commands.add_parser(name, help=help)
+        if spec:
+            p.add_argument("--spec", required=True, help=f"{spec} as JSON (built by the workflow)")
+        p.add_argument("--output", required=True)
+        p.add_argument("--code-hash", default="", help="hash of the science code, recorded in the output")
+        return p
 
-    p = commands.add_parser("add-noise", help="add seeded white Gaussian noise at an SNR")
+    command("simulate", "simulate one scenario into a clean measurement file", "scenario spec")
+    p = command("add-noise", "add seeded white Gaussian noise at an SNR")
     p.add_argument("--input", required=True)
-    p.add_argument("--output", required=True)
     p.add_argument("--snr-db", type=float, required=True)
     p.add_argument("--seed", type=int, required=True)
-    p.add_argument("--code-hash", default="")
-
-    p = commands.add_parser("grid-models", help="simulate the coarse likelihood grid of a calibration parameter")
-    p.add_argument("--spec", required=True, help="grid spec as JSON (built by the workflow)")
-    p.add_argument("--output", required=True)
-    p.add_argument("--code-hash", default="")
-
-    p = commands.add_parser("calibrate-grid", help="grid posterior of a parameter for a measurement")
+    command("grid-models", "simulate the coarse likelihood grid of a calibration parameter", "grid spec")
+    p = command("calibrate-grid", "grid posterior of a parameter for a measurement", "calibration spec")
     p.add_argument("--measurement", required=True)
     p.add_argument("--grid", required=True, help="the parameter's coarse grid (from grid-models)")
-    p.add_argument("--spec", required=True, help="calibration spec as JSON (built by the workflow)")
-    p.add_argument("--output", required=True)
-    p.add_argument("--code-hash", default="")
-
-    p = commands.add_parser("summarize", help="the summary table of all calibrations")
-    p.add_argument("inputs", nargs="+", help="calibration files")
-    p.add_argument("--output", required=True)
-    p.add_argument("--code-hash", default="")
-
-    p = commands.add_parser("calibrate-mcmc", help="MCMC posterior of a parameter for a measurement")
+    p = command("calibrate-mcmc", "MCMC posterior of a parameter for a measurement", "calibration spec")
     p.add_argument("--measurement", required=True)
     p.add_argument("--grid-result", required=True, help="the same calibration on the grid (starts the walkers)")
-    p.add_argument("--spec", required=True, help="calibration spec as JSON (built by the workflow)")
-    p.add_argument("--output", required=True)
-    p.add_argument("--code-hash", default="")
+    p = command("summarize", "the summary table of all calibrations")
+    p.add_argument("inputs", nargs="+", help="calibration files")
 
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s", stream=sys.stderr)
