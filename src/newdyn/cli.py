@@ -247,7 +247,7 @@ def main(argv: list[str] | None = None) -> int:
         if spec:
             p.add_argument("--spec", required=True, help=f"{spec} as JSON (built by the workflow)")
         p.add_argument("--output", required=True)
-        p.add_argument("--code-hash", default="", help="hash of the science code, recorded in the output")
+        p.add_argument("--code-hash", default="", help="hash of the science code this job depends on (a change reruns the job)")
         return p
 
     command("simulate", "simulate one scenario into a clean measurement file", "scenario spec")
