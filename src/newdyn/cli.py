@@ -17,7 +17,7 @@ log = logging.getLogger("newdyn")
 
 def simulate_scenario(spec: dict, output: str, code_hash: str) -> None:
     """Write the clean simulated measurement of one scenario (spec built by the workflow)."""
-    from . import io, model, provenance, simulation
+    from . import io, provenance, simulation
 
     sampling = _sampling(spec["sampling"])
     values = spec["values"]
@@ -32,9 +32,7 @@ def simulate_scenario(spec: dict, output: str, code_hash: str) -> None:
         "fault": spec["definition"].get("fault", {}).get("kind", "none"),
         "parameters": values,
         "max_step": spec["max_step"],
-        "code_hash": code_hash,
-        "newdyn_version": provenance.versions()["newdyn"],
-        "versions": provenance.versions(),
+        **provenance.attributes(code_hash),
     }
     io.write_netcdf(io.measurement_dataset(y, spec["channels"], sampling, values, attrs), output)
 
@@ -57,9 +55,7 @@ def add_noise_to_file(source: str, output: str, snr_db: float, seed: int, code_h
         title=clean.attrs["title"].replace("(clean)", f"(SNR {snr_db:g} dB, seed {seed})"),
         snr_db=float(snr_db),
         seed=int(seed),
-        noise_code_hash=code_hash,
-        newdyn_version=provenance.versions()["newdyn"],
-        versions=json.dumps(provenance.versions(), sort_keys=True),
+        **provenance.attributes(code_hash, hash_key="noise_code_hash"),  # keeps the simulation's code_hash
     )
     io.write_netcdf(ds, output)
     log.info("added noise at %g dB (seed %d): sigma %s", snr_db, seed, {c: float(f"{s:.4g}") for c, s in zip(channels, sigma)})
@@ -84,8 +80,7 @@ def simulate_grid_models(spec: dict, output: str, code_hash: str) -> None:
             "parameter": grid.parameter,
             "values": json.dumps(spec["values"], sort_keys=True),
             "max_step": spec["max_step"],
-            "code_hash": code_hash,
-            "versions": json.dumps(provenance.versions(), sort_keys=True),
+            **provenance.attributes(code_hash),
             **{name: float(spec["values"][name]) for name in model.OPERATING_PARAMETERS},
         },
     )
@@ -100,9 +95,7 @@ def calibrate_on_grid(measurement_path: str, grid_path: str, spec: dict, output:
     from . import calibration, io, model, provenance
 
     channels = spec["channels"]
-    measurement, data, sigma, values = _calibration_data(measurement_path, spec)
-    grid = calibration.GridSpec.from_config(spec["parameter"], spec["grid"])
-    prior = calibration.NormalPrior(**spec["prior"])
+    measurement, data, sigma, values, grid, prior = _calibration_inputs(measurement_path, spec)
 
     with xr.open_dataset(grid_path, engine="netcdf4") as coarse:
         coarse.load()
@@ -140,8 +133,7 @@ def calibrate_on_grid(measurement_path: str, grid_path: str, spec: dict, output:
             "method": "grid",
             **summary,
             "settings": json.dumps(spec, sort_keys=True),
-            "code_hash": code_hash,
-            "versions": json.dumps(provenance.versions(), sort_keys=True),
+            **provenance.attributes(code_hash),
         },
     )
     io.write_netcdf(ds, output)
@@ -155,9 +147,7 @@ def calibrate_with_mcmc(measurement_path: str, grid_result_path: str, spec: dict
     from . import calibration, likelihood, provenance
     from . import sampling as mcmc
 
-    measurement, data, sigma, values = _calibration_data(measurement_path, spec)
-    grid = calibration.GridSpec.from_config(spec["parameter"], spec["grid"])
-    prior = calibration.NormalPrior(**spec["prior"])
+    measurement, data, sigma, values, grid, prior = _calibration_inputs(measurement_path, spec)
     with xr.open_dataset(grid_result_path, engine="netcdf4") as done:
         grid_posterior = likelihood.grid_posterior(done["grid"].values, done["log_likelihood"].values, prior.log_pdf(done["grid"].values))
     m = spec["mcmc"]
@@ -168,8 +158,7 @@ def calibrate_with_mcmc(measurement_path: str, grid_result_path: str, spec: dict
     start = time.perf_counter()
     idata = calibration.calibrate_mcmc(
         data, sigma, grid, prior, grid_posterior, values, measurement.sampling, spec["channels"], settings, spec["max_step"],
-        attrs={"settings": json.dumps(spec, sort_keys=True), "code_hash": code_hash,
-               "versions": json.dumps(provenance.versions(), sort_keys=True)},
+        attrs={"settings": json.dumps(spec, sort_keys=True), **provenance.attributes(code_hash)},
     )
     row = calibration.mcmc_summary(idata, grid.parameter, prior, grid_posterior, sigma, spec["chi2_max"])
     log.info("MCMC of %s on %s in %.1f s: %s", grid.parameter, measurement.name, time.perf_counter() - start, row)
@@ -178,9 +167,10 @@ def calibrate_with_mcmc(measurement_path: str, grid_result_path: str, spec: dict
     mcmc.save(idata, output)
 
 
-def _calibration_data(measurement_path: str, spec: dict):
-    """The measurement, its calibration channels and their σ, and the healthy model at its condition."""
-    from . import io, model
+def _calibration_inputs(measurement_path: str, spec: dict):
+    """The measurement, its calibration channels and their σ, the healthy model at its condition, and
+    the parameter's grid and prior."""
+    from . import calibration, io, model
 
     measurement = io.read_measurement(measurement_path, {k: spec["values"][k] for k in model.OPERATING_PARAMETERS})
     missing = [c for c in spec["channels"] if c not in measurement.channels]
@@ -190,7 +180,9 @@ def _calibration_data(measurement_path: str, spec: dict):
         raise io.MeasurementError(measurement_path, "no noise level (coordinate sigma) to calibrate with")
     rows = [measurement.channels.index(c) for c in spec["channels"]]
     values = {**spec["values"], **measurement.operating}
-    return measurement, measurement.y[rows], measurement.sigma[rows], values
+    grid = calibration.GridSpec.from_config(spec["parameter"], spec["grid"])
+    prior = calibration.NormalPrior(**spec["prior"])
+    return measurement, measurement.y[rows], measurement.sigma[rows], values, grid, prior
 
 
 def _labels(measurement) -> dict:

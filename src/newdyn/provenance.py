@@ -8,6 +8,7 @@ the jobs that depend on it.  Kept free of heavy imports: the Snakefile imports i
 from __future__ import annotations
 
 import hashlib
+import json
 import platform
 from importlib import metadata
 from importlib.util import find_spec
@@ -25,6 +26,13 @@ def source_hash(*modules: str) -> str:
         with open(spec.origin, "rb") as source:
             digest.update(name.encode() + b"\0" + source.read())
     return digest.hexdigest()[:16]
+
+
+def attributes(code_hash: str, hash_key: str = "code_hash") -> dict[str, str]:
+    """The provenance attributes every output file carries: the hash of the code that made it and
+    the versions (as JSON text, which netCDF accepts)."""
+    found = versions()
+    return {hash_key: code_hash, "newdyn_version": found["newdyn"], "versions": json.dumps(found, sort_keys=True)}
 
 
 def versions() -> dict[str, str]:

@@ -27,15 +27,19 @@ wildcard_constraints:
     seed=r"\d+",
 
 
+def _sampling_spec():
+    sampling = newdyn.config.sampling(config)
+    return {"fs": sampling.fs, "t_first": sampling.t_first, "n_samples": sampling.n_samples}
+
+
 def simulation_spec(wildcards):
     """Everything that determines one scenario's simulation, as canonical JSON."""
-    sampling = newdyn.config.sampling(config)
     return newdyn.config.canonical_json(
         {
             "scenario": wildcards.scenario,
             "definition": config["scenarios"][wildcards.scenario] or {},
             "values": newdyn.config.scenario_values(config, wildcards.scenario),
-            "sampling": {"fs": sampling.fs, "t_first": sampling.t_first, "n_samples": sampling.n_samples},
+            "sampling": _sampling_spec(),
             "channels": config["simulation"]["channels"],
             "max_step": config["simulation"]["max_step"],
         }
@@ -58,11 +62,6 @@ MCMC_CODE = newdyn.provenance.source_hash(
     "model", "kernels", "simulation", "io", "likelihood", "calibration", "sampling", "comparison"
 )
 SUMMARY_CODE = newdyn.provenance.source_hash("calibration", "comparison", "sampling")
-
-
-def _sampling_spec():
-    sampling = newdyn.config.sampling(config)
-    return {"fs": sampling.fs, "t_first": sampling.t_first, "n_samples": sampling.n_samples}
 
 
 def grid_models_spec(wildcards):
