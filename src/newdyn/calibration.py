@@ -10,12 +10,15 @@ uniform grid, and quadrature needs points across the peak.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Mapping, Sequence
+from typing import TYPE_CHECKING, Mapping, Sequence
 
 import numpy as np
 import xarray as xr
 
 from . import likelihood, model, simulation
+
+if TYPE_CHECKING:  # sampling imports arviz (slow); only the MCMC path needs it at run time
+    from .sampling import MCMCSettings
 
 N_REFINED_MAXIMA = 3  # coarse likelihood maxima refined per measurement: enough to see multiple peaks
 SPAN_SD = 6.0  # refined span around each peak, in likelihood widths
@@ -177,7 +180,7 @@ def calibrate_mcmc(
     values: Mapping[str, float],
     sampling: model.Sampling,
     channels: Sequence[str],
-    settings: "mcmc.MCMCSettings",
+    settings: MCMCSettings,
     max_step: float = simulation.DEFAULT_MAX_STEP,
     attrs: Mapping[str, object] | None = None,
 ):
