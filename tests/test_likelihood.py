@@ -130,6 +130,21 @@ def test_n_peaks_counts_prominent_likelihood_peaks(likelihood, min_prominence, e
     assert posterior.n_peaks(min_prominence) == expected
 
 
+@pytest.mark.parametrize(
+    "likelihood, consistent",
+    [
+        (_gaussian_bump(5, 0.5), True),
+        (_gaussian_bump(3, 0.4) + _gaussian_bump(7, 0.4), False),
+        (np.exp(2 * GRID), False),  # the best fit lies beyond the upper bound
+        (np.exp(-2 * GRID), False),
+        (_gaussian_bump(9.9, 0.5), True),  # close to the bound, but the peak is inside
+    ],
+    ids=["gaussian", "two-modes", "rising", "falling", "near-bound"],
+)
+def test_consistent_means_one_likelihood_peak_inside_the_grid(likelihood, consistent):
+    assert grid_posterior(GRID, np.log(likelihood), 0.0).consistent() == consistent
+
+
 def test_hdi_of_a_bimodal_posterior_spans_both_modes():
     posterior = grid_posterior(GRID, np.log(_gaussian_bump(3, 0.4) + _gaussian_bump(7, 0.4)), 0.0)
     low, high = posterior.hdi(0.94)

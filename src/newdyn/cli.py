@@ -28,6 +28,7 @@ def simulate_scenario(spec: dict, output: str, code_hash: str) -> None:
     attrs = {
         "title": f"newdyn simulation of scenario {spec['scenario']} (clean)",
         "scenario": spec["scenario"],
+        "variant": spec["variant"],
         "scenario_definition": spec["definition"],
         "fault": spec["definition"].get("fault", {}).get("kind", "none"),
         "parameters": values,
@@ -130,6 +131,7 @@ def calibrate_on_grid(measurement_path: str, grid_path: str, spec: dict, output:
             "title": f"newdyn grid calibration of {grid.parameter} on {measurement.name}",
             **_labels(measurement),
             "parameter": grid.parameter,
+            "true_value": _true_value(measurement, grid.parameter),
             "method": "grid",
             **summary,
             "settings": json.dumps(spec, sort_keys=True),
@@ -142,22 +144,16 @@ def calibrate_on_grid(measurement_path: str, grid_path: str, spec: dict, output:
 def calibrate_with_mcmc(measurement_path: str, grid_result_path: str, spec: dict, output: str, code_hash: str) -> None:
     """Write the MCMC posterior (ArviZ InferenceData) of one parameter for one measurement."""
     import numpy as np
-    import xarray as xr
 
-    from . import calibration, likelihood, provenance
+    from . import calibration, provenance
     from . import sampling as mcmc
 
     measurement, data, sigma, values, grid, prior = _calibration_inputs(measurement_path, spec)
-    with xr.open_dataset(grid_result_path, engine="netcdf4") as done:
-        grid_posterior = likelihood.grid_posterior(done["grid"].values, done["log_likelihood"].values, prior.log_pdf(done["grid"].values))
-    m = spec["mcmc"]
-    settings = mcmc.MCMCSettings(
-        n_walkers=int(m["walkers"]), n_steps=int(m["steps"]), n_burn=int(m["burn"]), seed=int(m["seed"]),
-        rhat_max=m["rhat_max"], ess_min=m["ess_min"], move=m["move"],
-    )
+    grid_posterior = _grid_posterior(grid_result_path, prior)
     start = time.perf_counter()
     idata = calibration.calibrate_mcmc(
-        data, sigma, grid, prior, grid_posterior, values, measurement.sampling, spec["channels"], settings, spec["max_step"],
+        data, sigma, grid, prior, grid_posterior, values, measurement.sampling, spec["channels"], _mcmc_settings(spec["mcmc"]),
+        spec["max_step"],
         attrs={"settings": json.dumps(spec, sort_keys=True), **provenance.attributes(code_hash)},
     )
     row = calibration.mcmc_summary(idata, grid.parameter, prior, grid_posterior, sigma, spec["chi2_max"])
@@ -167,26 +163,93 @@ def calibrate_with_mcmc(measurement_path: str, grid_result_path: str, spec: dict
     mcmc.save(idata, output)
 
 
+def calibrate_jointly(measurement_path: str, grid_result_paths: list[str], spec: dict, output: str, code_hash: str) -> None:
+    """Write the joint MCMC posterior (ArviZ InferenceData) of several parameters, with the channels'
+    noise σ known or inferred (``infer_sigma``), for one measurement; the summary rows
+    (:func:`calibration.joint_summary`, χ² against the file's σ when it has one) are the ``summary``
+    attribute as JSON.  ``grid_result_paths`` are the parameters' grid calibrations, in the order of
+    ``spec["parameters"]``."""
+    from . import calibration, provenance
+    from . import sampling as mcmc
+
+    infer_sigma = bool(spec.get("infer_sigma", False))
+    measurement, data, sigma, values = _measurement_inputs(measurement_path, spec, need_sigma=not infer_sigma)
+    names = list(spec["parameters"])
+    if len(grid_result_paths) != len(names):
+        raise ValueError(f"need one grid result per parameter ({', '.join(names)}), got {len(grid_result_paths)}")
+    grids = [calibration.GridSpec.from_config(name, spec["parameters"][name]["grid"]) for name in names]
+    priors = [calibration.NormalPrior(**spec["parameters"][name]["prior"]) for name in names]
+    grid_posteriors = [_grid_posterior(path, prior, name) for path, prior, name in zip(grid_result_paths, priors, names)]
+    start = time.perf_counter()
+    idata = calibration.calibrate_joint(
+        data, None if infer_sigma else sigma, grids, priors, grid_posteriors, values, measurement.sampling,
+        spec["channels"], _mcmc_settings(spec["mcmc"]), infer_sigma, spec["max_step"],
+        attrs={"settings": json.dumps(spec, sort_keys=True), **provenance.attributes(code_hash)},
+    )
+    rows = calibration.joint_summary(idata, dict(zip(names, priors)), spec["chi2_max"], sigma)
+    log.info("joint MCMC of %s on %s in %.1f s: %s", idata.attrs["jointly"], measurement.name, time.perf_counter() - start, rows)
+    idata.attrs.update({**_labels(measurement), "method": "mcmc", "summary": json.dumps(rows)})
+    mcmc.save(idata, output)
+
+
+def _mcmc_settings(m: dict):
+    from .sampling import MCMCSettings
+
+    return MCMCSettings(
+        n_walkers=int(m["walkers"]), n_steps=int(m["steps"]), n_burn=int(m["burn"]), seed=int(m["seed"]),
+        rhat_max=m["rhat_max"], ess_min=m["ess_min"], move=m["move"],
+    )
+
+
+def _grid_posterior(path: str, prior, parameter: str | None = None):
+    """The grid posterior of a ``calibrate-grid`` result under ``prior`` (of ``parameter``, when given)."""
+    import xarray as xr
+
+    from . import likelihood
+
+    with xr.open_dataset(path, engine="netcdf4") as done:
+        if parameter is not None and done.attrs.get("parameter") != parameter:
+            raise ValueError(f"{path}: a grid calibration of {done.attrs.get('parameter')!r}, expected {parameter!r}")
+        grid = done["grid"].values
+        return likelihood.grid_posterior(grid, done["log_likelihood"].values, prior.log_pdf(grid))
+
+
 def _calibration_inputs(measurement_path: str, spec: dict):
     """The measurement, its calibration channels and their σ, the healthy model at its condition, and
     the parameter's grid and prior."""
-    from . import calibration, io, model
+    from . import calibration
+
+    measurement, data, sigma, values = _measurement_inputs(measurement_path, spec)
+    grid = calibration.GridSpec.from_config(spec["parameter"], spec["grid"])
+    prior = calibration.NormalPrior(**spec["prior"])
+    return measurement, data, sigma, values, grid, prior
+
+
+def _measurement_inputs(measurement_path: str, spec: dict, need_sigma: bool = True):
+    """The measurement, its calibration channels and their σ (None if the file has none and it is not
+    needed), and the healthy model at its condition."""
+    from . import io, model
 
     measurement = io.read_measurement(measurement_path, {k: spec["values"][k] for k in model.OPERATING_PARAMETERS})
     missing = [c for c in spec["channels"] if c not in measurement.channels]
     if missing:
         raise io.MeasurementError(measurement_path, f"has no channel {missing[0]} to calibrate on")
-    if measurement.sigma is None:
+    if measurement.sigma is None and need_sigma:
         raise io.MeasurementError(measurement_path, "no noise level (coordinate sigma) to calibrate with")
     rows = [measurement.channels.index(c) for c in spec["channels"]]
     values = {**spec["values"], **measurement.operating}
-    grid = calibration.GridSpec.from_config(spec["parameter"], spec["grid"])
-    prior = calibration.NormalPrior(**spec["prior"])
-    return measurement, measurement.y[rows], measurement.sigma[rows], values, grid, prior
+    sigma = None if measurement.sigma is None else measurement.sigma[rows]
+    return measurement, measurement.y[rows], sigma, values
+
+
+def _true_value(measurement, parameter: str) -> float:
+    """The parameter's value in a simulated measurement (its ``parameters`` attribute), else NaN."""
+    values = json.loads(measurement.attrs.get("parameters", "{}"))
+    return float(values.get(parameter, "nan"))
 
 
 def _labels(measurement) -> dict:
-    labels = {key: measurement.attrs[key] for key in ("scenario", "snr_db", "seed") if key in measurement.attrs}
+    labels = {key: measurement.attrs[key] for key in ("variant", "scenario", "snr_db", "seed") if key in measurement.attrs}
     return {"measurement": measurement.name, **labels}
 
 
@@ -201,16 +264,70 @@ def summarize(paths: list[str], output: str) -> None:
     for path in paths:
         if path.endswith("_mcmc.nc"):
             idata = mcmc.load(path)
-            draws = idata.posterior[idata.attrs["parameter"]].values.ravel()
-            support = json.loads(idata.attrs["settings"])["grid"]  # the prior is truncated to the grid
-            grid, density = comparison.sample_density(draws, (support["low"], support["high"]))
-            results.append({**idata.attrs, "grid": grid, "posterior": density})
+            if "jointly" in idata.attrs:  # one row per sampled variable; the priors are truncated to `support`
+                rows, support = json.loads(idata.attrs["summary"]), json.loads(idata.attrs["support"])
+            else:  # the prior is truncated to the grid
+                grid = json.loads(idata.attrs["settings"])["grid"]
+                rows, support = [{}], {idata.attrs["parameter"]: (grid["low"], grid["high"])}
+            for row in rows:
+                name = row.get("parameter", idata.attrs.get("parameter"))
+                grid, density = comparison.sample_density(idata.posterior[name].values.ravel(), tuple(support[name]))
+                results.append({**idata.attrs, **row, "grid": grid, "posterior": density})
         else:
             with xr.open_dataset(path, engine="netcdf4") as ds:
                 results.append({**ds.attrs, "grid": ds["grid"].values, "posterior": ds["posterior"].values})
     rows = calibration.summary_rows(results)
     io.atomic_write(output, lambda tmp: _write_csv(tmp, calibration.SUMMARY_COLUMNS, rows))
     log.info("summarized %d calibrations into %s", len(rows), output)
+
+
+def compare(paths: list[str], output: str, code_hash: str) -> None:
+    """Write the Hellinger distances between all scenarios' grid posteriors (the signature library's
+    matrices) and each calibration's reduced χ², for one study variant."""
+    import numpy as np
+    import xarray as xr
+
+    from . import comparison, io, provenance
+
+    posteriors, chi2 = {}, {}
+    for path in paths:
+        with xr.open_dataset(path, engine="netcdf4") as ds:
+            key = (ds.attrs["scenario"], ds.attrs["parameter"], float(ds.attrs["snr_db"]), int(ds.attrs["seed"]))
+            posteriors[key] = (ds["grid"].values, ds["posterior"].values)
+            chi2[key] = float(ds.attrs["chi2_red"])
+    distances = comparison.signature_matrices(posteriors)
+    chi2_red = xr.full_like(distances.isel(reference=0, drop=True), np.nan)
+    for (scenario, parameter, snr, seed), value in chi2.items():
+        chi2_red.loc[dict(scenario=scenario, parameter=parameter, snr_db=snr, seed=seed)] = value
+    chi2_red.attrs.update(long_name="reduced chi-square of the best-fitting calibrated model", units="1")
+    ds = xr.Dataset(
+        {"hellinger": distances, "chi2_red": chi2_red},
+        attrs={
+            "title": "newdyn posterior signatures: Hellinger distances between scenarios' grid posteriors",
+            "sources": json.dumps(sorted(paths)),
+            **provenance.attributes(code_hash),
+        },
+    )
+    io.write_netcdf(ds, output)
+    log.info("compared %d posteriors into %s", len(posteriors), output)
+
+
+def plot(kind: str, inputs: list[str], output: str, code_hash: str, measurement: str | None = None,
+         chi2_output: str | None = None, snr_db: float | None = None, seed: int | None = None) -> None:
+    """Draw one figure of the study (PNG and PDF) with :mod:`newdyn.plots`."""
+    from . import plots
+
+    if kind == "posteriors":
+        plots.posterior_panels(inputs, output, code_hash=code_hash)
+    elif kind == "overlays":
+        plots.model_overlays(measurement, inputs, output, code_hash=code_hash)
+    elif kind == "mcmc":
+        plots.mcmc_diagnostics(inputs, output, code_hash=code_hash)
+    elif kind == "signatures":
+        plots.signature_heatmaps(inputs[0], output, snr_db, seed, code_hash=code_hash)
+    elif kind == "summary":
+        plots.summary_heatmaps(inputs[0], output, chi2_output, code_hash=code_hash)
+    log.info("drew %s into %s", kind, output)
 
 
 def _write_csv(path, columns, rows):
@@ -254,6 +371,21 @@ def main(argv: list[str] | None = None) -> int:
     p = command("calibrate-mcmc", "MCMC posterior of a parameter for a measurement", "calibration spec")
     p.add_argument("--measurement", required=True)
     p.add_argument("--grid-result", required=True, help="the same calibration on the grid (starts the walkers)")
+    p = command("calibrate-joint", "joint MCMC posterior of several parameters (and optionally σ) for a measurement",
+                "joint calibration spec")
+    p.add_argument("--measurement", required=True)
+    p.add_argument("--grid-results", required=True, nargs="+",
+                   help="each parameter's grid calibration, in the spec's parameter order (they start the walkers)")
+    p = command("compare", "Hellinger distances between all scenarios' grid posteriors")
+    p.add_argument("inputs", nargs="+", help="grid calibration files of one study variant")
+    p = command("plot", "draw a figure (PNG, and PDF beside it)")
+    p.add_argument("kind", choices=["posteriors", "overlays", "mcmc", "signatures", "summary"])
+    p.add_argument("inputs", nargs="+", help="grid calibrations (posteriors, overlays), an MCMC result, "
+                   "the comparison file (signatures) or the summary table")
+    p.add_argument("--measurement", help="overlays: the measurement the grid calibrations fitted")
+    p.add_argument("--chi2-output", help="summary: the χ² heatmap (--output gets the Hellinger one)")
+    p.add_argument("--snr-db", type=float, help="signatures: which SNR")
+    p.add_argument("--seed", type=int, help="signatures: which seed")
     p = command("summarize", "the summary table of all calibrations")
     p.add_argument("inputs", nargs="+", help="calibration files")
 
@@ -269,6 +401,12 @@ def main(argv: list[str] | None = None) -> int:
         calibrate_on_grid(args.measurement, args.grid, json.loads(args.spec), args.output, args.code_hash)
     elif args.command == "calibrate-mcmc":
         calibrate_with_mcmc(args.measurement, args.grid_result, json.loads(args.spec), args.output, args.code_hash)
+    elif args.command == "calibrate-joint":
+        calibrate_jointly(args.measurement, args.grid_results, json.loads(args.spec), args.output, args.code_hash)
+    elif args.command == "compare":
+        compare(args.inputs, args.output, args.code_hash)
+    elif args.command == "plot":
+        plot(args.kind, args.inputs, args.output, args.code_hash, args.measurement, args.chi2_output, args.snr_db, args.seed)
     elif args.command == "summarize":
         summarize(args.inputs, args.output)
     return 0

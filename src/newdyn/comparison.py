@@ -137,3 +137,35 @@ def distance_matrix(densities: Mapping[str, tuple[np.ndarray, np.ndarray]]) -> t
         for j in range(i + 1, len(names)):
             matrix[i, j] = matrix[j, i] = hellinger_densities(*densities[first], *densities[names[j]])
     return names, matrix
+
+
+def signature_matrices(posteriors: Mapping[tuple[str, str, float, int], tuple[np.ndarray, np.ndarray]]):
+    """Hellinger distances between every pair of scenarios' posteriors of the same parameter, SNR and seed.
+
+    ``posteriors`` maps (scenario, parameter, snr_db, seed) to a posterior (grid, density).  Each
+    scenario's posterior is the predicted signature of its change (the paper's Step 1); row ``scenario``,
+    column ``reference`` of the result is the distance of its posterior to the reference's (Step 3).
+    Returns an :class:`xarray.DataArray` with dims (parameter, snr_db, seed, scenario, reference), NaN
+    where a combination was not calibrated.
+    """
+    import xarray as xr
+
+    posteriors = {(str(s), str(p), float(snr), int(seed)): v for (s, p, snr, seed), v in posteriors.items()}
+    keys = list(posteriors)
+    scenarios = list(dict.fromkeys(k[0] for k in keys))
+    coords = {
+        "parameter": list(dict.fromkeys(k[1] for k in keys)),
+        "snr_db": sorted({float(k[2]) for k in keys}, reverse=True),
+        "seed": sorted({int(k[3]) for k in keys}),
+        "scenario": scenarios,
+        "reference": scenarios,
+    }
+    distances = xr.DataArray(np.full([len(c) for c in coords.values()], np.nan), coords=coords, dims=list(coords))
+    for parameter in coords["parameter"]:
+        for snr in coords["snr_db"]:
+            for seed in coords["seed"]:
+                present = {s: posteriors[(s, parameter, snr, seed)] for s in scenarios if (s, parameter, snr, seed) in posteriors}
+                names, matrix = distance_matrix(present)
+                distances.loc[dict(parameter=parameter, snr_db=snr, seed=seed, scenario=names, reference=names)] = matrix
+    distances.attrs.update(long_name="Hellinger distance between posteriors", units="1")
+    return distances

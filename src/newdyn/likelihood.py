@@ -18,15 +18,16 @@ from scipy.integrate import cumulative_trapezoid, trapezoid
 
 
 def _standardized_residuals(data: np.ndarray, model: np.ndarray, sigma: np.ndarray) -> np.ndarray:
-    """(y − m)/σ_c with shape checks; ``model`` may carry leading grid axes."""
+    """(y − m)/σ_c with shape checks; ``model`` and ``sigma`` may carry leading axes that broadcast
+    (e.g. one model and one σ per MCMC walker)."""
     data, model, sigma = (np.asarray(a, dtype=float) for a in (data, model, sigma))
     if data.ndim != 2:
         raise ValueError(f"data must be (n_channels, n_samples), got shape {data.shape}")
     if model.shape[-2:] != data.shape:
         raise ValueError(f"model must be (..., {data.shape[0]}, {data.shape[1]}), got shape {model.shape}")
-    if sigma.shape != (data.shape[0],) or not np.all(np.isfinite(sigma) & (sigma > 0)):
-        raise ValueError(f"sigma must be {data.shape[0]} positive finite values, got {sigma!r}")
-    return (data - model) / sigma[:, None]
+    if sigma.ndim < 1 or sigma.shape[-1] != data.shape[0] or not np.all(np.isfinite(sigma) & (sigma > 0)):
+        raise ValueError(f"sigma must be (..., {data.shape[0]}) positive finite values, got {sigma!r}")
+    return (data - model) / sigma[..., None]
 
 
 def log_likelihood(data, model, sigma, per_channel: bool = False) -> np.ndarray:
@@ -38,12 +39,13 @@ def log_likelihood(data, model, sigma, per_channel: bool = False) -> np.ndarray:
     ----------
     data : (n_channels, n_samples) measured outputs y.
     model : (..., n_channels, n_samples) model outputs m, e.g. one per grid point.
-    sigma : (n_channels,) noise standard deviation per channel.
+    sigma : (n_channels,) noise standard deviation per channel, or (..., n_channels) one σ per model
+        (leading axes broadcast against the model's, e.g. one model and one σ per MCMC walker).
     per_channel : return the terms of each channel instead of their sum.
 
     Returns
     -------
-    (...) or, with ``per_channel``, (..., n_channels).
+    (...) or, with ``per_channel``, (..., n_channels); ``...`` is the broadcast of the leading axes.
     """
     z = _standardized_residuals(data, model, sigma)
     n_samples = z.shape[-1]
@@ -141,6 +143,15 @@ class GridPosterior:
         n_selected = min(int(np.searchsorted(mass, prob * mass[-1])), mass.size - 1) + 1
         selected = self.grid[order[:n_selected]]
         return float(selected.min()), float(selected.max())
+
+    def consistent(self) -> bool:
+        """One likelihood peak, inside the grid: what a calibration that explains the data gives.
+
+        A likelihood highest at a grid end says the best fit lies beyond the grid (±3 prior sd by
+        default): not a plausible drift of the parameter but a sign that it absorbs something else.
+        """
+        highest = int(np.argmax(self.scaled_likelihood))
+        return self.n_peaks() == 1 and 0 < highest < self.grid.size - 1
 
     def n_peaks(self, min_prominence: float = 0.05) -> int:
         """Number of peaks of the scaled likelihood with prominence ≥ ``min_prominence`` (of its max).

@@ -145,7 +145,7 @@ def run(
         **{k: _netcdf_attr(v) for k, v in (attrs or {}).items()},
         "mcmc_settings": json.dumps(dataclasses.asdict(settings)),
         "seed": settings.seed,
-        "sampler": "emcee.EnsembleSampler(moves=StretchMove(), vectorize=True); chain = walker",
+        "sampler": f"emcee.EnsembleSampler(moves={MOVES[settings.move].__name__}(), vectorize=True); chain = walker",
         "emcee_version": emcee.__version__,
         "arviz_version": az.__version__,
     }
