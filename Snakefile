@@ -5,6 +5,9 @@ from snakemake.utils import min_version
 min_version("9.0")
 
 
+report: "workflow/report/workflow.rst"
+
+
 if not workflow.overwrite_configfiles:
 
     configfile: "config/config.yaml"
@@ -14,12 +17,16 @@ include: "workflow/rules/common.smk"
 include: "workflow/rules/simulate.smk"
 include: "workflow/rules/noise.smk"
 include: "workflow/rules/calibrate.smk"
+include: "workflow/rules/compare.smk"
 include: "workflow/rules/summary.smk"
+include: "workflow/rules/figures.smk"
 
 
 rule all:
     default_target: True
     input:
         simulation_targets(),
-        calibration_targets(),
+        all_calibration_targets(),
+        expand("results/{variant}/comparison/hellinger.nc", variant=VARIANTS),
         "results/summary.csv",
+        figure_targets(),

@@ -49,7 +49,7 @@ def assert_one_line(err: cfg.ConfigError, source: str, field: str, *words: str) 
 @pytest.mark.parametrize("path", [DEFAULT, CI], ids=["default", "ci"])
 def test_shipped_configs_pass(path):
     config = cfg.load(path, SCHEMA)
-    assert set(config) == {"rig", "operating", "sampling", "simulation", "noise", "scenarios", "calibration"}
+    assert set(config) - {"variants"} == {"rig", "operating", "sampling", "simulation", "noise", "scenarios", "calibration"}
     for name in config["scenarios"]:
         values = cfg.scenario_values(config, name)
         assert set(values) == set(model.PARAMETER_NAMES)
@@ -343,6 +343,27 @@ BAD = {
     ),
     "unknown mcmc move": (_set("calibration.mcmc.move", "hmc"), "calibration.mcmc.move", "hmc"),
     "too few grid points": (_set("calibration.parameters.kT1.grid.points", 2), "calibration.parameters.kT1.grid.points", "≥ 3"),
+    "joint of an uncalibrated parameter": (
+        _set("calibration.joint.parameters", ["kT1", "k_s"]),
+        "calibration.joint.parameters[1]",
+        "not one of calibration.parameters",
+    ),
+    # 2 parameters + σ of 2 channels sample 4 quantities: the KDE move needs 2·4 + 2 walkers
+    "too few walkers for the joint dimension": (
+        lambda c: (_set("calibration.joint.infer_sigma", True)(c), _set("calibration.joint.walkers", 8)(c)),
+        "calibration.joint.walkers",
+        "at least 10: twice the 4 sampled quantities plus 2 for the kde move",
+    ),
+    "too few walkers for one parameter": (_set("calibration.mcmc.walkers", 2), "calibration.mcmc.walkers", "at least 4"),
+    "variant of an unknown scenario": (_set("variants.paper.scenarios", ["healthy", "cracked"]), "variants.paper.scenarios[1]", "cracked"),
+    "variant of an unknown rig value": (_set("variants.paper.rig", {"betta": 0.0}), "variants.paper.rig.betta", "did you mean 'beta'"),
+    "unphysical variant rig value": (_set("variants.paper.rig", {"beta": -1.0}), "variants.paper (as rig.beta)", "[0, inf)"),
+    "variant channel not simulated": (
+        lambda c: (_set("simulation.channels", ["b1_x", "w1"])(c), _set("variants.paper.channels", ["b1_x", "w4"])(c)),
+        "variants.paper (as calibration.channels[1])",
+        "'w4' is not simulated",
+    ),
+    "variant name unusable in paths": (_set("variants", {"my variant": {}}), "variants.my variant", "invalid name"),
 }
 
 
@@ -457,6 +478,32 @@ def test_scenario_values(default_config):
     assert cfg.scenario_values(c, "both")["kT1"] == 4.0e6
     with pytest.raises(KeyError, match="unknown scenario"):
         cfg.scenario_values(c, "nope")
+
+
+def test_variant_config_replaces_and_selects(default_config):
+    paper = cfg.variant_config(default_config, "paper")
+    assert "variants" not in paper and paper["rig"]["beta"] == 0.0 and default_config["rig"]["beta"] == 3.0e-5
+    assert paper["calibration"]["channels"] == ["b1_x"]
+    assert list(paper["scenarios"]) == ["healthy", "kT1_up", "stick_slip"]
+    assert list(paper["calibration"]["parameters"]) == ["kT1", "kT3"]
+    assert paper["calibration"]["mcmc"]["parameters"] == [] and paper["calibration"]["joint"]["parameters"] == []
+    assert cfg.scenario_values(paper, "kT1_up")["beta"] == 0.0  # the variant's rig under every scenario
+    default = cfg.variant_config(default_config, "default")
+    assert default == {k: v for k, v in default_config.items() if k != "variants"}
+    without = {k: v for k, v in default_config.items() if k != "variants"}
+    assert cfg.variant_names(without) == ["default"] and cfg.variant_config(without, "default") == without
+    with pytest.raises(KeyError, match="unknown variant"):
+        cfg.variant_config(default_config, "nope")
+
+
+def test_joint_dimension_counts_inferred_sigmas(default_config):
+    config = copy.deepcopy(default_config)
+    config["calibration"]["joint"]["infer_sigma"] = True
+    assert cfg.joint_dimension(config) == 2 + 2  # kT1, kT3 and σ of b1_x, w1
+    config["calibration"]["joint"]["infer_sigma"] = False
+    assert cfg.joint_dimension(config) == 2
+    config["calibration"]["joint"]["parameters"] = []
+    assert cfg.joint_dimension(config) == 0
 
 
 def test_sampling_helper(default_config):

@@ -8,9 +8,11 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
+import newdyn.config
 from newdyn import calibration, model
 from newdyn.io import read_measurement
 
@@ -43,7 +45,8 @@ def planned_outputs(workdir, config=TEST_CONFIG, pythonpath=None):
     """Files a dry run would (re)create."""
     run = snakemake(workdir, "--dry-run", config=config, pythonpath=pythonpath)
     assert run.returncode == 0, run.stderr
-    return sorted(set(re.findall(r"^\s+output: (\S+)", run.stdout, re.MULTILINE)))
+    lines = re.findall(r"^\s+output: (.+)$", run.stdout, re.MULTILINE)
+    return sorted({path for line in lines for path in line.split(", ")})
 
 
 @pytest.fixture(scope="module")
@@ -58,13 +61,13 @@ def test_study_writes_every_scenario_clean_and_noisy_with_provenance(study):
     config = yaml.safe_load(TEST_CONFIG.read_text())
     channels = tuple(config["simulation"]["channels"])
     for scenario in config["scenarios"]:
-        folder = study / "results" / "simulations" / scenario
+        folder = study / "results" / "default" / "simulations" / scenario
         clean = read_measurement(folder / "clean.nc")
         assert clean.channels == channels and clean.sampling.n_samples == 500
         assert clean.attrs["scenario"] == scenario and clean.attrs["newdyn_version"]
         assert len(clean.attrs["code_hash"]) == 16
-        assert (study / "results" / "logs" / "simulate" / f"{scenario}.log").stat().st_size > 0
-        assert (study / "results" / "benchmarks" / "simulate" / f"{scenario}.tsv").exists()
+        assert (study / "results" / "logs" / "simulate" / "default" / f"{scenario}.log").stat().st_size > 0
+        assert (study / "results" / "benchmarks" / "simulate" / "default" / f"{scenario}.tsv").exists()
         for snr in config["noise"]["snr_db"]:
             for seed in config["noise"]["seeds"]:
                 noisy = read_measurement(folder / f"snr{snr:g}_seed{seed}.nc")
@@ -72,17 +75,34 @@ def test_study_writes_every_scenario_clean_and_noisy_with_provenance(study):
                 assert noisy.sigma is not None and noisy.attrs["scenario"] == scenario
                 residual = noisy.y - clean.y
                 assert 0.8 < residual.std(axis=1).mean() / noisy.sigma.mean() < 1.2
-    kT1 = read_measurement(study / "results" / "simulations" / "kT1_up" / "clean.nc")
-    assert '"kT1": 3250000.0' in kT1.attrs["parameters"]
+    kT1 = read_measurement(study / "results" / "default" / "simulations" / "kT1_up" / "clean.nc")
+    assert '"kT1": 3250000.0' in kT1.attrs["parameters"] and '"beta": 3e-05' in kT1.attrs["parameters"]
+    paper = read_measurement(study / "results" / "paper" / "simulations" / "kT1_up" / "clean.nc")
+    assert paper.attrs["variant"] == "paper" and '"beta": 0.0' in paper.attrs["parameters"]
 
 
 def test_summary_table_has_a_row_per_calibration_and_the_expected_verdicts(study):
     config = yaml.safe_load(TEST_CONFIG.read_text())
     with open(study / "results" / "summary.csv", newline="") as f:
-        rows = list(csv.DictReader(f))
-    assert set(calibration.SUMMARY_COLUMNS) <= set(rows[0])
-    calibrations = len(config["calibration"]["parameters"]) + len(config["calibration"]["mcmc"]["parameters"])
-    assert len(rows) == len(config["scenarios"]) * calibrations * len(config["noise"]["snr_db"])
+        every_row = list(csv.DictReader(f))
+    assert set(calibration.SUMMARY_COLUMNS) <= set(every_row[0])
+    for variant in newdyn.config.variant_names(config):
+        cfg = newdyn.config.variant_config(config, variant)
+        c = cfg["calibration"]
+        per_measurement = len(c["parameters"]) + len(c["mcmc"]["parameters"]) + newdyn.config.joint_dimension(cfg)
+        assert sum(r["variant"] == variant for r in every_row) == len(cfg["scenarios"]) * per_measurement * len(cfg["noise"]["snr_db"])
+    joint = [r for r in every_row if r["jointly"]]
+    assert {r["parameter"] for r in joint} == {"kT1", "kT3", "sigma_b1_x", "sigma_w1"}
+    assert all((r["verdict"] == "unconverged") == (r["converged"] == "0") for r in joint)
+    kT1 = next(r for r in joint if (r["scenario"], r["parameter"]) == ("kT1_up", "kT1"))
+    assert float(kT1["hdi_low"]) < 3.25e6 < float(kT1["hdi_high"])  # the ridge holds the truth
+    stick_slip = [r for r in joint if r["scenario"] == "stick_slip"]
+    assert all(float(r["chi2_red"]) > 10 for r in stick_slip)  # against the file's σ, not the fitted one
+    # the paper's set-up: b1_x alone does not pin kT1 down even when kT1 is what changed
+    paper = {(r["scenario"], r["parameter"]): r for r in every_row if r["variant"] == "paper"}
+    assert float(paper["kT1_up", "kT1"]["sd_ratio"]) > 10 * float(
+        next(r for r in every_row if (r["variant"], r["scenario"], r["parameter"], r["method"]) == ("default", "kT1_up", "kT1", "grid"))["sd_ratio"])
+    rows = [r for r in every_row if r["variant"] == "default" and not r["jointly"]]
     verdict = {(r["scenario"], r["parameter"]): r["verdict"] for r in rows if r["method"] == "grid"}
     assert verdict["healthy", "kT1"] == verdict["kT1_up", "kT1"] == "explained"
     assert verdict["stick_slip", "kT1"] == verdict["stick_slip", "kT3"] == "not explained"
@@ -103,12 +123,16 @@ def test_summary_table_has_a_row_per_calibration_and_the_expected_verdicts(study
     assert checked and all(float(r["hellinger_to_grid"]) < 0.05 for r in checked)
 
 
-def test_changing_one_prior_reruns_only_its_calibrations(study, tmp_path):
-    path = changed_config(tmp_path, lambda c: c["calibration"]["parameters"]["kT1"]["prior"].update(sd=4.0e5))
+def test_changing_one_prior_reruns_only_its_calibrations_and_what_reads_them(study, tmp_path):
+    path = changed_config(tmp_path, lambda c: c["calibration"]["parameters"]["kT3"]["prior"].update(sd=3.0e5))
     planned = planned_outputs(study, path)
-    calibrations = [p for p in planned if p != "results/summary.csv"]
-    assert "results/summary.csv" in planned and calibrations
-    assert all(p.startswith("results/calibration/") and "/kT1/" in p for p in calibrations)
+    calibrations = [p for p in planned if "/calibration/" in p]
+    # kT3 alone, on the grid and in the joint kT1+kT3 run: never kT1's own calibrations or a simulation
+    assert calibrations and all("/kT3/" in p or "/joint/" in p for p in calibrations)
+    assert not any("/simulations/" in p or "/grids/" in p for p in planned)
+    assert {"results/summary.csv", "results/default/comparison/hellinger.nc"} <= set(planned)
+    assert "results/default/figures/posteriors/kT1_up_snr40_seed1.png" in planned
+    assert "results/default/figures/overlays/kT1_up_snr40_seed1.png" in planned  # reads kT3's best fit
 
 
 def test_immediate_rerun_has_nothing_to_do(study):
@@ -129,39 +153,49 @@ def test_reordering_config_keys_reruns_nothing(study, tmp_path):
 def test_changing_one_scenario_reruns_only_that_scenario(study, tmp_path):
     path = changed_config(tmp_path, lambda c: c["scenarios"]["kT1_up"]["fault"]["parameters"].update(kT1=3.3e6))
     planned = planned_outputs(study, path)
-    own = ("results/simulations/kT1_up/", "results/calibration/kT1_up/", "results/summary.csv")
-    assert planned and all(p.startswith(own) for p in planned)
-    assert "results/simulations/kT1_up/clean.nc" in planned
+    assert "results/default/simulations/kT1_up/clean.nc" in planned
+    assert "results/paper/simulations/kT1_up/clean.nc" in planned
+    for p in planned:  # its own files, and the study-wide tables and figures that read them
+        assert "kT1_up" in p or "/comparison/" in p or "summary" in p or "signatures" in p or "fig3" in p, p
 
 
-def test_changing_a_rig_value_reruns_every_scenario(study, tmp_path):
+def test_changing_a_rig_value_reruns_every_scenario_of_the_variants_that_use_it(study, tmp_path):
     path = changed_config(tmp_path, lambda c: c["rig"].update(beta=2.0e-5))
     planned = planned_outputs(study, path)
     scenarios = set(yaml.safe_load(TEST_CONFIG.read_text())["scenarios"])
-    assert {p.split("/")[2] for p in planned if p.startswith("results/simulations/")} == scenarios
+    assert {p.split("/")[3] for p in planned if p.startswith("results/default/simulations/")} == scenarios
+    assert not any(p.startswith("results/paper/") for p in planned)  # the paper variant sets its own beta
+
+
+SIMULATED = {"clean.nc", "snr40_seed1.nc"}
+CALIBRATED = {"snr40_seed1_grid.nc", "snr40_seed1_mcmc.nc"}
+GRIDS = {"kT1.nc", "kT3.nc"}
+COMPARED = {"hellinger.nc", "summary.csv"}
 
 
 @pytest.mark.parametrize(
-    "module, rules",
+    "module, files, figures",
     [
-        ("kernels.py", {"clean.nc", "snr40_seed1.nc", "snr40_seed1_grid.nc", "snr40_seed1_mcmc.nc", "kT1.nc", "kT3.nc", "summary.csv"}),
-        ("noise.py", {"snr40_seed1.nc", "snr40_seed1_grid.nc", "snr40_seed1_mcmc.nc", "summary.csv"}),
-        ("likelihood.py", {"snr40_seed1_grid.nc", "snr40_seed1_mcmc.nc", "kT1.nc", "kT3.nc", "summary.csv"}),
-        ("sampling.py", {"snr40_seed1_mcmc.nc", "summary.csv"}),
-        ("plots_unused.py", set()),
+        ("kernels.py", SIMULATED | CALIBRATED | GRIDS | COMPARED, True),
+        ("noise.py", SIMULATED - {"clean.nc"} | CALIBRATED | COMPARED, True),
+        ("likelihood.py", CALIBRATED | GRIDS | COMPARED, True),
+        ("sampling.py", {"snr40_seed1_mcmc.nc", "summary.csv"}, True),
+        ("plots.py", set(), True),
+        ("unused.py", set(), False),
     ],
 )
-def test_editing_science_code_reruns_exactly_the_jobs_that_use_it(study, tmp_path, module, rules):
+def test_editing_science_code_reruns_exactly_the_jobs_that_use_it(study, tmp_path, module, files, figures):
     """A copy of the package with one module edited, first on PYTHONPATH, is what the workflow imports."""
     package = tmp_path / "newdyn"
     shutil.copytree(ROOT / "src" / "newdyn", package, ignore=shutil.ignore_patterns("__pycache__"))
     with open(package / module, "a") as source:
         source.write("\n# an edit\n")
     planned = planned_outputs(study, pythonpath=tmp_path)
-    assert {p.split("/")[-1] for p in planned} == rules
+    assert {p.split("/")[-1] for p in planned if "/figures/" not in p} == files
+    assert any("/figures/" in p for p in planned) == figures
     scenarios = set(yaml.safe_load(TEST_CONFIG.read_text())["scenarios"])
-    if "snr40_seed1.nc" in rules:
-        assert {p.split("/")[2] for p in planned if p.startswith("results/simulations/")} == scenarios
+    if "snr40_seed1.nc" in files:
+        assert {p.split("/")[3] for p in planned if p.startswith("results/default/simulations/")} == scenarios
 
 
 def test_bad_config_fails_in_one_line_before_any_job(tmp_path):
@@ -172,6 +206,54 @@ def test_bad_config_fails_in_one_line_before_any_job(tmp_path):
     assert lines == [f"newdyn: bad config: {path}: scenarios.stick_slip.fault.parameters.T_max: "
                      "must lie in (0, inf) N·m (got -5)"]
     assert not (tmp_path / "work" / "results").exists()
+
+
+def test_comparison_holds_every_pair_of_scenarios_and_agrees_with_the_summary(study):
+    import xarray as xr
+
+    with xr.open_dataset(study / "results" / "default" / "comparison" / "hellinger.nc") as ds:
+        distances = ds["hellinger"].sel(snr_db=40.0, seed=1).load()
+        chi2 = ds["chi2_red"].sel(snr_db=40.0, seed=1).load()
+    assert set(distances["scenario"].values) == {"healthy", "kT1_up", "stick_slip"}
+    assert np.allclose(distances, distances.transpose("parameter", "reference", "scenario"))  # symmetric
+    assert np.all(distances.values[:, np.arange(3), np.arange(3)] == 0)
+    with open(study / "results" / "summary.csv", newline="") as f:
+        rows = [r for r in csv.DictReader(f) if r["variant"] == "default" and r["method"] == "grid"]
+    for r in rows:
+        assert float(distances.sel(parameter=r["parameter"], scenario=r["scenario"], reference="healthy")) == pytest.approx(
+            float(r["hellinger_to_healthy"]), abs=1e-9)
+        assert float(chi2.sel(parameter=r["parameter"], scenario=r["scenario"])) == pytest.approx(float(r["chi2_red"]))
+
+
+def test_every_figure_is_drawn_as_png_and_pdf(study):
+    figures = sorted((study / "results").rglob("*.png"))
+    names = {str(p.relative_to(study)) for p in figures}
+    for expected in (
+        "results/figures/summary_hellinger.png",
+        "results/figures/summary_chi2.png",
+        "results/default/figures/fig3_snr40_seed1.png",
+        "results/default/figures/fig4_snr40_seed1.png",
+        "results/paper/figures/fig4_snr40_seed1.png",
+        "results/default/figures/posteriors/stick_slip_snr40_seed1.png",
+        "results/default/figures/overlays/stick_slip_snr40_seed1.png",
+        "results/default/figures/mcmc/kT1_up_snr40_seed1.png",
+        "results/default/figures/signatures_snr40_seed1.png",
+    ):
+        assert expected in names
+    for png in figures:
+        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.with_suffix(".pdf").read_bytes()[:5] == b"%PDF-"
+
+
+def test_report_is_one_self_contained_html_with_every_figure(study):
+    run = snakemake(study, "--report", "results/report.html")
+    assert run.returncode == 0, run.stderr[-3000:]
+    html = (study / "results" / "report.html").read_text()
+    assert not re.search(r"<script[^>]+src=\"http", html)  # no network needed to open it
+    for png in (study / "results").rglob("*.png"):
+        assert png.name in html
+    for caption in ("The paper's Fig. 3 analog", "The paper's Fig. 4 analog", "Posterior signatures", "MCMC diagnostics"):
+        assert caption in html
+    assert "summary.csv" in html and "Every calibration of the study" in html
 
 
 def test_workflow_is_lint_clean_and_snakefmt_formatted():

@@ -1,9 +1,10 @@
 """The study configuration: load it, check it, and derive what the workflow needs from it.
 
-A study config (``config/config.yaml``; every key is documented in ``config/README.md``) has six
-sections: ``rig`` and ``operating`` (model parameter values, :mod:`newdyn.model` names), ``sampling``,
-``simulation``, ``noise`` and ``scenarios`` (name -> optional ``description``, ``overrides`` of rig or
-operating parameters and a ``fault`` from :mod:`newdyn.faults`).
+A study config (``config/config.yaml``; every key is documented in ``config/README.md``) has the
+sections ``rig`` and ``operating`` (model parameter values, :mod:`newdyn.model` names), ``sampling``,
+``simulation``, ``noise``, ``scenarios`` (name -> optional ``description``, ``overrides`` of rig or
+operating parameters and a ``fault`` from :mod:`newdyn.faults`), ``calibration`` and, optionally,
+``variants`` (the study rerun with other rig values or channels: :func:`variant_config`).
 
 :func:`check` validates in two stages and raises :class:`ConfigError` for the first problem, as one line
 ``<file>: <dotted.field>: <problem>``:
@@ -11,8 +12,8 @@ operating parameters and a ``fault`` from :mod:`newdyn.faults`).
 1. structure, against the JSON schema ``workflow/schemas/config.schema.yaml`` (the single source of the
    keys, types and enums);
 2. physics: every rig and operating value, every override and every fault against the bounds in
-   :mod:`newdyn.model` / :mod:`newdyn.faults`; the sampling window; finite SNRs; and the resulting model
-   values of every scenario (after overrides and fault).
+   :mod:`newdyn.model` / :mod:`newdyn.faults`; the sampling window; finite SNRs; the resulting model
+   values of every scenario (after overrides and fault); the calibration; then each variant's study.
 
 The helpers (:func:`base_values`, :func:`sampling`, :func:`scenario_values`, :func:`canonical_json`)
 turn a checked config into model values and a canonical text, so that the order of keys in the YAML
@@ -24,6 +25,7 @@ with a sign, ``3.25e+6``.  The check says so when it meets such a string.
 
 from __future__ import annotations
 
+import copy
 import difflib
 import json
 import math
@@ -194,6 +196,35 @@ def _physical_problems(config: Mapping) -> Iterator[tuple[str, str]]:
         if problems:
             yield from problems
             return
+    yield from _variant_problems(config)
+
+
+def _variant_problems(config: Mapping) -> Iterator[tuple[str, str]]:
+    """A variant's references must exist; then its derived study must pass the same physical checks."""
+    for name, variant in (config.get("variants") or {}).items():
+        where = f"variants.{name}"
+        variant = variant or {}
+        references = list(_variant_reference_problems(where, variant, config))
+        if references:
+            yield from references
+            return
+        for field, problem in _physical_problems(variant_config(config, name)):
+            yield f"{where} (as {field})", problem
+            return
+
+
+def _variant_reference_problems(where: str, variant: Mapping, config: Mapping) -> Iterator[tuple[str, str]]:
+    for key in variant.get("rig", {}):
+        if key not in model.RIG_PARAMETERS:
+            yield f"{where}.rig.{key}", f"unknown rig parameter{_did_you_mean(key, model.RIG_PARAMETERS)} (known: {', '.join(model.RIG_PARAMETERS)})"
+    for key, known in (
+        ("scenarios", list(config["scenarios"])),
+        ("parameters", list(config["calibration"]["parameters"])),
+        ("snr_db", list(config["noise"]["snr_db"])),
+    ):
+        for i, item in enumerate(variant.get(key, [])):
+            if item not in known:
+                yield f"{where}.{key}[{i}]", f"{item!r} is not in the study's {key} ({', '.join(map(str, known))})"
 
 
 def _value_problems(config: Mapping) -> Iterator[tuple[str, str]]:
@@ -242,8 +273,21 @@ def _calibration_problems(config: Mapping) -> Iterator[tuple[str, str]]:
     for i, name in enumerate(mcmc["parameters"]):
         if name not in calibration["parameters"]:
             yield f"calibration.mcmc.parameters[{i}]", f"'{name}' is not one of calibration.parameters ({', '.join(calibration['parameters'])})"
-    if mcmc["walkers"] < 2 * 1 or mcmc["walkers"] % 2:
-        yield "calibration.mcmc.walkers", f"must be even and at least twice the number of calibrated parameters (2), got {mcmc['walkers']}"
+    joint = calibration.get("joint", {"parameters": []})
+    for i, name in enumerate(joint["parameters"]):
+        if name not in calibration["parameters"]:
+            yield f"calibration.joint.parameters[{i}]", f"'{name}' is not one of calibration.parameters ({', '.join(calibration['parameters'])})"
+    # emcee needs 2·ndim walkers; the KDE move also a nonsingular KDE of half the ensemble (> ndim)
+    kde = 2 if mcmc["move"] == "kde" else 0
+    runs = [("calibration.mcmc.walkers", mcmc["walkers"], 1)]
+    if joint["parameters"]:
+        runs.append(("calibration.joint.walkers", joint["walkers"], joint_dimension(config)))
+    for field, walkers, dimension in runs:
+        if walkers < 2 * dimension + kde or walkers % 2:
+            yield field, (
+                f"must be even and at least {2 * dimension + kde}: twice the {dimension} sampled quantit"
+                f"{'ies' if dimension > 1 else 'y'}{' plus 2 for the kde move' if kde else ''}, got {walkers}"
+            )
     if not mcmc["rhat_max"] > 1.0:
         yield "calibration.mcmc.rhat_max", f"must exceed 1 (got {mcmc['rhat_max']})"
     for name, spec in calibration["parameters"].items():
@@ -338,6 +382,50 @@ def _load_cycle_problem(field: str, fs: float, t_rec: float, load_freq: float) -
 
 # ----------------------------------------------------------------------------------------------------
 # helpers for the workflow
+
+
+def variant_names(config: Mapping) -> list[str]:
+    """The study's variants in config order; a config without ``variants`` has one, ``default``."""
+    return list(config.get("variants") or {"default": {}})
+
+
+def variant_config(config: Mapping, name: str) -> dict:
+    """The whole study as variant ``name`` runs it: a config without ``variants`` in which the variant's
+    rig values and channels replace the study's, and its scenarios, parameters and SNRs select from them.
+
+    The MCMC runs (1-D and joint) stay only where the variant keeps ``mcmc`` and calibrates their
+    parameters; a joint calibration needs all of its parameters.
+    """
+    variants = config.get("variants") or {"default": {}}
+    if name not in variants:
+        raise KeyError(f"unknown variant {name!r} (known: {', '.join(variants)})")
+    variant = variants[name] or {}
+    derived = copy.deepcopy({key: value for key, value in config.items() if key != "variants"})
+    derived["rig"].update(variant.get("rig", {}))
+    calibration = derived["calibration"]
+    calibration["channels"] = list(variant.get("channels", calibration["channels"]))
+    keep = variant.get("parameters", list(calibration["parameters"]))
+    calibration["parameters"] = {p: spec for p, spec in calibration["parameters"].items() if p in keep}
+    if "scenarios" in variant:
+        derived["scenarios"] = {s: spec for s, spec in derived["scenarios"].items() if s in variant["scenarios"]}
+    if "snr_db" in variant:
+        derived["noise"]["snr_db"] = [snr for snr in derived["noise"]["snr_db"] if snr in variant["snr_db"]]
+    with_mcmc = variant.get("mcmc", True)
+    mcmc = calibration["mcmc"]
+    mcmc["parameters"] = [p for p in mcmc["parameters"] if with_mcmc and p in calibration["parameters"]]
+    joint = calibration.setdefault("joint", {"parameters": [], "infer_sigma": False, "walkers": 0, "steps": 0})
+    if not (with_mcmc and all(p in calibration["parameters"] for p in joint["parameters"])):
+        joint["parameters"] = []
+    return derived
+
+
+def joint_dimension(config: Mapping) -> int:
+    """Number of quantities the joint calibration samples: its parameters, and one σ per channel if inferred."""
+    calibration = config["calibration"]
+    joint = calibration.get("joint") or {"parameters": []}
+    if not joint["parameters"]:
+        return 0
+    return len(joint["parameters"]) + (len(calibration["channels"]) if joint.get("infer_sigma") else 0)
 
 
 def base_values(config: Mapping) -> dict[str, float]:

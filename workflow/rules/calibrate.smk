@@ -1,10 +1,10 @@
 rule grid_models:
     output:
-        "results/calibration/grids/{parameter}.nc",
+        "results/{variant}/calibration/grids/{parameter}.nc",
     log:
-        "results/logs/grid_models/{parameter}.log",
+        "results/logs/grid_models/{variant}/{parameter}.log",
     benchmark:
-        "results/benchmarks/grid_models/{parameter}.tsv"
+        "results/benchmarks/grid_models/{variant}/{parameter}.tsv"
     conda:
         "../envs/newdyn.yaml"
     threads: 2
@@ -12,20 +12,20 @@ rule grid_models:
         spec=grid_models_spec,
         code=CALIBRATION_CODE,
     shell:
-        "NUMBA_NUM_THREADS={threads} newdyn grid-models --spec {params.spec:q} "
+        "NUMBA_NUM_THREADS={threads} OPENBLAS_NUM_THREADS={threads} newdyn grid-models --spec {params.spec:q} "
         "--code-hash {params.code} --output {output} > {log} 2>&1"
 
 
 rule calibrate_grid:
     input:
-        measurement="results/simulations/{scenario}/snr{snr}_seed{seed}.nc",
-        grid="results/calibration/grids/{parameter}.nc",
+        measurement="results/{variant}/simulations/{scenario}/snr{snr}_seed{seed}.nc",
+        grid="results/{variant}/calibration/grids/{parameter}.nc",
     output:
-        "results/calibration/{scenario}/{parameter}/snr{snr}_seed{seed}_grid.nc",
+        "results/{variant}/calibration/{scenario}/{parameter}/snr{snr}_seed{seed}_grid.nc",
     log:
-        "results/logs/calibrate_grid/{scenario}/{parameter}/snr{snr}_seed{seed}.log",
+        "results/logs/calibrate_grid/{variant}/{scenario}/{parameter}/snr{snr}_seed{seed}.log",
     benchmark:
-        "results/benchmarks/calibrate_grid/{scenario}/{parameter}/snr{snr}_seed{seed}.tsv"
+        "results/benchmarks/calibrate_grid/{variant}/{scenario}/{parameter}/snr{snr}_seed{seed}.tsv"
     conda:
         "../envs/newdyn.yaml"
     threads: 1
@@ -33,20 +33,20 @@ rule calibrate_grid:
         spec=calibration_spec,
         code=CALIBRATION_CODE,
     shell:
-        "NUMBA_NUM_THREADS={threads} newdyn calibrate-grid --measurement {input.measurement} "
+        "NUMBA_NUM_THREADS={threads} OPENBLAS_NUM_THREADS={threads} newdyn calibrate-grid --measurement {input.measurement} "
         "--grid {input.grid} --spec {params.spec:q} --code-hash {params.code} --output {output} > {log} 2>&1"
 
 
 rule calibrate_mcmc:
     input:
-        measurement="results/simulations/{scenario}/snr{snr}_seed{seed}.nc",
-        grid_result="results/calibration/{scenario}/{parameter}/snr{snr}_seed{seed}_grid.nc",
+        measurement="results/{variant}/simulations/{scenario}/snr{snr}_seed{seed}.nc",
+        grid_result="results/{variant}/calibration/{scenario}/{parameter}/snr{snr}_seed{seed}_grid.nc",
     output:
-        "results/calibration/{scenario}/{parameter}/snr{snr}_seed{seed}_mcmc.nc",
+        "results/{variant}/calibration/{scenario}/{parameter}/snr{snr}_seed{seed}_mcmc.nc",
     log:
-        "results/logs/calibrate_mcmc/{scenario}/{parameter}/snr{snr}_seed{seed}.log",
+        "results/logs/calibrate_mcmc/{variant}/{scenario}/{parameter}/snr{snr}_seed{seed}.log",
     benchmark:
-        "results/benchmarks/calibrate_mcmc/{scenario}/{parameter}/snr{snr}_seed{seed}.tsv"
+        "results/benchmarks/calibrate_mcmc/{variant}/{scenario}/{parameter}/snr{snr}_seed{seed}.tsv"
     conda:
         "../envs/newdyn.yaml"
     threads: 1
@@ -54,6 +54,31 @@ rule calibrate_mcmc:
         spec=mcmc_spec,
         code=MCMC_CODE,
     shell:
-        "NUMBA_NUM_THREADS={threads} newdyn calibrate-mcmc --measurement {input.measurement} "
+        "NUMBA_NUM_THREADS={threads} OPENBLAS_NUM_THREADS={threads} newdyn calibrate-mcmc --measurement {input.measurement} "
         "--grid-result {input.grid_result} --spec {params.spec:q} --code-hash {params.code} "
+        "--output {output} > {log} 2>&1"
+
+
+rule calibrate_joint:
+    input:
+        measurement="results/{variant}/simulations/{scenario}/snr{snr}_seed{seed}.nc",
+        grid_results=lambda wildcards: expand(
+            "results/{{variant}}/calibration/{{scenario}}/{parameter}/snr{{snr}}_seed{{seed}}_grid.nc",
+            parameter=study(wildcards)["calibration"]["joint"]["parameters"],
+        ),
+    output:
+        "results/{variant}/calibration/{scenario}/joint/snr{snr}_seed{seed}_mcmc.nc",
+    log:
+        "results/logs/calibrate_joint/{variant}/{scenario}/snr{snr}_seed{seed}.log",
+    benchmark:
+        "results/benchmarks/calibrate_joint/{variant}/{scenario}/snr{snr}_seed{seed}.tsv"
+    conda:
+        "../envs/newdyn.yaml"
+    threads: 1
+    params:
+        spec=joint_spec,
+        code=MCMC_CODE,
+    shell:
+        "NUMBA_NUM_THREADS={threads} OPENBLAS_NUM_THREADS={threads} newdyn calibrate-joint --measurement {input.measurement} "
+        "--grid-results {input.grid_results} --spec {params.spec:q} --code-hash {params.code} "
         "--output {output} > {log} 2>&1"

@@ -11,87 +11,119 @@ try:
 except newdyn.config.ConfigError as error:
     sys.exit(f"newdyn: bad config: {error}")
 
-SCENARIOS = newdyn.config.scenario_names(config)
-SNRS = [f"{snr:g}" for snr in config["noise"]["snr_db"]]
+# Every variant is a whole study of its own (other rig values, channels, subsets) under results/<variant>/.
+VARIANTS = {name: newdyn.config.variant_config(config, name) for name in newdyn.config.variant_names(config)}
 SEEDS = [str(seed) for seed in config["noise"]["seeds"]]
 
 # Rules pass these as params so that an edit of the science code reruns exactly its jobs.
 SIMULATION_CODE = newdyn.provenance.source_hash("model", "faults", "kernels", "simulation", "io")
 NOISE_CODE = newdyn.provenance.source_hash("noise", "io")
-
-
-wildcard_constraints:
-    scenario="|".join(SCENARIOS) or "[A-Za-z0-9_-]+",
-    parameter="|".join(config["calibration"]["parameters"]),
-    snr=r"-?\d+(\.\d+)?",
-    seed=r"\d+",
-
-
-def _sampling_spec():
-    sampling = newdyn.config.sampling(config)
-    return {"fs": sampling.fs, "t_first": sampling.t_first, "n_samples": sampling.n_samples}
-
-
-def simulation_spec(wildcards):
-    """Everything that determines one scenario's simulation, as canonical JSON."""
-    return newdyn.config.canonical_json(
-        {
-            "scenario": wildcards.scenario,
-            "definition": config["scenarios"][wildcards.scenario] or {},
-            "values": newdyn.config.scenario_values(config, wildcards.scenario),
-            "sampling": _sampling_spec(),
-            "channels": config["simulation"]["channels"],
-            "max_step": config["simulation"]["max_step"],
-        }
-    )
-
-
-def simulation_targets():
-    return expand("results/simulations/{scenario}/clean.nc", scenario=SCENARIOS) + expand(
-        "results/simulations/{scenario}/snr{snr}_seed{seed}.nc",
-        scenario=SCENARIOS,
-        snr=SNRS,
-        seed=SEEDS,
-    )
-
-
-CALIBRATION = config["calibration"]
-PARAMETERS = list(CALIBRATION["parameters"])
 CALIBRATION_CODE = newdyn.provenance.source_hash("model", "kernels", "simulation", "io", "likelihood", "calibration")
 MCMC_CODE = newdyn.provenance.source_hash(
     "model", "kernels", "simulation", "io", "likelihood", "calibration", "sampling", "comparison"
 )
 SUMMARY_CODE = newdyn.provenance.source_hash("calibration", "comparison", "sampling")
+COMPARISON_CODE = newdyn.provenance.source_hash("comparison")
+PLOT_CODE = newdyn.provenance.source_hash("plots")
 
 
-def grid_models_spec(wildcards):
-    """What the coarse grid of one parameter depends on: the healthy rig, sampling, grid, channels."""
+def _names(key):
+    return sorted({name for study in VARIANTS.values() for name in key(study)})
+
+
+wildcard_constraints:
+    variant="|".join(VARIANTS),
+    scenario="|".join(_names(lambda study: study["scenarios"])) or "[A-Za-z0-9_-]+",
+    parameter="|".join(_names(lambda study: study["calibration"]["parameters"])),
+    snr=r"-?\d+(\.\d+)?",
+    seed=r"\d+",
+
+
+def study(wildcards):
+    """The config of the wildcards' variant."""
+    return VARIANTS[wildcards.variant]
+
+
+def _snrs(study):
+    return [f"{snr:g}" for snr in study["noise"]["snr_db"]]
+
+
+def _sampling_spec(study):
+    sampling = newdyn.config.sampling(study)
+    return {"fs": sampling.fs, "t_first": sampling.t_first, "n_samples": sampling.n_samples}
+
+
+def simulation_spec(wildcards):
+    """Everything that determines one scenario's simulation, as canonical JSON."""
+    cfg = study(wildcards)
     return newdyn.config.canonical_json(
         {
-            "parameter": wildcards.parameter,
-            "grid": CALIBRATION["parameters"][wildcards.parameter]["grid"],
-            "values": newdyn.config.base_values(config),
-            "sampling": _sampling_spec(),
-            "channels": CALIBRATION["channels"],
-            "max_step": config["simulation"]["max_step"],
+            "scenario": wildcards.scenario,
+            "variant": wildcards.variant,
+            "definition": cfg["scenarios"][wildcards.scenario] or {},
+            "values": newdyn.config.scenario_values(cfg, wildcards.scenario),
+            "sampling": _sampling_spec(cfg),
+            "channels": cfg["simulation"]["channels"],
+            "max_step": cfg["simulation"]["max_step"],
         }
     )
 
 
-def calibration_spec(wildcards, mcmc=False):
-    """What one calibration depends on besides its input files (MCMC: also the MCMC settings)."""
-    spec = CALIBRATION["parameters"][wildcards.parameter]
+def measurement_targets(variant, clean=False):
+    cfg = VARIANTS[variant]
+    pattern = "results/{variant}/simulations/{scenario}/snr{snr}_seed{seed}.nc"
+    noisy = expand(pattern, variant=variant, scenario=list(cfg["scenarios"]), snr=_snrs(cfg), seed=SEEDS)
+    if not clean:
+        return noisy
+    return (
+        expand("results/{variant}/simulations/{scenario}/clean.nc", variant=variant, scenario=list(cfg["scenarios"]))
+        + noisy
+    )
+
+
+def simulation_targets():
+    return [path for variant in VARIANTS for path in measurement_targets(variant, clean=True)]
+
+
+def grid_models_spec(wildcards):
+    """What the coarse grid of one parameter depends on: the healthy rig, sampling, grid, channels."""
+    cfg = study(wildcards)
+    calibration = cfg["calibration"]
     return newdyn.config.canonical_json(
         {
-            **({"mcmc": CALIBRATION["mcmc"]} if mcmc else {}),
+            "parameter": wildcards.parameter,
+            "grid": calibration["parameters"][wildcards.parameter]["grid"],
+            "values": newdyn.config.base_values(cfg),
+            "sampling": _sampling_spec(cfg),
+            "channels": calibration["channels"],
+            "max_step": cfg["simulation"]["max_step"],
+        }
+    )
+
+
+def _calibration_settings(cfg):
+    """What every calibration of a variant depends on besides its parameters and input files."""
+    calibration = cfg["calibration"]
+    return {
+        "values": newdyn.config.base_values(cfg),
+        "channels": calibration["channels"],
+        "refine_points": calibration["refine_points"],
+        "chi2_max": calibration["chi2_max"],
+        "max_step": cfg["simulation"]["max_step"],
+    }
+
+
+def calibration_spec(wildcards, mcmc=False):
+    """What one calibration depends on besides its input files (MCMC: also the MCMC settings)."""
+    cfg = study(wildcards)
+    spec = cfg["calibration"]["parameters"][wildcards.parameter]
+    return newdyn.config.canonical_json(
+        {
+            **({"mcmc": cfg["calibration"]["mcmc"]} if mcmc else {}),
             "parameter": wildcards.parameter,
             "prior": spec["prior"],
             "grid": spec["grid"],
-            "values": newdyn.config.base_values(config),
-            "channels": CALIBRATION["channels"],
-            "refine_points": CALIBRATION["refine_points"],
-            "chi2_max": CALIBRATION["chi2_max"],
-            "max_step": config["simulation"]["max_step"],
+            **_calibration_settings(cfg),
         }
     )
 
@@ -100,15 +132,87 @@ def mcmc_spec(wildcards):
     return calibration_spec(wildcards, mcmc=True)
 
 
-def calibration_targets():
-    pattern = "results/calibration/{scenario}/{parameter}/snr{snr}_seed{seed}_{method}.nc"
-    grid = expand(pattern, scenario=SCENARIOS, parameter=PARAMETERS, snr=SNRS, seed=SEEDS, method="grid")
-    mcmc = expand(
-        pattern,
-        scenario=SCENARIOS,
-        parameter=CALIBRATION["mcmc"]["parameters"],
-        snr=SNRS,
-        seed=SEEDS,
-        method="mcmc",
+def joint_spec(wildcards):
+    """What the joint calibration of a measurement depends on besides its input files."""
+    calibration = study(wildcards)["calibration"]
+    joint = calibration["joint"]
+    return newdyn.config.canonical_json(
+        {
+            "parameters": {name: calibration["parameters"][name] for name in joint["parameters"]},
+            "infer_sigma": joint["infer_sigma"],
+            "mcmc": {**calibration["mcmc"], "walkers": joint["walkers"], "steps": joint["steps"]},
+            **_calibration_settings(study(wildcards)),
+        }
     )
-    return grid + mcmc
+
+
+def mcmc_runs(cfg):
+    """The MCMC calibrations of each measurement: one per MCMC parameter, and "joint" if configured."""
+    calibration = cfg["calibration"]
+    return calibration["mcmc"]["parameters"] + (["joint"] if calibration["joint"]["parameters"] else [])
+
+
+def calibration_targets(variant, methods=("grid", "mcmc")):
+    """A variant's calibration files."""
+    cfg = VARIANTS[variant]
+    pattern = "results/{variant}/calibration/{scenario}/{parameter}/snr{snr}_seed{seed}_{method}.nc"
+    parameters = {"grid": list(cfg["calibration"]["parameters"]), "mcmc": mcmc_runs(cfg)}
+    return [
+        path
+        for method in methods
+        for path in expand(
+            pattern,
+            variant=variant,
+            scenario=list(cfg["scenarios"]),
+            parameter=parameters[method],
+            snr=_snrs(cfg),
+            seed=SEEDS,
+            method=method,
+        )
+    ]
+
+
+def all_calibration_targets():
+    return [path for variant in VARIANTS for path in calibration_targets(variant)]
+
+
+# --- figures
+PAPER_FIGURES = {"fig3": ("kT1_up", ["kT1"]), "fig4": ("stick_slip", ["kT1", "kT3"])}
+
+
+def _figure(stem, caption, category, **labels):
+    """A figure's PNG (in the report, captioned) and its PDF."""
+    png = report(
+        f"{stem}.png", caption=f"../report/{caption}.rst", category=category, subcategory="{variant}", labels=labels
+    )
+    return {"png": png, "pdf": f"{stem}.pdf"}
+
+
+def _grid_results(wildcards, parameters=None):
+    cfg = study(wildcards)
+    return expand(
+        "results/{{variant}}/calibration/{{scenario}}/{parameter}/snr{{snr}}_seed{{seed}}_grid.nc",
+        parameter=parameters or list(cfg["calibration"]["parameters"]),
+    )
+
+
+def figure_targets():
+    targets = ["results/figures/summary_hellinger.png", "results/figures/summary_chi2.png"]
+    for variant, cfg in VARIANTS.items():
+        scenarios, parameters = cfg["scenarios"], cfg["calibration"]["parameters"]
+        common = dict(variant=variant, snr=_snrs(cfg), seed=SEEDS)
+        targets += expand("results/{variant}/figures/signatures_snr{snr}_seed{seed}.png", **common)
+        for kind in ("posteriors", "overlays"):
+            targets += expand(
+                f"results/{{variant}}/figures/{kind}/{{scenario}}_snr{{snr}}_seed{{seed}}.png",
+                scenario=list(scenarios),
+                **common,
+            )
+        if mcmc_runs(cfg):
+            targets += expand(
+                "results/{variant}/figures/mcmc/{scenario}_snr{snr}_seed{seed}.png", scenario=list(scenarios), **common
+            )
+        for figure, (scenario, needed) in PAPER_FIGURES.items():
+            if scenario in scenarios and all(p in parameters for p in needed):
+                targets += expand("results/{variant}/figures/{figure}_snr{snr}_seed{seed}.png", figure=figure, **common)
+    return targets

@@ -1,17 +1,17 @@
 rule add_noise:
     input:
-        "results/simulations/{scenario}/clean.nc",
+        "results/{variant}/simulations/{scenario}/clean.nc",
     output:
-        "results/simulations/{scenario}/snr{snr}_seed{seed}.nc",
+        "results/{variant}/simulations/{scenario}/snr{snr}_seed{seed}.nc",
     log:
-        "results/logs/add_noise/{scenario}/snr{snr}_seed{seed}.log",
+        "results/logs/add_noise/{variant}/{scenario}/snr{snr}_seed{seed}.log",
     benchmark:
-        "results/benchmarks/add_noise/{scenario}/snr{snr}_seed{seed}.tsv"
+        "results/benchmarks/add_noise/{variant}/{scenario}/snr{snr}_seed{seed}.tsv"
     conda:
         "../envs/newdyn.yaml"
     threads: 1
     params:
         code=NOISE_CODE,
     shell:
-        "NUMBA_NUM_THREADS={threads} newdyn add-noise --input {input} --output {output} "
+        "NUMBA_NUM_THREADS={threads} OPENBLAS_NUM_THREADS={threads} newdyn add-noise --input {input} --output {output} "
         "--snr-db {wildcards.snr} --seed {wildcards.seed} --code-hash {params.code} > {log} 2>&1"

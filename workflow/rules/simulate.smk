@@ -1,10 +1,10 @@
 rule simulate:
     output:
-        "results/simulations/{scenario}/clean.nc",
+        "results/{variant}/simulations/{scenario}/clean.nc",
     log:
-        "results/logs/simulate/{scenario}.log",
+        "results/logs/simulate/{variant}/{scenario}.log",
     benchmark:
-        "results/benchmarks/simulate/{scenario}.tsv"
+        "results/benchmarks/simulate/{variant}/{scenario}.tsv"
     conda:
         "../envs/newdyn.yaml"
     threads: 1
@@ -12,5 +12,5 @@ rule simulate:
         spec=simulation_spec,
         code=SIMULATION_CODE,
     shell:
-        "NUMBA_NUM_THREADS={threads} newdyn simulate --spec {params.spec:q} "
+        "NUMBA_NUM_THREADS={threads} OPENBLAS_NUM_THREADS={threads} newdyn simulate --spec {params.spec:q} "
         "--code-hash {params.code} --output {output} > {log} 2>&1"

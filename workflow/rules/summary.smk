@@ -1,8 +1,8 @@
 rule summarize:
     input:
-        calibration_targets(),
+        all_calibration_targets(),
     output:
-        "results/summary.csv",
+        report("results/summary.csv", caption="../report/summary_table.rst", category="0 Summary"),
     log:
         "results/logs/summarize.log",
     benchmark:

@@ -1,0 +1,16 @@
+rule compare:
+    input:
+        lambda wildcards: calibration_targets(wildcards.variant, methods=["grid"]),
+    output:
+        "results/{variant}/comparison/hellinger.nc",
+    log:
+        "results/logs/compare/{variant}.log",
+    benchmark:
+        "results/benchmarks/compare/{variant}.tsv"
+    conda:
+        "../envs/newdyn.yaml"
+    threads: 1
+    params:
+        code=COMPARISON_CODE,
+    shell:
+        "newdyn compare --code-hash {params.code} --output {output} {input} > {log} 2>&1"
