@@ -380,7 +380,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("inputs", nargs="+", help="grid calibration files of one study variant")
     p = command("plot", "draw a figure (PNG, and PDF beside it)")
     p.add_argument("kind", choices=["posteriors", "overlays", "mcmc", "signatures", "summary"])
-    p.add_argument("inputs", nargs="+", help="grid calibrations (posteriors, overlays), an MCMC result, "
+    p.add_argument("inputs", nargs="+", help="grid calibrations (posteriors, overlays), a measurement's MCMC results, "
                    "the comparison file (signatures) or the summary table")
     p.add_argument("--measurement", help="overlays: the measurement the grid calibrations fitted")
     p.add_argument("--chi2-output", help="summary: the χ² heatmap (--output gets the Hellinger one)")

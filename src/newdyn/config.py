@@ -54,6 +54,9 @@ _FAULT_PARAMETER_OWNER = {
     for slot in kind.slots.values()
 }
 
+#: ``calibration.joint`` of a config that has none.
+NO_JOINT = {"parameters": [], "infer_sigma": False, "walkers": 0, "steps": 0}
+
 _TYPE_NAMES = {
     "number": "a number",
     "integer": "a whole number",
@@ -273,7 +276,7 @@ def _calibration_problems(config: Mapping) -> Iterator[tuple[str, str]]:
     for i, name in enumerate(mcmc["parameters"]):
         if name not in calibration["parameters"]:
             yield f"calibration.mcmc.parameters[{i}]", f"'{name}' is not one of calibration.parameters ({', '.join(calibration['parameters'])})"
-    joint = calibration.get("joint", {"parameters": []})
+    joint = calibration.get("joint", NO_JOINT)
     for i, name in enumerate(joint["parameters"]):
         if name not in calibration["parameters"]:
             yield f"calibration.joint.parameters[{i}]", f"'{name}' is not one of calibration.parameters ({', '.join(calibration['parameters'])})"
@@ -413,7 +416,7 @@ def variant_config(config: Mapping, name: str) -> dict:
     with_mcmc = variant.get("mcmc", True)
     mcmc = calibration["mcmc"]
     mcmc["parameters"] = [p for p in mcmc["parameters"] if with_mcmc and p in calibration["parameters"]]
-    joint = calibration.setdefault("joint", {"parameters": [], "infer_sigma": False, "walkers": 0, "steps": 0})
+    joint = calibration.setdefault("joint", copy.deepcopy(NO_JOINT))
     if not (with_mcmc and all(p in calibration["parameters"] for p in joint["parameters"])):
         joint["parameters"] = []
     return derived
@@ -422,7 +425,7 @@ def variant_config(config: Mapping, name: str) -> dict:
 def joint_dimension(config: Mapping) -> int:
     """Number of quantities the joint calibration samples: its parameters, and one σ per channel if inferred."""
     calibration = config["calibration"]
-    joint = calibration.get("joint") or {"parameters": []}
+    joint = calibration.get("joint", NO_JOINT)
     if not joint["parameters"]:
         return 0
     return len(joint["parameters"]) + (len(calibration["channels"]) if joint.get("infer_sigma") else 0)
