@@ -1,10 +1,11 @@
-"""Noise injection against rig.md: σ per channel from the SNR, seeded, independent per channel."""
+"""Noise injection against rig.md: σ per channel from the SNR, seeded, independent per channel; and σ
+recovered from a noisy record alone, by its noise floor or by its stated SNR."""
 
 import numpy as np
 import pytest
 
 from newdyn import model
-from newdyn.noise import add_noise, noise_sigma
+from newdyn.noise import add_noise, noise_floor_sigma, noise_sigma, sigma_from_snr
 from newdyn.simulation import simulate
 
 CHANNELS = ["b1_x", "w1", "torque_c"]
@@ -46,3 +47,55 @@ def test_a_channels_noise_does_not_depend_on_the_other_channels(clean):
 def test_non_finite_snr_is_refused(clean):
     with pytest.raises(ValueError, match="finite"):
         noise_sigma(clean, float("inf"))
+
+
+FS = model.Sampling().fs
+FLOOR_HZ = 1000.0  # the rig's clean signals have no content above ~1 kHz
+
+
+def test_noise_floor_of_white_noise_is_sigma_with_an_honest_standard_error():
+    sigma = 0.05
+    # 200 independent records, one per seed, estimated at once as 200 channels.
+    y = sigma * np.stack([np.random.default_rng(seed).standard_normal(5000) for seed in range(200)])
+    estimate, se = noise_floor_sigma(y, FS, FLOOR_HZ)
+    z = (estimate - sigma) / se
+    assert abs(z[0]) < 3
+    # The z-scores are standard: mean within 4 standard errors of 0, sd within ±20 % of 1.
+    assert abs(z.mean()) < 4 / np.sqrt(z.size)
+    assert 0.8 < z.std() < 1.2
+
+
+def test_noise_floor_standard_error_shrinks_as_one_over_root_n():
+    _, se_short = noise_floor_sigma(np.random.default_rng(0).standard_normal((1, 5000)), FS, FLOOR_HZ)
+    _, se_long = noise_floor_sigma(np.random.default_rng(0).standard_normal((1, 20000)), FS, FLOOR_HZ)
+    # Segments of 256 overlap by half in both, so the equivalent degrees of freedom scale with the
+    # segment count: (5000 − 128) // 128 = 38 and (20000 − 128) // 128 = 155.
+    assert se_short / se_long == pytest.approx(np.sqrt(155 / 38), rel=0.01)
+
+
+@pytest.mark.parametrize("snr_db", [40.0, 20.0])
+@pytest.mark.parametrize("values", [{}, {"T_max": 1854.95, "r_k": 1.0}], ids=["healthy", "stick_slip"])
+def test_noise_floor_of_the_rig_is_its_noise_sigma(snr_db, values):
+    clean = simulate(values, model.Sampling(), CHANNELS)
+    for seed in range(3):
+        noisy, sigma = add_noise(clean, CHANNELS, snr_db, seed)
+        estimate, se = noise_floor_sigma(noisy, FS, FLOOR_HZ)
+        assert np.all(np.abs(estimate - sigma) < 3 * se), (seed, (estimate - sigma) / se)
+
+
+def test_noise_floor_refuses_an_empty_or_thin_band():
+    y = np.random.default_rng(0).standard_normal((1, 5000))
+    with pytest.raises(ValueError, match="empty"):
+        noise_floor_sigma(y, FS, FS / 2)
+    with pytest.raises(ValueError, match="fewer than 8"):
+        noise_floor_sigma(y, FS, FS / 2 - 100.0)
+
+
+@pytest.mark.parametrize("snr_db", [40.0, 20.0, 0.0])
+def test_sigma_from_snr_recovers_noise_sigma(clean, snr_db):
+    noisy, sigma = add_noise(clean, CHANNELS, snr_db, seed=3)
+    # var(y) = var(clean)(1 + q) + 2 cov(clean, noise) + (sample var(noise) − σ²), q = 10^(−SNR/10):
+    # relative sampling error of var(y) is √(2q²/n + 4q/n)/(1 + q), and half that for σ.
+    q, n = 10 ** (-snr_db / 10), clean.shape[1]
+    se = 0.5 * np.sqrt(2 * q**2 / n + 4 * q / n) / (1 + q)
+    assert np.all(np.abs(sigma_from_snr(noisy, snr_db) / sigma - 1) < 3 * se)
