@@ -20,6 +20,8 @@ include: "workflow/rules/calibrate.smk"
 include: "workflow/rules/compare.smk"
 include: "workflow/rules/summary.smk"
 include: "workflow/rules/figures.smk"
+include: "workflow/rules/diagnose.smk"
+include: "workflow/rules/hidden.smk"
 
 
 rule all:
@@ -30,3 +32,10 @@ rule all:
         expand("results/{variant}/comparison/hellinger.nc", variant=VARIANTS),
         "results/summary.csv",
         figure_targets(),
+        diagnosis_targets("results", list(MEASUREMENTS)),
+        hidden_targets("demo"),
+
+
+rule blind:
+    input:
+        hidden_targets("blind"),

@@ -49,7 +49,8 @@ def assert_one_line(err: cfg.ConfigError, source: str, field: str, *words: str) 
 @pytest.mark.parametrize("path", [DEFAULT, CI], ids=["default", "ci"])
 def test_shipped_configs_pass(path):
     config = cfg.load(path, SCHEMA)
-    assert set(config) - {"variants"} == {"rig", "operating", "sampling", "simulation", "noise", "scenarios", "calibration"}
+    assert set(config) - {"variants"} == {
+        "rig", "operating", "sampling", "simulation", "noise", "scenarios", "calibration", "diagnosis", "hidden"}
     for name in config["scenarios"]:
         values = cfg.scenario_values(config, name)
         assert set(values) == set(model.PARAMETER_NAMES)
@@ -132,6 +133,22 @@ def _fault(scenario: str, kind: str, **parameters):
 
 
 BAD = {
+    # diagnosis and hidden sets
+    "unknown diagnosis fault parameter": (
+        _set("diagnosis.faults.breathing_crack", {"alpha": [0.0, 0.8], "beta": [0.0, 1.0]}),
+        "diagnosis.faults.breathing_crack.beta", "unknown parameter of breathing_crack",
+    ),
+    "reversed diagnosis range": (_set("diagnosis.faults.cubic_coupling.gamma", [3.0, 0.0]),
+                                 "diagnosis.faults.cubic_coupling.gamma", "reversed"),
+    "diagnosis range missing a parameter": (_set("diagnosis.faults.stick_slip", {"T_max": [1650.0, 2500.0]}),
+                                            "diagnosis.faults.stick_slip", "r_k is missing"),
+    "drift not calibrated": (_set("diagnosis.drift", ["k_s"]), "diagnosis.drift[0]", "not one of calibration.parameters"),
+    "too few diagnosis walkers": (_set("diagnosis.mcmc.walkers", 8), "diagnosis.mcmc.walkers", "at least 10"),
+    "unphysical hidden share": (_set("hidden.faults.stick_slip.J2a_share", [0.2, 1.5]), "hidden.faults.stick_slip.J2a_share", "must lie"),
+    "hidden set named like a variant": (_set("hidden.sets.paper", {"cases": 2, "seed": 1}), "hidden.sets.paper", "share results/paper/"),
+    "unknown hidden fault parameter": (_set("hidden.faults.stick_slip.T_maks", [1800.0, 1900.0]),
+                                       "hidden.faults.stick_slip.T_maks", "unknown parameter of stick_slip"),
+    "hidden class without ranges": (_del("hidden.faults.loose_bearing"), "hidden.classes[5]", "hidden.faults.loose_bearing"),
     # structure (schema)
     "missing sampling.fs": (_del("sampling.fs"), "sampling.fs", "missing required key"),
     "missing section": (_del("noise"), "noise", "missing required key"),

@@ -86,7 +86,7 @@ def test_sigma_posterior_under_the_jeffreys_prior_is_inverse_gamma():
 
     variables = [calibration._sigma_variable(c, lo, hi) for c, lo, hi in zip(CHANNELS, low, high)]
     settings = mcmc.MCMCSettings(n_walkers=16, n_steps=1500, n_burn=100, seed=2)
-    idata = calibration._sample_posterior(
+    idata = calibration.sample_posterior(
         variables, lambda rows: likelihood.log_likelihood(data, fixed, rows),
         np.log(np.sqrt(rss / n)) + 0.05 * rng.standard_normal((16, 2)), settings, np.random.default_rng(1),
     )

@@ -1,7 +1,8 @@
 """The Snakemake study end to end on the small CI config (.test/config.yaml)."""
 
-import os
 import csv
+import json
+import os
 import re
 import shutil
 import subprocess
@@ -14,6 +15,7 @@ import yaml
 
 import newdyn.config
 from newdyn import calibration, model
+from newdyn.cli import DIAGNOSIS_FIGURES
 from newdyn.io import read_measurement
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -171,16 +173,20 @@ SIMULATED = {"clean.nc", "snr40_seed1.nc"}
 CALIBRATED = {"snr40_seed1_grid.nc", "snr40_seed1_mcmc.nc"}
 GRIDS = {"kT1.nc", "kT3.nc"}
 COMPARED = {"hellinger.nc", "summary.csv"}
+SCORED = {"score.json", "cases.csv", "blind_test.png", "blind_test.pdf"}  # the demo's reveal
+DIAGNOSED = {"verdict.json", "model_versions.csv", "diagnosis.nc", "effect_mcmc.nc"} | SCORED
+DRAWN = {"truth.json", "demo_01.nc"}  # the demo's hidden case
 
 
 @pytest.mark.parametrize(
     "module, files, figures",
     [
-        ("kernels.py", SIMULATED | CALIBRATED | GRIDS | COMPARED, True),
-        ("noise.py", SIMULATED - {"clean.nc"} | CALIBRATED | COMPARED, True),
-        ("likelihood.py", CALIBRATED | GRIDS | COMPARED, True),
-        ("sampling.py", {"snr40_seed1_mcmc.nc", "summary.csv"}, True),
-        ("plots.py", set(), True),
+        ("kernels.py", SIMULATED | CALIBRATED | GRIDS | COMPARED | DIAGNOSED | DRAWN, True),
+        ("noise.py", SIMULATED - {"clean.nc"} | CALIBRATED | COMPARED | DIAGNOSED | DRAWN, True),
+        ("likelihood.py", CALIBRATED | GRIDS | COMPARED | DIAGNOSED, True),
+        ("sampling.py", {"snr40_seed1_mcmc.nc", "summary.csv"} | DIAGNOSED, True),
+        ("hypotheses.py", DIAGNOSED, True),
+        ("plots.py", SCORED, True),
         ("unused.py", set(), False),
     ],
 )
@@ -268,3 +274,62 @@ def test_workflow_is_lint_clean_and_snakefmt_formatted():
 def test_every_default_channel_is_a_model_channel():
     config = yaml.safe_load((ROOT / "config" / "config.yaml").read_text())
     assert set(config["simulation"]["channels"]) <= set(model.CHANNELS)
+
+
+@pytest.fixture(scope="module")
+def diagnosed(study):
+    """The CI study with users' measurements dropped into measurements/: three good, three bad."""
+    folder = study / "measurements"
+    folder.mkdir(exist_ok=True)
+    simulations = study / "results" / "default" / "simulations"
+    for scenario in ("healthy", "kT1_up", "stick_slip"):
+        shutil.copy(simulations / scenario / "snr40_seed1.nc", folder / f"{scenario}.nc")
+    noisy = read_measurement(simulations / "healthy" / "snr40_seed1.nc")
+    rows = np.column_stack([noisy.sampling.times, noisy.y.T])
+    np.savetxt(folder / "plain.csv", rows, delimiter=",", header="time," + ",".join(noisy.channels), comments="")
+    (folder / "one_sample.csv").write_text("time,b1_x,w1\n0.5,1e-6,150.0\n")
+    np.savetxt(folder / "with_nan.csv", np.where(np.arange(rows.size).reshape(rows.shape) == 7, np.nan, rows),
+               delimiter=",", header="time," + ",".join(noisy.channels), comments="")
+    (folder / "unknown_channel.csv").write_text("time,b1_z\n" + "\n".join(f"{0.5 + k / 5000},0.0" for k in range(500)))
+    run = snakemake(study)
+    assert run.returncode == 0, run.stderr[-3000:]
+    return study, run
+
+
+def test_every_bad_measurement_gets_one_line_and_the_good_ones_are_diagnosed(diagnosed):
+    study, run = diagnosed
+    for name, problem in (("one_sample.csv", "only 1 sample"), ("with_nan.csv", "non-finite value"),
+                          ("unknown_channel.csv", "unknown channel 'b1_z'")):
+        lines = [line for line in run.stderr.splitlines() if f"measurements/{name}" in line]
+        assert lines and problem in lines[0] and len(set(lines)) == 1
+        assert not (study / "results" / "diagnosis" / Path(name).stem).exists()
+    for name in ("healthy", "kT1_up", "stick_slip", "plain"):
+        folder = study / "results" / "diagnosis" / name
+        for figure in DIAGNOSIS_FIGURES:
+            assert (folder / "figures" / f"{figure}.png").exists() and (folder / "figures" / f"{figure}.pdf").exists()
+
+
+def test_default_scenarios_fed_in_as_files_are_diagnosed_correctly(diagnosed):
+    study, _ = diagnosed
+    verdict = {name: json.loads((study / "results" / "diagnosis" / name / "verdict.json").read_text())
+               for name in ("healthy", "kT1_up", "stick_slip", "plain")}
+    assert verdict["healthy"]["verdict"] == "healthy"
+    assert verdict["kT1_up"]["verdict"] == "parameter_change" and "kT1" in verdict["kT1_up"]["equivalent"]
+    assert (verdict["stick_slip"]["verdict"], verdict["stick_slip"]["effect"]) == ("new_dynamics", "stick_slip")
+    assert verdict["stick_slip"]["chi2_before"] > 10 and verdict["stick_slip"]["chi2_after"] <= 1.1
+    assert "noise floor" in verdict["plain"]["noise"]["source"]  # a CSV carries no noise level
+    for v in verdict.values():
+        assert v["code_hash"] and v["newdyn_version"] and v["settings"]["diagnosis"]["channels"] == ["b1_x", "w1"]
+        assert set(v["rmse_before"]) == set(v["rmse_after"]) == {"b1_x", "w1"}
+        assert all({"hypothesis", "confidence", "chi2"} <= set(row) for row in v["ranking"])
+
+
+def test_hidden_measurements_are_diagnosed_without_reading_the_truth_and_then_scored(study):
+    run = snakemake(study, "--dry-run", "--forceall", "--printshellcmds", "results/demo/score.json")
+    assert run.returncode == 0, run.stderr
+    diagnose = [block for block in run.stdout.split("\n\n") if "rule diagnose:" in block]
+    assert diagnose and all("truth.json" not in block for block in diagnose)
+    score = json.loads((study / "results" / "demo" / "score.json").read_text())
+    assert score["cases"] == 1 and score["correct"] == 1  # the CI demo is one hidden stick-slip case
+    measurement = read_measurement(study / "results" / "demo" / "measurements" / "demo_01.nc")
+    assert measurement.sigma is None and "snr_db" not in measurement.attrs and "scenario" not in measurement.attrs

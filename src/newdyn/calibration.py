@@ -117,6 +117,32 @@ def simulate_points(
     return simulation.simulate_batch(params, sampling, channels, max_step)
 
 
+def coarse_models(
+    grid_path: str | None,
+    spec: GridSpec,
+    values: Mapping[str, float],
+    sampling: model.Sampling,
+    channels: Sequence[str],
+    max_step: float = simulation.DEFAULT_MAX_STEP,
+) -> np.ndarray:
+    """The coarse-grid model runs of ``spec`` for the healthy rig ``values`` at ``sampling``: read from
+    ``grid_path`` (the workflow's shared grid-model file) when it holds the same rig, operating
+    condition, sampling, grid and channels, else simulated here."""
+    if grid_path is not None:
+        with xr.open_dataset(grid_path, engine="netcdf4") as coarse:
+            coarse.load()
+        same = (
+            np.array_equal(coarse["time"].values, sampling.times)
+            and np.array_equal(coarse["grid"].values, spec.axis)
+            and set(channels) <= set(coarse["channel"].values.tolist())
+            and model.complete(json.loads(coarse.attrs["values"])) == model.complete(values)
+            and float(coarse.attrs["max_step"]) == max_step
+        )
+        if same:
+            return coarse["model"].sel(channel=list(channels)).values
+    return simulate_grid(values, spec.parameter, spec.axis, sampling, channels, max_step)
+
+
 def calibrate(
     data: np.ndarray,
     sigma: np.ndarray,
@@ -205,13 +231,13 @@ _COORDINATES: dict[str, tuple[Callable, Callable, Callable]] = {
     "log": (np.log, np.exp, lambda x: np.asarray(x, dtype=float)),
 }
 JOINT_COORDINATE = "reciprocal"  # how calibrate_joint samples the rig parameters (all are stiffnesses)
-JOINT_MIRRORED = True  # ... mirrored at their grid bounds (see _Variable.mirrored)
+JOINT_MIRRORED = True  # ... mirrored at their grid bounds (see Variable.mirrored)
 SIGMA_PRIOR_RANGE = (1e-4, 1.0)  # σ_c prior support in units of std(y_c): SNR between 80 dB and 0 dB
 START_LAPLACE = "Laplace"  # start procedure names recorded in attrs["start"]
 
 
 @dataclass(frozen=True)
-class _Variable:
+class Variable:
     """One sampled variable: its posterior name, prior support and density, and emcee's coordinate."""
 
     name: str
@@ -264,7 +290,7 @@ class _Variable:
         return (2 * low - high, 2 * high - low) if self.mirrored else (low, high)
 
 
-def _parameter_variable(spec: GridSpec, prior: NormalPrior, coordinate: str = "linear", mirrored: bool = False) -> _Variable:
+def _parameter_variable(spec: GridSpec, prior: NormalPrior, coordinate: str = "linear", mirrored: bool = False) -> Variable:
     """A rig parameter with its Normal prior truncated to the grid range (so MCMC and grid compare)."""
     if coordinate != "linear" and spec.low <= 0:
         raise ValueError(f"{spec.parameter}: {coordinate} coordinates need a positive grid range, got low={spec.low:g}")
@@ -273,7 +299,7 @@ def _parameter_variable(spec: GridSpec, prior: NormalPrior, coordinate: str = "l
         x = rng.normal(prior.mean, prior.sd, n)
         return x[(x >= spec.low) & (x <= spec.high)]
 
-    return _Variable(spec.parameter, spec.low, spec.high, prior.log_pdf, draw, coordinate, mirrored)
+    return Variable(spec.parameter, spec.low, spec.high, prior.log_pdf, draw, coordinate, mirrored)
 
 
 def sigma_prior_bounds(data: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -295,20 +321,20 @@ def sigma_log_prior(sigma, low, high) -> np.ndarray:
         return np.where((sigma >= low) & (sigma <= high), -np.log(sigma) - np.log(np.log(high / low)), -np.inf)
 
 
-def _sigma_variable(channel: str, low: float, high: float) -> _Variable:
+def _sigma_variable(channel: str, low: float, high: float) -> Variable:
     """The noise σ of one channel, Jeffreys prior on [low, high], sampled in log σ (where it is flat)."""
-    return _Variable(
+    return Variable(
         f"sigma_{channel}", float(low), float(high), lambda s: sigma_log_prior(s, low, high),
         lambda rng, n: np.exp(rng.uniform(np.log(low), np.log(high), n)), "log",
     )
 
 
-def _values(variables: Sequence[_Variable], x: np.ndarray, fold: bool = True) -> np.ndarray:
+def _values(variables: Sequence[Variable], x: np.ndarray, fold: bool = True) -> np.ndarray:
     """Rows of sampled coordinates (n, n_variables) -> rows of values."""
     return np.column_stack([v.value(x[:, i], fold) for i, v in enumerate(variables)])
 
 
-def _sampled(variables: Sequence[_Variable], values: np.ndarray) -> np.ndarray:
+def _sampled(variables: Sequence[Variable], values: np.ndarray) -> np.ndarray:
     return np.column_stack([v.sampled(values[:, i]) for i, v in enumerate(variables)])
 
 
@@ -325,8 +351,8 @@ def _simulator_log_likelihood(data, sigma, parameters, values, sampling, channel
     return log_likelihood
 
 
-def _sample_posterior(
-    variables: Sequence[_Variable],
+def sample_posterior(
+    variables: Sequence[Variable],
     log_likelihood: Callable[[np.ndarray], np.ndarray],
     initial: np.ndarray,
     settings: MCMCSettings,
@@ -383,7 +409,7 @@ def calibrate_mcmc(
     """
     rng = np.random.default_rng(settings.seed)
     initial = np.interp(rng.uniform(size=settings.n_walkers), grid_posterior.cdf, grid_posterior.grid)[:, None]
-    return _sample_posterior(  # linear coordinate: the positions are the values
+    return sample_posterior(  # linear coordinate: the positions are the values
         [_parameter_variable(spec, prior)],
         _simulator_log_likelihood(data, sigma, [spec.parameter], values, sampling, channels, max_step),
         initial, settings, rng, _observed(data, sampling, channels), attrs,
@@ -417,7 +443,7 @@ def calibrate_joint(
     :func:`sigma_prior_bounds`), independent across channels, and is sampled as log σ_c; the Gaussian
     likelihood keeps its −N log σ_c normalization, so for a fixed model σ_c² is Inverse-Gamma(N/2, RSS_c/2).
     The parameters are sampled as 1/value (``JOINT_COORDINATE``; see ``_COORDINATES``), mirrored at
-    their grid bounds (``JOINT_MIRRORED``; see ``_Variable``); their prior and posterior are in their
+    their grid bounds (``JOINT_MIRRORED``; see ``Variable``); their prior and posterior are in their
     own units.
 
     Start (the joint posterior of stiffnesses seen through one mode is a long ridge that draws of
@@ -452,7 +478,7 @@ def calibrate_joint(
     initial, start = _joint_start(
         data, sigma, variables, priors, grid_posteriors, values, sampling, channels, max_step, settings.n_walkers, rng
     )
-    idata = _sample_posterior(
+    idata = sample_posterior(
         variables,
         _simulator_log_likelihood(data, sigma, parameters, values, sampling, channels, max_step),
         initial, settings, rng, _observed(data, sampling, channels),
@@ -564,7 +590,7 @@ def _joint_start(data, sigma, variables, priors, grid_posteriors, values, sampli
     free = active == 0
     if free.any():
         cov = np.linalg.pinv(hessian[np.ix_(free, free)])
-        x[:, free] = _draw_inside(lambda m: rng.multivariate_normal(x_star[free], cov, m), low[free], high[free], n_walkers)
+        x[:, free] = draw_inside(lambda m: rng.multivariate_normal(x_star[free], cov, m), low[free], high[free], n_walkers)
     for i in np.flatnonzero(~free):
         length = 1 / max(abs(grad[i]), np.sqrt(hessian[i, i]), 1 / (high[i] - low[i]))
         bound, sign = (low[i], 1.0) if active[i] < 0 else (high[i], -1.0)
@@ -573,7 +599,7 @@ def _joint_start(data, sigma, variables, priors, grid_posteriors, values, sampli
         else:
             draw = lambda m: (bound + sign * rng.exponential(length, m))[:, None]  # noqa: E731
         walk_low, walk_high = params[i].walk_bounds
-        x[:, i] = _draw_inside(draw, np.array([walk_low]), np.array([walk_high]), n_walkers)[:, 0]
+        x[:, i] = draw_inside(draw, np.array([walk_low]), np.array([walk_high]), n_walkers)[:, 0]
     record.update(
         n_simulations=n_runs,
         map=dict(zip(names, _values(params, x_star[None])[0].tolist())),
@@ -583,13 +609,13 @@ def _joint_start(data, sigma, variables, priors, grid_posteriors, values, sampli
         sigma_hat = np.clip(weights, *sigma_range)
         spread = 1 / np.sqrt(2 * data.shape[-1])  # sd of log σ̂ from N samples
         log_low, log_high = np.array([v.sampled_bounds for v in sigmas]).T
-        log_sigma = _draw_inside(lambda m: rng.normal(np.log(sigma_hat), spread, (m, len(sigmas))), log_low, log_high, n_walkers)
+        log_sigma = draw_inside(lambda m: rng.normal(np.log(sigma_hat), spread, (m, len(sigmas))), log_low, log_high, n_walkers)
         x = np.column_stack([x, log_sigma])
         record["sigma"] = dict(zip([v.name for v in sigmas], sigma_hat.tolist()))
     return x, record
 
 
-def _draw_inside(draw: Callable[[int], np.ndarray], low: np.ndarray, high: np.ndarray, n: int) -> np.ndarray:
+def draw_inside(draw: Callable[[int], np.ndarray], low: np.ndarray, high: np.ndarray, n: int) -> np.ndarray:
     """n rows of ``draw`` strictly inside (low, high): rows outside are redrawn, a few times, then clipped."""
     margin = 1e-9 * (high - low)
     rows = draw(n)
@@ -606,7 +632,7 @@ def _best_draw(idata) -> tuple:
     return np.unravel_index(np.argmax(idata.sample_stats["lp"].values), idata.sample_stats["lp"].shape)
 
 
-def _draws_summary(draws: np.ndarray, map_value: float, prior_sd: float) -> dict:
+def draws_summary(draws: np.ndarray, map_value: float, prior_sd: float) -> dict:
     """MAP, mean, sd, 94% HDI and posterior-to-prior sd ratio of one variable's draws."""
     import arviz as az
 
@@ -637,7 +663,7 @@ def mcmc_summary(
     converged = bool(idata.attrs["converged"])
     n_peaks = grid_posterior.n_peaks()
     return {
-        **_draws_summary(draws, idata.posterior[parameter].values[_best_draw(idata)], prior.sd),
+        **draws_summary(draws, idata.posterior[parameter].values[_best_draw(idata)], prior.sd),
         "n_peaks": n_peaks,
         "chi2_red": chi2_red,
         "rhat": float(idata.attrs["rhat"]),
@@ -689,7 +715,7 @@ def joint_summary(idata, priors: Mapping[str, NormalPrior], chi2_max: float, sig
     return [
         {
             "parameter": name,
-            **_draws_summary(idata.posterior[name].values.ravel(), idata.posterior[name].values[best],
+            **draws_summary(idata.posterior[name].values.ravel(), idata.posterior[name].values[best],
                              priors[name].sd if name in priors else np.nan),
             "n_peaks": n_peaks[name],
             "chi2_red": chi2_red,

@@ -13,6 +13,7 @@ import sys
 import time
 
 log = logging.getLogger("newdyn")
+DIAGNOSIS_FIGURES = ("overlays", "residuals", "hypotheses", "error_fall", "effect_mcmc")
 
 
 def simulate_scenario(spec: dict, output: str, code_hash: str) -> None:
@@ -90,27 +91,14 @@ def simulate_grid_models(spec: dict, output: str, code_hash: str) -> None:
 
 def calibrate_on_grid(measurement_path: str, grid_path: str, spec: dict, output: str, code_hash: str) -> None:
     """Write the grid posterior of one parameter for one measurement, with its summary as attributes."""
-    import numpy as np
     import xarray as xr
 
-    from . import calibration, io, model, provenance
+    from . import calibration, io, provenance
 
     channels = spec["channels"]
     measurement, data, sigma, values, grid, prior = _calibration_inputs(measurement_path, spec)
 
-    with xr.open_dataset(grid_path, engine="netcdf4") as coarse:
-        coarse.load()
-    same_condition = (
-        np.array_equal(coarse["time"].values, measurement.sampling.times)
-        and all(float(coarse.attrs[k]) == values[k] for k in model.OPERATING_PARAMETERS)
-        and np.array_equal(coarse["grid"].values, grid.axis)
-    )
-    if same_condition:
-        coarse_models = coarse["model"].sel(channel=channels).values
-    else:  # a measurement at another operating condition or sampling needs its own coarse grid
-        log.info("measurement differs from the shared grid's condition: simulating its own coarse grid")
-        coarse_models = calibration.simulate_grid(values, grid.parameter, grid.axis, measurement.sampling, channels, spec["max_step"])
-
+    coarse_models = calibration.coarse_models(grid_path, grid, values, measurement.sampling, channels, spec["max_step"])
     result = calibration.calibrate(
         data, sigma, grid, prior, coarse_models, values, measurement.sampling, channels,
         int(spec["refine_points"]), spec["chi2_max"], spec["max_step"],
@@ -330,6 +318,61 @@ def plot(kind: str, inputs: list[str], output: str, code_hash: str, measurement:
     log.info("drew %s into %s", kind, output)
 
 
+def diagnose_measurement(measurement_path: str, grid_paths: list[str], spec: dict, verdict: str, table: str,
+                         netcdf: str, mcmc: str, code_hash: str) -> None:
+    """Diagnose one measurement file: verdict (JSON), model versions and posteriors (NetCDF), MCMC of the effect."""
+    from . import config, diagnosis, io, model
+
+    settings = diagnosis.Settings.from_config(spec)
+    measurement = io.read_measurement(measurement_path, {k: spec["operating"][k] for k in model.OPERATING_PARAMETERS})
+    start = time.perf_counter()
+    result = diagnosis.diagnose(measurement, settings, dict(zip(settings.grids, grid_paths)) if grid_paths else None)
+    v = result.verdict
+    log.info("%s: %s %s (chi2 %.4g -> %.4g) in %.1f s", measurement_path, v["verdict"], v["effect"], v["chi2_before"],
+             v["chi2_after"], time.perf_counter() - start)
+    diagnosis.write(result, verdict, table, netcdf, mcmc, config.canonical_json(spec), code_hash)
+
+
+def plot_diagnosis(verdict: str, netcdf: str, mcmc: str, outputs: dict, code_hash: str) -> None:
+    from . import plots
+
+    plots.diagnosis_figures(verdict, netcdf, mcmc, outputs, code_hash)
+
+
+def draw_hidden(spec: dict, output: str, code_hash: str) -> None:
+    """Draw a hidden set's cases and write their truth (the one file that holds it)."""
+    from . import hidden
+
+    cases = hidden.draw_cases(spec["hidden"], spec["set"], spec["values"])
+    hidden.write_truth(cases, output, code_hash)
+    log.info("drew %d hidden cases of set %s", len(cases), spec["set"])
+
+
+def write_hidden_measurement(truth: str, name: str, spec: dict, output: str, code_hash: str) -> None:
+    """Simulate one hidden case into a measurement file that holds nothing of its truth."""
+    from . import hidden
+
+    case = next(c for c in hidden.read_truth(truth) if c["name"] == name)
+    hidden.write_case_measurement(case, spec["values"], _sampling(spec["sampling"]), spec["hidden"]["snr_db"], output,
+                                  code_hash, spec["max_step"])
+
+
+def score_hidden(truth: str, verdict_paths: list[str], output: str, table: str, figure: str, chi2_max: float,
+                 code_hash: str) -> None:
+    """Reveal a hidden set: score every diagnosis against the truth (JSON, CSV and a figure)."""
+    from pathlib import Path
+
+    from . import hidden, plots
+
+    verdicts = {Path(path).parent.name: json.loads(Path(path).read_text()) for path in verdict_paths}
+    result = hidden.score(hidden.read_truth(truth), verdicts, chi2_max)
+    hidden.write_score(result, output, table, code_hash)
+    name = Path(truth).parent.name
+    plots.blind_test_figure(result, figure, f"hidden set {name}: top-1 {result['accuracy']:.0%} of {result['cases']}",
+                            code_hash, [truth, *verdict_paths])
+    log.info("hidden set %s: top-1 accuracy %.3f", name, result["accuracy"])
+
+
 def _write_csv(path, columns, rows):
     import csv
 
@@ -386,6 +429,28 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--chi2-output", help="summary: the χ² heatmap (--output gets the Hellinger one)")
     p.add_argument("--snr-db", type=float, help="signatures: which SNR")
     p.add_argument("--seed", type=int, help="signatures: which seed")
+    p = commands.add_parser("diagnose", help="diagnose a measurement: which hypothesis explains it")
+    p.add_argument("--measurement", required=True)
+    p.add_argument("--spec", required=True, help="the diagnosis settings as JSON (built by the workflow)")
+    p.add_argument("--grids", nargs="*", default=[], help="the study's coarse grid files, in the spec's calibration "
+                   "parameter order (reused when their condition is the measurement's)")
+    for output in ("verdict", "table", "netcdf", "mcmc"):
+        p.add_argument(f"--{output}", required=True)
+    p.add_argument("--code-hash", default="")
+    p = commands.add_parser("plot-diagnosis", help="the figures of one diagnosis")
+    for name in ("verdict", "netcdf", "mcmc", *DIAGNOSIS_FIGURES):
+        p.add_argument(f"--{name.replace('_', '-')}", required=True)
+    p.add_argument("--code-hash", default="")
+    command("hidden-draw", "draw a hidden set's cases and write their truth", "hidden-set spec")
+    p = command("hidden-measurement", "simulate one hidden case into a measurement file without its truth", "hidden-set spec")
+    p.add_argument("--truth", required=True)
+    p.add_argument("--case", required=True)
+    p = command("hidden-score", "score a hidden set's diagnoses against the truth")
+    p.add_argument("--truth", required=True)
+    p.add_argument("--table", required=True, help="one CSV row per case")
+    p.add_argument("--figure", required=True, help="confusion matrix and parameter errors (PNG, PDF beside it)")
+    p.add_argument("--chi2-max", type=float, required=True, help="a fit explains the data at this reduced χ² or less")
+    p.add_argument("verdicts", nargs="+", help="the set's verdict.json files")
     p = command("summarize", "the summary table of all calibrations")
     p.add_argument("inputs", nargs="+", help="calibration files")
 
@@ -407,6 +472,18 @@ def main(argv: list[str] | None = None) -> int:
         compare(args.inputs, args.output, args.code_hash)
     elif args.command == "plot":
         plot(args.kind, args.inputs, args.output, args.code_hash, args.measurement, args.chi2_output, args.snr_db, args.seed)
+    elif args.command == "diagnose":
+        diagnose_measurement(args.measurement, args.grids, json.loads(args.spec), args.verdict, args.table, args.netcdf,
+                             args.mcmc, args.code_hash)
+    elif args.command == "plot-diagnosis":
+        plot_diagnosis(args.verdict, args.netcdf, args.mcmc, {name: getattr(args, name) for name in DIAGNOSIS_FIGURES},
+                       args.code_hash)
+    elif args.command == "hidden-draw":
+        draw_hidden(json.loads(args.spec), args.output, args.code_hash)
+    elif args.command == "hidden-measurement":
+        write_hidden_measurement(args.truth, args.case, json.loads(args.spec), args.output, args.code_hash)
+    elif args.command == "hidden-score":
+        score_hidden(args.truth, args.verdicts, args.output, args.table, args.figure, args.chi2_max, args.code_hash)
     elif args.command == "summarize":
         summarize(args.inputs, args.output)
     return 0

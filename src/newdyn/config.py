@@ -31,7 +31,7 @@ import json
 import math
 import numbers
 import re
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -194,7 +194,8 @@ def _physical_problems(config: Mapping) -> Iterator[tuple[str, str]]:
     Stages run in order and stop after the first stage with problems, so every later stage can
     rely on what the earlier ones checked (e.g. load_freq > 0 before the load-cycle check).
     """
-    for stage in (_value_problems, _sampling_problems, _noise_problems, _all_scenario_problems, _calibration_problems):
+    for stage in (_value_problems, _sampling_problems, _noise_problems, _all_scenario_problems, _calibration_problems,
+                  _diagnosis_problems, _hidden_problems):
         problems = list(stage(config))
         if problems:
             yield from problems
@@ -307,6 +308,59 @@ def _calibration_problems(config: Mapping) -> Iterator[tuple[str, str]]:
                 yield f"{where}.{field}", f"{problem}: {name} is physical only there"
         if not grid["low"] < grid["high"]:
             yield f"{where}.grid", f"bounds reversed or equal (low {grid['low']:g} ≥ high {grid['high']:g})"
+
+
+def _range_problems(where: str, kind: str, ranges: Mapping[str, Sequence[float]]) -> Iterator[tuple[str, str]]:
+    """A fault kind's parameter ranges: its known parameters (and J2a_share for stick-slip), physical, low < high."""
+    allowed = faults.FAULT_KINDS[kind].allowed()
+    known = list(allowed) + ([faults.J2A_SHARE] if kind == "stick_slip" else [])
+    for name, (low, high) in ranges.items():
+        if name not in known:
+            yield f"{where}.{name}", f"unknown parameter of {kind} (known: {', '.join(known)})"
+            continue
+        bounds = allowed.get(name, model.Parameter(faults.J2A_SHARE, 0.5, "-", "J2a share", "fault", 0.0, 1.0))
+        for value in (low, high):
+            if (problem := bounds.problem(value)) is not None and not (value == bounds.lower and value == low):
+                yield f"{where}.{name}", f"{problem}"
+        if not low < high:
+            yield f"{where}.{name}", f"bounds reversed or equal (low {low:g} ≥ high {high:g})"
+
+
+def _diagnosis_problems(config: Mapping) -> Iterator[tuple[str, str]]:
+    diagnosis, calibration = config["diagnosis"], config["calibration"]
+    for i, name in enumerate(diagnosis["drift"]):
+        if name not in calibration["parameters"]:
+            yield f"diagnosis.drift[{i}]", f"'{name}' is not one of calibration.parameters ({', '.join(calibration['parameters'])})"
+    largest = 0
+    for kind, ranges in diagnosis["faults"].items():
+        where = f"diagnosis.faults.{kind}"
+        yield from _range_problems(where, kind, ranges)
+        missing = [name for name in faults.FAULT_KINDS[kind].allowed() if name not in ranges]
+        if missing:
+            yield where, f"needs a range for every parameter of {kind}; {missing[0]} is missing"
+        largest = max(largest, len(ranges) + len(diagnosis["drift"]))
+    walkers, kde = diagnosis["mcmc"]["walkers"], 2 if calibration["mcmc"]["move"] == "kde" else 0
+    if walkers < 2 * largest + kde or walkers % 2:
+        yield "diagnosis.mcmc.walkers", (f"must be even and at least {2 * largest + kde}: twice the {largest} parameters of the "
+                                         f"largest fault model{' plus 2 for the kde move' if kde else ''}, got {walkers}")
+
+
+def _hidden_problems(config: Mapping) -> Iterator[tuple[str, str]]:
+    hidden = config["hidden"]
+    for i, name in enumerate(hidden["parameter_change"]["parameters"]):
+        if name not in model.RIG_PARAMETERS:
+            yield f"hidden.parameter_change.parameters[{i}]", f"unknown rig parameter{_did_you_mean(name, model.RIG_PARAMETERS)}"
+    low, high = hidden["parameter_change"]["relative"]
+    if not 0 <= low < high < 1:
+        yield "hidden.parameter_change.relative", f"must be 0 <= low < high < 1 (got [{low:g}, {high:g}])"
+    for kind, ranges in hidden["faults"].items():
+        yield from _range_problems(f"hidden.faults.{kind}", kind, ranges)
+    for i, kind in enumerate(hidden["classes"]):
+        if kind in faults.FAULT_KINDS and kind != "parameter_change" and kind not in hidden["faults"]:
+            yield f"hidden.classes[{i}]", f"'{kind}' needs its severity ranges under hidden.faults.{kind}"
+    for name in hidden["sets"]:
+        if name in variant_names(config) or name in ("diagnosis", "figures", "logs", "benchmarks"):
+            yield f"hidden.sets.{name}", f"'{name}' would share results/{name}/ with the study; choose another name"
 
 
 def _all_scenario_problems(config: Mapping) -> Iterator[tuple[str, str]]:

@@ -12,6 +12,10 @@ from typing import Callable, Mapping
 
 from . import model
 
+# Not a model parameter: where a stick-slip joint splits the motor-side inertia, J2a / (J2a + J2b),
+# which a diagnosis fits and a hidden case draws (the total J2a + J2b is kept).
+J2A_SHARE = "J2a_share"
+
 
 @dataclass(frozen=True)
 class FaultKind:

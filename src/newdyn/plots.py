@@ -23,7 +23,7 @@ from matplotlib.colors import LogNorm, Normalize
 from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 
-from . import io, model, provenance
+from . import io, model, provenance, residuals
 
 PathLike = str | os.PathLike
 PNG_DPI = 150
@@ -266,25 +266,156 @@ def model_overlays(
         if not np.allclose(result["time"].values, times, rtol=0.0, atol=io.TIME_JITTER / fs):
             raise ValueError(f"{path}: best fit is not sampled at the times of {measurement_path}")
     channels = list(dict.fromkeys(str(c) for result in results for c in result["channel"].values))
+    fits = {
+        channel: [
+            (f"{r.attrs['parameter']} best fit ({CHI2_RED} = {float(r.attrs['chi2_red']):.3g})",
+             f"data − {r.attrs['parameter']} best fit", r["best_fit"].sel(channel=channel).values)
+            for r in results if channel in r["channel"]
+        ]
+        for channel in channels
+    }
+    rows = [measurement.channels.index(c) for c in channels]
+    fig = _overlay_grid(
+        channels, times, fs, dict(zip(channels, measurement.y[rows])), fits,
+        dict(zip(channels, measurement.sigma[rows])) if measurement.sigma is not None else {}, window,
+        f"Best-fitting models against {_subject({**measurement.attrs, 'measurement': measurement.name})}",
+    )
+    save(fig, png_path, code_hash, [measurement_path, *grid_result_paths])
+    return fig
 
+
+def diagnosis_figures(verdict_path: PathLike, diagnosis_path: PathLike, mcmc_path: PathLike, png_paths: dict, code_hash: str = "") -> None:
+    """The figures of one diagnosis: ``png_paths`` maps overlays, residuals, hypotheses, error_fall and
+    effect_mcmc to their PNG paths."""
+    with open(verdict_path) as f:
+        verdict = json.load(f)
+    result = _load(diagnosis_path)
+    sources = [verdict_path, diagnosis_path]
+    name = verdict["measurement"]
+    diagnosis_overlays(verdict, result, png_paths["overlays"], code_hash, sources)
+    residual = result["y"].values - result["model"].sel(version="calibrated").values
+    residual_map(residual, result["sigma"].values, list(result["channel"].values), result["time"].values,
+                 float(result.attrs["fs"]), float(result.attrs["load_freq"]), png_paths["residuals"],
+                 f"{name}: where the calibrated model ({verdict['models']['calibrated']}) fails", code_hash, sources)
+    hypothesis_ranking(verdict, result, png_paths["hypotheses"], code_hash, sources)
+    error_fall(verdict, result, png_paths["error_fall"], code_hash, sources)
+    mcmc_diagnostics([mcmc_path], png_paths["effect_mcmc"], code_hash)
+
+
+def _version_label(verdict: dict, version: str) -> str:
+    hypothesis = verdict["models"][version]
+    row = next(r for r in verdict["ranking"] if r["hypothesis"] == hypothesis)
+    return f"{version} ({hypothesis}, {CHI2_RED} = {row['chi2']:.3g})"
+
+
+def diagnosis_overlays(verdict: dict, result: xr.Dataset, png_path: PathLike, code_hash: str = "", sources=(), window: float = 0.2) -> Figure:
+    """Per channel: the data and the model versions nominal, calibrated and + effect over the first
+    ``window`` seconds (left), and the PSD of the data and of each version's residual against the
+    noise floor (right)."""
+    times, fs = result["time"].values, float(result.attrs["fs"])
+    channels = [str(c) for c in result["channel"].values]
+    fits = {
+        channel: [(_version_label(verdict, version), f"residual, {version}",
+                   result["model"].sel(version=version, channel=channel).values)
+                  for version in ("nominal", "calibrated", "effect")]
+        for channel in channels
+    }
+    fig = _overlay_grid(
+        channels, times, fs, {c: result["y"].sel(channel=c).values for c in channels}, fits,
+        {c: float(result["sigma"].sel(channel=c)) for c in channels}, window,
+        f"{verdict['measurement']}: the model versions against the data",
+    )
+    save(fig, png_path, code_hash, sources)
+    return fig
+
+
+_CLASS_COLORS = {"healthy": "tab:green", "parameter_change": "tab:blue", "new_dynamics": "tab:red"}
+
+
+def hypothesis_ranking(verdict: dict, result: xr.Dataset, png_path: PathLike, code_hash: str = "", sources=()) -> Figure:
+    """Left: every hypothesis's log-evidence below the best's (the ranking), with its χ² and
+    confidence.  Right: the Hellinger distances between the measurement's posteriors and each noise-free
+    signature (the paper's Step 3), one row per signature."""
+    ranking = verdict["ranking"]
+    fig = Figure(figsize=(15, 0.8 + 0.32 * max(len(ranking), result.sizes["signature"] / 2)), layout="constrained")
+    left, right = fig.subplots(1, 2, width_ratios=(1, 1.3))
+    best = ranking[0]["log_evidence"]
+    gaps = np.array([max(best - r["log_evidence"], 0.0) + 1.0 for r in ranking])
+    rows = np.arange(len(ranking))
+    left.barh(rows, gaps, color=[_CLASS_COLORS[r["class"]] for r in ranking], log=True)
+    left.set_yticks(rows, [r["hypothesis"] for r in ranking])
+    left.invert_yaxis()
+    for row, r, gap in zip(rows, ranking, gaps):
+        mark = "" if r["explains"] else "  (does not explain)"
+        left.text(gap, row, f" {CHI2_RED}={r['chi2']:.3g}, p={r['confidence']:.2g}{mark}", va="center", fontsize="small")
+    left.set_xlabel("1 + log-evidence below the best hypothesis (log scale)")
+    left.set_title(f"Verdict: {verdict['verdict']}" + (f" ({verdict['effect']})" if verdict["effect"] else ""))
+    distances = result["hellinger"]
+    _draw_heatmap(fig, right, distances.values, [str(s) for s in distances["signature"].values],
+                  [str(p) for p in distances["parameter"].values], "Hellinger distance to each signature's posterior",
+                  "H", limits=(0.0, 1.0))
+    save(fig, png_path, code_hash, sources)
+    return fig
+
+
+def error_fall(verdict: dict, result: xr.Dataset, png_path: PathLike, code_hash: str = "", sources=()) -> Figure:
+    """The error falling over the model versions: reduced χ² (left), RMSE per channel relative to the
+    noise σ (middle), and the residual spectra of the nominal model and the final one (right)."""
+    versions = ("nominal", "calibrated", "effect")
+    rows = {r["hypothesis"]: r for r in verdict["ranking"]}
+    channels = [str(c) for c in result["channel"].values]
+    sigma = result["sigma"].values
+    fs = float(result.attrs["fs"])
+    fig = Figure(figsize=(15, 4.5), layout="constrained")
+    chi_ax, rmse_ax, psd_ax = fig.subplots(1, 3)
+    chi2 = [rows[verdict["models"][v]]["chi2"] for v in versions]
+    labels = [f"{v}\n{verdict['models'][v]}" for v in versions]
+    chi_ax.bar(labels, chi2, color="tab:grey", log=True)
+    chi_ax.axhline(float(verdict["settings"]["calibration"]["chi2_max"]), color=MARK_COLOR, ls="--", label="explains: χ² ≤ this")
+    chi_ax.set_ylabel(CHI2_RED)
+    chi_ax.legend(fontsize="small")
+    width = 0.8 / len(channels)
+    for i, channel in enumerate(channels):
+        residual = result["y"].sel(channel=channel).values - result["model"].sel(channel=channel, version=list(versions)).values
+        rmse = np.sqrt(np.mean(residual**2, axis=-1)) / sigma[i]
+        rmse_ax.bar(np.arange(len(versions)) + i * width, rmse, width, label=channel)
+    rmse_ax.set_xticks(np.arange(len(versions)) + width * (len(channels) - 1) / 2, labels)
+    rmse_ax.set_yscale("log")
+    rmse_ax.axhline(1.0, color="grey", ls="--", label="noise σ")
+    rmse_ax.set_ylabel("RMSE / σ")
+    rmse_ax.legend(fontsize="small")
+    after = next(v for v in ("nominal", "calibrated", "effect") if verdict["models"][v] == verdict["models"]["after"]) \
+        if verdict["models"]["after"] in [verdict["models"][v] for v in versions] else "effect"
+    for i, channel in enumerate(channels):
+        data = result["y"].sel(channel=channel).values
+        for version, style in (("nominal", ":"), (after, "-")):
+            frequency, density = _psd(data - result["model"].sel(channel=channel, version=version).values, fs)
+            psd_ax.semilogy(frequency, density / (2 * sigma[i] ** 2 / fs), ls=style, lw=0.8, label=f"{channel}, {version}")
+    psd_ax.axhline(1.0, color="grey", ls="--", label="noise floor")
+    psd_ax.set_xlim(0, min(500.0, fs / 2))
+    psd_ax.set_xlabel("frequency [Hz]")
+    psd_ax.set_ylabel("residual PSD / noise floor")
+    psd_ax.legend(fontsize="small")
+    fig.suptitle(f"{verdict['measurement']}: {CHI2_RED} {verdict['chi2_before']:.3g} → {verdict['chi2_after']:.3g}")
+    save(fig, png_path, code_hash, sources)
+    return fig
+
+
+def _overlay_grid(channels, times, fs, data, fits, sigma, window, title) -> Figure:
+    """Per channel (rows): the data and each fit over the first ``window`` seconds (left), and the PSD
+    of the data and of each fit's residual against the noise floor 2σ²/fs where σ is known (right).
+    ``fits`` maps a channel to (label, residual label, fit) triples; ``sigma`` a channel to its σ."""
     fig = Figure(figsize=(14, 0.8 + 3.0 * len(channels)), layout="constrained")
     axes = fig.subplots(len(channels), 2, squeeze=False)
     shown = times < times[0] + window
     for (signal_ax, psd_ax), channel in zip(axes, channels):
-        index = measurement.channels.index(channel)
-        data = measurement.y[index]
-        signal_ax.plot(times[shown], data[shown], color="black", lw=0.8, label="data")
-        psd_ax.semilogy(*_psd(data, fs), color="black", lw=0.8, label="data")
-        for result in results:
-            if channel not in result["channel"]:
-                continue
-            fit = result["best_fit"].sel(channel=channel).values
-            name = result.attrs["parameter"]
-            label = f"{name} best fit ({CHI2_RED} = {float(result.attrs['chi2_red']):.3g})"
+        signal_ax.plot(times[shown], data[channel][shown], color="black", lw=0.8, label="data")
+        psd_ax.semilogy(*_psd(data[channel], fs), color="black", lw=0.8, label="data")
+        for label, residual_label, fit in fits[channel]:
             (line,) = signal_ax.plot(times[shown], fit[shown], lw=0.8, label=label)
-            psd_ax.semilogy(*_psd(data - fit, fs), color=line.get_color(), lw=0.8, label=f"data − {name} best fit")
-        if measurement.sigma is not None:
-            psd_ax.axhline(2 * measurement.sigma[index] ** 2 / fs, color="grey", ls="--", label="noise floor 2σ²/fs")
+            psd_ax.semilogy(*_psd(data[channel] - fit, fs), color=line.get_color(), lw=0.8, label=residual_label)
+        if channel in sigma:
+            psd_ax.axhline(2 * sigma[channel] ** 2 / fs, color="grey", ls="--", label="noise floor 2σ²/fs")
         unit = model.CHANNEL_UNITS[channel]
         signal_ax.set_ylabel(f"{channel} [{unit}]")
         psd_ax.set_ylabel(f"PSD [{unit}²/Hz]")
@@ -292,8 +423,7 @@ def model_overlays(
         ax.legend(loc="upper right", fontsize="small")
     axes[-1, 0].set_xlabel("time [s]")
     axes[-1, 1].set_xlabel("frequency [Hz]")
-    fig.suptitle(f"Best-fitting models against {_subject({**measurement.attrs, 'measurement': measurement.name})}")
-    save(fig, png_path, code_hash, [measurement_path, *grid_result_paths])
+    fig.suptitle(title)
     return fig
 
 
@@ -316,3 +446,137 @@ def _load(path: PathLike) -> xr.Dataset:
 def _number(text: str | None) -> float:
     """A summary-table cell as a float; empty or absent cells are NaN."""
     return float(text) if text else math.nan
+
+
+def residual_map(
+    residual: np.ndarray,
+    sigma: np.ndarray,
+    channels: Sequence[str],
+    times: np.ndarray,
+    fs: float,
+    load_freq: float,
+    png_path: PathLike,
+    title: str,
+    code_hash: str = "",
+    sources: Sequence[PathLike] = (),
+) -> Figure:
+    """Where a model fails, per channel (rows): the residual's time-frequency map in dB above the
+    white-noise floor up to 500 Hz (left), and its mean (r/σ)² per load-cycle phase bin against the
+    null's central 99.9 % (right).  Findings of :func:`newdyn.residuals.where_it_fails` are marked red."""
+    frequency, map_times, power = residuals.time_frequency_map(residual, sigma, fs, t_first=float(times[0]))
+    phase = residuals.phase_excess(residual, sigma, times, load_freq)
+    lower, upper = residuals.phase_null_band(phase.counts)
+    findings = residuals.where_it_fails(residual, sigma, channels, times, fs, load_freq)
+    f_max = min(500.0, fs / 2)
+    shown = frequency <= f_max
+    fig = Figure(figsize=(13, 0.8 + 2.8 * len(channels)), layout="constrained")
+    axes = fig.subplots(len(channels), 2, squeeze=False, width_ratios=(3, 2))
+    for c, ((map_ax, phase_ax), channel) in enumerate(zip(axes, channels)):
+        # A single cell of pure noise is χ²₂/2, so half of them lie below 0 dB: the scale starts at the floor.
+        mesh = map_ax.pcolormesh(
+            map_times, frequency[shown], 10 * np.log10(power[c, shown]), shading="nearest", cmap="magma", vmin=0.0,
+            vmax=30.0,
+        )
+        map_ax.set_ylim(0.0, f_max)
+        map_ax.set_ylabel(f"{channel}\nfrequency [Hz]")
+        phase_ax.stairs(upper, phase.edges, baseline=lower, fill=True, color="lightgrey", label="null, central 99.9 %")
+        phase_ax.stairs(phase.excess[c], phase.edges, color="black", label="data − model")
+        phase_ax.axhline(1.0, color="grey", ls="--", lw=0.8)
+        phase_ax.set_xlim(0.0, 1.0)
+        phase_ax.set_yscale("log")  # an excess may be thousands, while the null band hugs 1
+        phase_ax.set_ylabel(r"mean $(r/\sigma)^2$")
+        flagged = []
+        for finding in (f for f in findings if f["channel"] == channel):
+            if finding["kind"] == "band":
+                flagged.append(f"{finding['low_hz']:g}–{finding['high_hz']:g} Hz ×{finding['excess']:.2g}")
+                if finding["low_hz"] < f_max:  # a bar at the right edge, so the map stays visible
+                    map_ax.axhspan(finding["low_hz"], min(finding["high_hz"], f_max), xmin=0.98, color=MARK_COLOR)
+            else:
+                low, high = finding["phase_low"], finding["phase_high"]
+                # A window across phase 1 → 0 is drawn in two parts.
+                for a, b in ((low, min(high, 1.0)), (0.0, high - 1.0)):
+                    if b > a:
+                        phase_ax.axvspan(a, b, color=MARK_COLOR, alpha=0.2)
+        # The three largest by name: the red bars on the map show the rest below 500 Hz.
+        shown_flags = ", ".join(flagged[:3]) + (f" and {len(flagged) - 3} more" if len(flagged) > 3 else "")
+        map_ax.set_title(
+            f"above the noise floor: {shown_flags}" if flagged else "no band above the noise floor",
+            color=MARK_COLOR if flagged else "black", fontsize="small",
+        )
+    fig.colorbar(mesh, ax=axes[:, 0], label="power above the noise floor [dB]", extend="both")
+    axes[0, 1].legend(loc="upper right", fontsize="small")
+    axes[-1, 0].set_xlabel("time [s]")
+    axes[-1, 1].set_xlabel(f"load-cycle phase (t · {load_freq:g} Hz) mod 1")
+    fig.suptitle(title)
+    save(fig, png_path, code_hash, sources)
+    return fig
+
+
+def blind_test_figure(
+    score: dict, png_path: PathLike, title: str, code_hash: str = "", sources: Sequence[PathLike] = ()
+) -> Figure:
+    """A blind test's score (:func:`newdyn.hidden.score`): left the confusion matrix, truth class ×
+    predicted label, with the count in each cell and the correct cells framed (a parameter-change
+    cell also says how many named the right parameter); right the relative error of each fitted
+    parameter of the correctly identified cases with its 94 % HDI as a bar, green when the HDI covers
+    the truth, red when not.  The title gives the top-1 accuracy."""
+    from matplotlib.ticker import MaxNLocator
+
+    confusion = score["confusion"]
+    truth, predicted = list(confusion["truth"]), list(confusion["predicted"])
+    counts = np.asarray(confusion["counts"], dtype=int).reshape(len(truth), len(predicted))
+    errors = [e for e in score["parameter_errors"] if e.get("relative_error") is not None]
+    height = max(4.5, 1.8 + 0.5 * len(truth), 1.5 + 0.28 * len(errors))
+    fig = Figure(figsize=(14, height), layout="constrained")
+    matrix_ax, error_ax = fig.subplots(1, 2, width_ratios=(1.2, 1))
+
+    image = matrix_ax.imshow(counts, cmap="Blues", vmin=0, vmax=max(1, int(counts.max())), aspect="auto")
+    fig.colorbar(image, ax=matrix_ax, label="cases", ticks=MaxNLocator(integer=True))
+    per_class = score["per_class"]
+    matrix_ax.set_yticks(range(len(truth)), [f"{c} ({per_class[c]['correct']}/{per_class[c]['cases']})" for c in truth])
+    matrix_ax.set_xticks(range(len(predicted)), predicted, rotation=45, ha="right", rotation_mode="anchor")
+    right_parameter = sum(1 for row in score["rows"] if row["class"] == "parameter_change" and row["correct"])
+    for (i, j), count in np.ndenumerate(counts):
+        text = str(count)
+        if truth[i] == predicted[j] == "parameter_change" and right_parameter != count:
+            text += f"\n({right_parameter} right)"
+        dark = count > 0.6 * max(1, counts.max())
+        matrix_ax.text(j, i, text, ha="center", va="center", fontsize="small" if "\n" in text else "medium",
+                       color="white" if dark else ("black" if count else "lightgrey"))
+        if truth[i] == predicted[j]:
+            matrix_ax.add_patch(Rectangle((j - 0.45, i - 0.45), 0.9, 0.9, fill=False, edgecolor="tab:green", lw=2.5))
+    matrix_ax.set_xlabel("predicted (green frame: correct)")
+    matrix_ax.set_ylabel("truth (correct / cases)")
+    matrix_ax.set_title("confusion matrix")
+
+    fit = score.get("fault_fit") or {}
+    if errors:
+        y = np.arange(len(errors))
+        for k, e in enumerate(errors):
+            scale = abs(e["truth"])
+            color = {True: "tab:green", False: MARK_COLOR, None: "grey"}[e.get("in_hdi")]
+            xerr = None
+            if e.get("hdi_low") is not None and e.get("hdi_high") is not None:
+                low, high = (e["hdi_low"] - e["truth"]) / scale, (e["hdi_high"] - e["truth"]) / scale
+                xerr = [[max(0.0, e["relative_error"] - low)], [max(0.0, high - e["relative_error"])]]
+            error_ax.errorbar(e["relative_error"], k, xerr=xerr, fmt="o", color=color, capsize=3,
+                              mfc=color if e.get("in_hdi") else "white")
+        error_ax.set_yticks(y, [f"{e['case']}: {e['parameter']}" for e in errors])
+        error_ax.invert_yaxis()
+        error_ax.axvline(0.0, color="black", lw=0.8)
+        error_ax.set_xscale("symlog", linthresh=1e-3, linscale=0.5)
+        covered = [e["in_hdi"] for e in errors if e.get("in_hdi") is not None]
+        coverage = f"truth in 94 % HDI: {sum(covered)}/{len(covered)}" if covered else "no HDIs"
+    else:
+        error_ax.text(0.5, 0.5, "no fitted parameters of correctly identified cases", ha="center", va="center",
+                      transform=error_ax.transAxes)
+        error_ax.set_yticks([])
+        coverage = "no HDIs"
+    error_ax.set_xlabel("relative error (fitted mean − true) / |true|; bar: 94 % HDI")
+    explained = f"\ncorrect fault fits with {CHI2_RED} ≤ {fit['chi2_max']:g}: {fit['explained']}/{fit['cases']}" if fit.get("cases") else ""
+    error_ax.set_title(f"fitted parameters of correct cases ({coverage}){explained}", fontsize="medium")
+    accuracy = score["accuracy"]
+    fig.suptitle(f"{title}: top-1 accuracy {accuracy:.0%} ({score['correct']}/{score['cases']})"
+                 if accuracy is not None else f"{title}: no cases")
+    save(fig, png_path, code_hash, sources)
+    return fig

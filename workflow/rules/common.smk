@@ -1,8 +1,11 @@
 # Config checking and the helpers rules share. Runs at parse time, before any job starts.
+import re
 import sys
+from pathlib import Path
 
 import newdyn.config
 import newdyn.provenance
+from newdyn.cli import DIAGNOSIS_FIGURES
 
 CONFIG_SOURCE = ", ".join(map(str, workflow.overwrite_configfiles or ["config/config.yaml"]))
 
@@ -24,7 +27,7 @@ MCMC_CODE = newdyn.provenance.source_hash(
 )
 SUMMARY_CODE = newdyn.provenance.source_hash("calibration", "comparison", "sampling")
 COMPARISON_CODE = newdyn.provenance.source_hash("comparison")
-PLOT_CODE = newdyn.provenance.source_hash("plots")
+PLOT_CODE = newdyn.provenance.source_hash("plots", "residuals")
 
 
 def _names(key):
@@ -216,3 +219,121 @@ def figure_targets():
             if scenario in scenarios and all(p in parameters for p in needed):
                 targets += expand("results/{variant}/figures/{figure}_snr{snr}_seed{seed}.png", figure=figure, **common)
     return targets
+
+
+# --- diagnosis of measurements: users' files in measurements/, and hidden-effect sets drawn from a seed
+DIAGNOSIS_CODE = newdyn.provenance.source_hash(
+    "model",
+    "faults",
+    "kernels",
+    "simulation",
+    "io",
+    "noise",
+    "likelihood",
+    "calibration",
+    "sampling",
+    "comparison",
+    "residuals",
+    "hypotheses",
+    "diagnosis",
+)
+HIDDEN_CODE = newdyn.provenance.source_hash("model", "faults", "kernels", "simulation", "noise", "io", "hidden")
+SCORE_CODE = newdyn.provenance.source_hash("hidden", "plots")
+HIDDEN_SETS = config["hidden"]["sets"]
+
+
+def _checked_measurements(folder="measurements"):
+    """name -> file of every good measurement in ``folder``; each bad one gets its one line on stderr
+    and is left out, so it never stops the diagnosis of the good ones."""
+    import newdyn.io
+
+    found = {}
+    for path in sorted(Path(folder).glob("*")):
+        if path.suffix.lower() in (".nc", ".csv"):
+            found.setdefault(path.stem, []).append(path)
+    good = {}
+    for name, paths in found.items():
+        try:
+            if len(paths) > 1:
+                raise newdyn.io.MeasurementError(paths[0], f"{' and '.join(map(str, paths))} share the name '{name}'")
+            measurement = newdyn.io.read_measurement(paths[0], config["operating"])
+            missing = [c for c in config["diagnosis"]["channels"] if c not in measurement.channels]
+            if missing:
+                raise newdyn.io.MeasurementError(paths[0], f"no channel {missing[0]} (diagnosis.channels needs it)")
+            if not re.fullmatch(r"[A-Za-z0-9_.-]+", name):
+                raise newdyn.io.MeasurementError(paths[0], "name may hold letters, digits, '_', '-' and '.' only")
+        except newdyn.io.MeasurementError as error:
+            print(f"newdyn: skipping bad measurement: {error}", file=sys.stderr)
+        else:
+            good[name] = str(paths[0])
+    return good
+
+
+MEASUREMENTS = _checked_measurements()
+
+
+def diagnosis_root(root, name):
+    return f"{root}/diagnosis/{name}"
+
+
+def measurement_file(wildcards):
+    """A diagnosis's input file: the user's file, or a hidden set's drawn measurement."""
+    if wildcards.root == "results":
+        if wildcards.name not in MEASUREMENTS:
+            raise ValueError(f"no good measurement measurements/{wildcards.name}.nc or .csv (see the lines above)")
+        return MEASUREMENTS[wildcards.name]
+    return f"{wildcards.root}/measurements/{wildcards.name}.nc"
+
+
+def study_grids(wildcards):
+    """The default study's coarse grids: the diagnosis reuses them when the measurement's condition is theirs."""
+    if "default" not in VARIANTS:
+        return []
+    return expand(
+        "results/default/calibration/grids/{parameter}.nc", parameter=list(config["calibration"]["parameters"])
+    )
+
+
+def diagnosis_spec(wildcards):
+    return newdyn.config.canonical_json(
+        {
+            "rig": config["rig"],
+            "operating": config["operating"],
+            "diagnosis": config["diagnosis"],
+            "calibration": {
+                key: config["calibration"][key] for key in ("parameters", "chi2_max", "refine_points", "mcmc")
+            },
+            "simulation": {"max_step": config["simulation"]["max_step"]},
+        }
+    )
+
+
+def hidden_cases(set_name):
+    return [f"{set_name}_{i:02d}" for i in range(1, HIDDEN_SETS[set_name]["cases"] + 1)]
+
+
+def diagnosis_targets(root, names):
+    return expand("{root}/diagnosis/{name}/verdict.json", root=root, name=names) + expand(
+        "{root}/diagnosis/{name}/figures/{figure}.png", root=root, name=names, figure=DIAGNOSIS_FIGURES
+    )
+
+
+def hidden_spec(wildcards):
+    """What draws and simulates a hidden set: its name and seed, the draw's ranges, the rig and the record."""
+    return newdyn.config.canonical_json(
+        {
+            "set": wildcards.set,
+            "hidden": config["hidden"],
+            "values": newdyn.config.base_values(config),
+            "sampling": _sampling_spec(config),
+            "max_step": config["simulation"]["max_step"],
+        }
+    )
+
+
+def hidden_targets(set_name):
+    """A hidden set's diagnoses, their figures and its score, if the set is configured."""
+    if set_name not in HIDDEN_SETS:
+        return []
+    root = f"results/{set_name}"
+    return diagnosis_targets(root, hidden_cases(set_name)) + [f"{root}/score.json", f"{root}/blind_test.png"]

@@ -1,0 +1,482 @@
+"""Diagnose one measurement: compare the model with it, see where it fails, find which effect is
+missing, add it and show the error fall (the paper's Steps 1–3, automated, then a fit of the effect).
+
+1. Noise level: the file's ``sigma``, else its ``snr_db``, else the noise floor above
+   ``noise_band_hz`` — never a model's residual, which would absorb the very misfit we look for.
+2. Calibration: each calibration parameter on its likelihood grid (as in the study); a drift of one
+   parameter is the hypothesis ``parameter_change:<p>``, its log-evidence exact by quadrature.
+3. Signatures (Steps 1 and 3): the posteriors that each hypothesis at a range of severities would give,
+   simulated noise-free, and their Hellinger distances to the measurement's posteriors.
+4. Fits: each library fault added to the model, its parameters and the drift parameters fitted
+   (:func:`newdyn.hypotheses.fit`), scored by χ² and log-evidence; hypotheses ranked by evidence.
+5. Verdict: the best-evidence hypothesis if its fit brings χ² to the noise (≤ ``chi2_max``), else
+   ``unexplained``; hypotheses of the same class within ``evidence_margin`` of it explain the data
+   equally, and the unmeasured channels that would separate them are named.
+6. The best fault model is sampled by MCMC for its parameters' uncertainty.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Mapping, Sequence
+
+import numpy as np
+import xarray as xr
+from scipy.integrate import trapezoid
+from scipy.special import logsumexp
+
+from . import calibration, comparison, faults, hypotheses, io, likelihood, model, noise, residuals, simulation
+from .hypotheses import HEALTHY, PARAMETER_CHANGE
+
+log = logging.getLogger("newdyn")
+VERDICTS = ("healthy", "parameter_change", "new_dynamics", "unexplained")
+HDI_PROB = 0.94
+SIGNATURE_REFINE_POINTS = 21  # refined runs per likelihood maximum of a signature (the measurement's use the config's)
+
+
+@dataclass(frozen=True)
+class Settings:
+    """What a diagnosis needs from config (see ``Settings.from_config`` and config/README.md)."""
+
+    rig: Mapping[str, float]
+    channels: tuple[str, ...]
+    grids: Mapping[str, calibration.GridSpec]
+    priors: Mapping[str, calibration.NormalPrior]
+    fault_ranges: Mapping[str, Mapping[str, tuple[float, float]]]
+    drift: tuple[str, ...]
+    severities: int
+    drift_sizes: tuple[float, ...]
+    noise_band_hz: float
+    evidence_margin: float
+    chi2_max: float
+    refine_points: int
+    max_step: float
+    mcmc: Mapping[str, float | int | str] = field(default_factory=dict)
+
+    @classmethod
+    def from_config(cls, config: Mapping) -> "Settings":
+        d, c = config["diagnosis"], config["calibration"]
+        return cls(
+            rig=dict(config["rig"]),
+            channels=tuple(d["channels"]),
+            grids={p: calibration.GridSpec.from_config(p, s["grid"]) for p, s in c["parameters"].items()},
+            priors={p: calibration.NormalPrior(**s["prior"]) for p, s in c["parameters"].items()},
+            fault_ranges={kind: {n: tuple(map(float, r)) for n, r in ranges.items()} for kind, ranges in d["faults"].items()},
+            drift=tuple(d["drift"]),
+            severities=int(d["severities"]),
+            drift_sizes=tuple(float(x) for x in d["drift_sizes"]),
+            noise_band_hz=float(d["noise_band_hz"]),
+            evidence_margin=float(d["evidence_margin"]),
+            chi2_max=float(c["chi2_max"]),
+            refine_points=int(c["refine_points"]),
+            max_step=float(config["simulation"]["max_step"]),
+            mcmc={**{k: c["mcmc"][k] for k in ("rhat_max", "ess_min", "move")}, **d["mcmc"]},
+        )
+
+    def hypotheses(self) -> list[hypotheses.Hypothesis]:
+        priors = {
+            p: hypotheses.Prior(p, self.grids[p].low, self.grids[p].high, self.priors[p].mean, self.priors[p].sd)
+            for p in self.grids
+        }
+        return hypotheses.library(priors, self.fault_ranges, self.drift)
+
+
+def noise_level(measurement: io.Measurement, rows: Sequence[int], band_hz: float) -> tuple[np.ndarray, str]:
+    """Per-channel noise σ of the measurement's ``rows`` and where it came from."""
+    if measurement.sigma is not None:
+        return measurement.sigma[rows], "the file's sigma coordinate"
+    y = measurement.y[rows]
+    if "snr_db" in measurement.attrs:
+        return noise.sigma_from_snr(y, float(measurement.attrs["snr_db"])), f"the file's snr_db = {measurement.attrs['snr_db']} dB"
+    sigma, error = noise.noise_floor_sigma(y, measurement.sampling.fs, band_hz)
+    return sigma, f"the noise floor above {band_hz:g} Hz (relative standard error {float(np.max(error)):.1%})"
+
+
+def _grid_evidence(posterior: likelihood.GridPosterior) -> float:
+    """log ∫ L(φ) π(φ) dφ on the grid by the trapezoidal rule, π the (normalized) prior."""
+    log_integrand = posterior.log_likelihood + posterior.log_prior
+    peak = float(np.max(log_integrand))
+    return peak + math.log(trapezoid(np.exp(log_integrand - peak), posterior.grid))
+
+
+def _signature_entries(settings: Settings, hyps: Mapping[str, hypotheses.Hypothesis],
+                       values: Mapping[str, float]) -> list[tuple[str, dict[str, float]]]:
+    """(hypothesis name, all its fitted values) of every signature: the healthy rig, each calibration
+    parameter drifted by each of ``drift_sizes``, each fault at ``severities`` values of its severity
+    (its kind's first parameter: T_max, alpha, gamma, gap) across its range (cell centres), its other
+    parameters at their fault or rig defaults and the drift parameters at the rig's values."""
+    entries = [(HEALTHY, {})]
+    for p in settings.grids:
+        entries += [(f"{PARAMETER_CHANGE}:{p}", {p: values[p] * (1 + size)}) for size in settings.drift_sizes]
+    for kind, ranges in settings.fault_ranges.items():
+        first = next(iter(faults.FAULT_KINDS[kind].slots))
+        low, high = ranges[first]
+        fixed = {name: _default(kind, name, values) for name in hyps[kind].parameters if name != first}
+        entries += [(kind, {first: low + (i + 0.5) / settings.severities * (high - low), **fixed}) for i in range(settings.severities)]
+    return entries
+
+
+def _default(kind: str, name: str, values: Mapping[str, float]) -> float:
+    """A fitted parameter's value where a signature does not vary it: the fault's default, else the rig's."""
+    if name == faults.J2A_SHARE:
+        return values["J2a"] / (values["J2a"] + values["J2b"])
+    fault = faults.FAULT_KINDS[kind]
+    return fault.defaults[name](values) if name in fault.defaults else values[fault.slots.get(name, name)]
+
+
+@dataclass
+class Diagnosis:
+    """Everything a diagnosis found; :func:`write` turns it into files."""
+
+    measurement: io.Measurement
+    channels: tuple[str, ...]
+    data: np.ndarray
+    sigma: np.ndarray
+    noise_source: str
+    calibrations: dict[str, calibration.Calibration]
+    fits: dict[str, hypotheses.Fit]
+    signatures: xr.DataArray  # Hellinger distance (signature, parameter)
+    verdict: dict
+    versions: dict[str, np.ndarray]  # model version name -> outputs (channel, time)
+    effect_mcmc: object  # arviz.InferenceData of the best fault model
+
+
+def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mapping[str, str] | None = None) -> Diagnosis:
+    """Diagnose ``measurement`` (already read and checked); ``grid_paths`` are the study's shared
+    coarse-grid files per calibration parameter, reused when their condition is the measurement's."""
+    missing = [c for c in settings.channels if c not in measurement.channels]
+    if missing:
+        raise io.MeasurementError(measurement.name, f"has no channel {missing[0]} (diagnosis.channels needs it)")
+    rows = [measurement.channels.index(c) for c in settings.channels]
+    channels, data, sampling = settings.channels, measurement.y[rows], measurement.sampling
+    sigma, noise_source = noise_level(measurement, rows, settings.noise_band_hz)
+    values = model.complete({**settings.rig, **measurement.operating})
+    hyps = {h.name: h for h in settings.hypotheses()}
+
+    def calibrate_all(y, refine_points):
+        return {
+            p: calibration.calibrate(
+                y, sigma, spec, settings.priors[p], coarse[p], values, sampling, channels, refine_points,
+                settings.chi2_max, settings.max_step,
+            )
+            for p, spec in settings.grids.items()
+        }
+
+    coarse = {
+        p: calibration.coarse_models((grid_paths or {}).get(p), spec, values, sampling, channels, settings.max_step)
+        for p, spec in settings.grids.items()
+    }
+    clock = time.perf_counter()
+
+    def stage(what):
+        nonlocal clock
+        log.info("%s: %s in %.1f s", measurement.name, what, time.perf_counter() - clock)
+        clock = time.perf_counter()
+
+    calibrations = calibrate_all(data, settings.refine_points)
+    stage(f"noise level from {noise_source}, grid calibrations of {', '.join(settings.grids)}")
+
+    signatures = _signature_distances(settings, hyps, values, calibrations, lambda y: calibrate_all(y, SIGNATURE_REFINE_POINTS),
+                                      sampling, channels)
+    stage(f"{signatures.sizes['signature']} signatures")
+
+    # Fits: healthy as it is, drifts from their grids (exact), faults from their closest signature and a global search.
+    fits = {HEALTHY: hypotheses.fit(hyps[HEALTHY], data, sigma, values, sampling, channels, max_step=settings.max_step)}
+    fits.update({f"{PARAMETER_CHANGE}:{p}": _drift_fit(hyps[f"{PARAMETER_CHANGE}:{p}"], cal) for p, cal in calibrations.items()})
+    closest = signatures.mean("parameter")
+    for kind in settings.fault_ranges:
+        mine = closest.where(signatures["hypothesis"] == kind, drop=True)
+        start = json.loads(str(mine["values"].values[int(np.argmin(mine.values))]))
+        fits[kind] = hypotheses.fit(hyps[kind], data, sigma, values, sampling, channels, [start], settings.max_step)
+        stage(f"fit of {kind} ({fits[kind].n_simulations} simulations, chi2 {fits[kind].chi2_red:.4g})")
+
+    best_fault = max(settings.fault_ranges, key=lambda kind: fits[kind].log_evidence)
+    effect_mcmc, fits[best_fault] = _sample_and_polish(fits[best_fault], data, sigma, values, sampling, channels, settings)
+    stage(f"MCMC of {best_fault}")
+
+    verdict = _verdict(fits, calibrations, signatures, settings, values, sampling, data, sigma)
+    verdict["effect_fit"] = {
+        "hypothesis": best_fault, "parameters": _mcmc_parameters(effect_mcmc, hyps[best_fault].parameters),
+        **{key: _attr(effect_mcmc.attrs[key]) for key in ("converged", "rhat", "ess_bulk", "reason") if key in effect_mcmc.attrs},
+    }
+    if verdict["verdict"] == "new_dynamics" and verdict["effect"] == best_fault:
+        verdict["parameters"] = verdict["effect_fit"]["parameters"]
+        verdict["converged"] = bool(verdict["effect_fit"]["converged"])
+    versions = {name: fits[hypothesis].model for name, hypothesis in verdict["models"].items()}
+    for key, version in (("where_it_fails", "calibrated"), ("remaining", "after")):
+        verdict[key] = residuals.where_it_fails(data - versions[version], sigma, channels, sampling.times,
+                                                sampling.fs, values["load_freq"])
+    verdict["noise"] = {"sigma": dict(zip(channels, sigma.tolist())), "source": noise_source}
+    return Diagnosis(measurement, channels, data, sigma, noise_source, calibrations, fits, signatures, verdict,
+                     versions, effect_mcmc)
+
+
+def _signature_distances(settings: Settings, hyps, values, calibrations, calibrate_all, sampling, channels) -> xr.DataArray:
+    """Steps 1 and 3: each signature simulated noise-free and calibrated like the measurement; the
+    Hellinger distance between its posterior and the measurement's, per calibration parameter."""
+    entries = _signature_entries(settings, hyps, values)
+    clean = simulation.simulate_batch(
+        np.vstack([hyps[name].parameter_rows(np.array([[v[p] for p in hyps[name].parameters]]), values) for name, v in entries]),
+        sampling, channels, settings.max_step,
+    )
+    distances = [
+        [comparison.hellinger_densities(calibrations[p].posterior.grid, calibrations[p].posterior.density,
+                                        signature.posterior.grid, signature.posterior.density)
+         for p, signature in calibrate_all(signal).items()]
+        for signal in clean
+    ]
+    return xr.DataArray(
+        np.array(distances), dims=("signature", "parameter"),
+        coords={"signature": [" ".join([name] + [f"{k}={x:.4g}" for k, x in sorted(v.items())]) for name, v in entries],
+                "hypothesis": ("signature", [name for name, _ in entries]),
+                "values": ("signature", [json.dumps(v, sort_keys=True) for _, v in entries]),
+                "parameter": list(settings.grids)},
+        attrs={"long_name": "Hellinger distance between the measurement's posterior and a noise-free signature's", "units": "1"},
+    )
+
+
+def _drift_fit(hypothesis: hypotheses.Hypothesis, cal: calibration.Calibration) -> hypotheses.Fit:
+    """A drift of one parameter as a fit: its grid calibration, with the exact evidence by quadrature."""
+    post = cal.posterior
+    return hypotheses.Fit(hypothesis, {hypothesis.effect: post.map}, cal.best_fit, float(np.max(post.log_likelihood)),
+                          cal.chi2_red, _grid_evidence(post), len(post.grid), () if post.consistent() else (hypothesis.effect,))
+
+
+def _sample_and_polish(fit: hypotheses.Fit, data, sigma, values, sampling, channels, settings: Settings):
+    """MCMC of a fault model for its parameters' uncertainty, and the fit again from the chains' best
+    draw when that beats it: stick-slip's misfit has narrow valleys the least squares may miss."""
+    hypothesis = fit.hypothesis
+    idata = _sample_effect(fit, data, sigma, values, sampling, channels, settings)
+    best = _best_draw(idata, hypothesis.parameters)
+    if float(idata.sample_stats["log_likelihood"].max()) > fit.log_likelihood:
+        polished = hypotheses.fit(hypothesis, data, sigma, values, sampling, channels,
+                                  [dict(zip(hypothesis.parameters, best))], settings.max_step, search=False)
+        if polished.log_likelihood > fit.log_likelihood:
+            return idata, polished
+    return idata, fit
+
+
+def _class(hypothesis: hypotheses.Hypothesis) -> str:
+    return {HEALTHY: "healthy", PARAMETER_CHANGE: "parameter_change"}.get(hypothesis.kind, "new_dynamics")
+
+
+def _verdict(fits, calibrations, signatures, settings: Settings, values, sampling, data, sigma) -> dict:
+    """The ranked hypotheses, the verdict, the hypotheses that explain the data equally and the model
+    versions nominal → calibrated → + effect (see the module docstring for the rules)."""
+    names = sorted(fits, key=lambda n: -fits[n].log_evidence)
+    log_z = np.array([fits[n].log_evidence for n in names])
+    confidence = np.exp(log_z - logsumexp(log_z))
+    closest = signatures.mean("parameter")
+
+    def explains(name):
+        fit = fits[name]
+        consistent = fit.hypothesis.kind != PARAMETER_CHANGE or calibrations[fit.hypothesis.effect].posterior.consistent()
+        return fit.chi2_red <= settings.chi2_max and consistent
+
+    ranking = []
+    for name, c in zip(names, confidence):
+        mine = closest.where(signatures["hypothesis"] == name, drop=True)
+        ranking.append({
+            "hypothesis": name, "class": _class(fits[name].hypothesis), "effect": fits[name].hypothesis.effect,
+            "confidence": float(c), "log_evidence": fits[name].log_evidence, "chi2": fits[name].chi2_red,
+            "explains": explains(name), "parameters": _fit_parameters(fits[name], calibrations),
+            "at_bound": list(fits[name].at_bound),
+            "hellinger": float(mine.min()), "closest_signature": str(mine["signature"].values[int(np.argmin(mine.values))]),
+        })
+    top = ranking[0]
+    if top["explains"]:
+        verdict, effect = top["class"], top["effect"]
+        equivalent = [r["effect"] for r in ranking if r["class"] == verdict and r["explains"]
+                      and top["log_evidence"] - r["log_evidence"] <= settings.evidence_margin]
+        after = top["hypothesis"]
+    else:
+        verdict, effect, equivalent = "unexplained", None, []
+        after = min(fits, key=lambda n: fits[n].chi2_red)
+    versions = {"nominal": HEALTHY, "calibrated": _best_of(fits, "parameter_change"), "effect": _best_of(fits, "new_dynamics"),
+                "after": after}
+    result = {
+        "verdict": verdict, "effect": effect, "equivalent": [e for e in equivalent if e is not None],
+        "ranking": ranking, "models": versions,
+        "model_versions": [_version_row(label, fits[versions[key]], data, settings.channels) for key, label in
+                           (("nominal", "nominal"), ("calibrated", "calibrated"), ("effect", "+ effect"))],
+        "chi2_before": fits[HEALTHY].chi2_red, "chi2_after": fits[after].chi2_red,
+        "rmse_before": _rmse(data, fits[HEALTHY].model, settings.channels),
+        "rmse_after": _rmse(data, fits[after].model, settings.channels),
+        "parameters": _fit_parameters(fits[after], calibrations),
+    }
+    if len(result["equivalent"]) > 1:
+        separating = _separating_channels([fits[n] for n in names if fits[n].hypothesis.effect in result["equivalent"]
+                                           and _class(fits[n].hypothesis) == verdict], values, sampling, data, sigma, settings)
+        result["separating_channels"] = separating
+        best = separating[0] if separating else None
+        result["identifiability"] = (
+            f"{', '.join(result['equivalent'])} explain the data equally well through {', '.join(settings.channels)} "
+            f"(log-evidence within {settings.evidence_margin:g} of the best, chi2 <= {settings.chi2_max:g}); "
+            + (f"measuring {best['channel']} at the same SNR would separate them (expected log Bayes factor "
+               f"{best['expected_log_bayes_factor']:.3g} between the closest pair)" if best and best['expected_log_bayes_factor'] > settings.evidence_margin
+               else "no single added channel would separate them")
+        )
+    return result
+
+
+def _best_of(fits, cls: str) -> str:
+    """The hypothesis of class ``cls`` with the highest evidence."""
+    return max((n for n in fits if _class(fits[n].hypothesis) == cls), key=lambda n: fits[n].log_evidence)
+
+
+def _version_row(label: str, fit: hypotheses.Fit, data, channels) -> dict:
+    name = label if label == "nominal" else f"{label} ({fit.hypothesis.effect})"
+    return {"name": name, "hypothesis": fit.hypothesis.name, "chi2": fit.chi2_red, "log_evidence": fit.log_evidence,
+            "log_likelihood": fit.log_likelihood, "rmse": _rmse(data, fit.model, channels), "values": fit.values}
+
+
+def _rmse(data, fit_model, channels) -> dict[str, float]:
+    return dict(zip(channels, np.sqrt(np.mean((data - fit_model) ** 2, axis=-1)).tolist()))
+
+
+def _fit_parameters(fit: hypotheses.Fit, calibrations) -> dict:
+    """Each fitted parameter's MAP, mean, sd and 94 % interval: the grid posterior's for a drift, the
+    Laplace approximation's for a fault model (its MCMC replaces it where the verdict names it)."""
+    if fit.hypothesis.kind == PARAMETER_CHANGE:
+        posterior = calibrations[fit.hypothesis.effect].posterior
+        low, high = posterior.hdi(HDI_PROB)
+        return {fit.hypothesis.effect: {"map": posterior.map, "mean": posterior.mean, "sd": posterior.sd,
+                                        "hdi_low": low, "hdi_high": high, "method": "grid"}}
+    return _laplace_parameters(fit)
+
+
+def _laplace_parameters(fit: hypotheses.Fit) -> dict:
+    """Best fit ± the Laplace approximation (Normal, central 94 % interval)."""
+    if fit.covariance is None:
+        return {}
+    sd = np.sqrt(np.diag(fit.covariance))
+    z = float(np.sqrt(2) * _erfinv(HDI_PROB))
+    return {name: {"map": v, "mean": v, "sd": float(s), "hdi_low": v - z * float(s), "hdi_high": v + z * float(s), "method": "laplace"}
+            for (name, v), s in zip(fit.values.items(), sd)}
+
+
+def _erfinv(p: float) -> float:
+    from scipy.special import erfinv
+
+    return float(erfinv(p))
+
+
+def _separating_channels(equivalent: Sequence[hypotheses.Fit], values, sampling, data, sigma, settings: Settings) -> list[dict]:
+    """Unmeasured channels ranked by how well they would separate the closest pair of ``equivalent``
+    fits: ½ Σ ((m_a − m_b)/σ)², the expected log Bayes factor, with σ at the measurement's SNR."""
+    others = [c for c in model.CHANNELS if c not in settings.channels]
+    if not others:
+        return []
+    snr_db = float(np.mean(20 * np.log10(np.sqrt(np.maximum(np.var(data, axis=-1) - sigma**2, 0)) / sigma)))
+    outputs = [hypotheses.evaluate(f.hypothesis, f.theta[None], values, sampling, others, settings.max_step)[0] for f in equivalent]
+    noise_sd = np.std(outputs[0], axis=-1) * 10 ** (-snr_db / 20)
+    rows = []
+    for i, channel in enumerate(others):
+        pair = min(0.5 * np.sum(((a[i] - b[i]) / noise_sd[i]) ** 2)
+                   for j, a in enumerate(outputs) for b in outputs[j + 1:])
+        rows.append({"channel": channel, "expected_log_bayes_factor": float(pair), "snr_db": snr_db})
+    return sorted(rows, key=lambda r: -r["expected_log_bayes_factor"])
+
+
+def _sample_effect(fit: hypotheses.Fit, data, sigma, values, sampling, channels, settings: Settings):
+    """emcee posterior (InferenceData) of a fault model's parameters, started from its Laplace approximation."""
+    from .sampling import MCMCSettings
+
+    m = settings.mcmc
+    mcmc = MCMCSettings(n_walkers=int(m["walkers"]), n_steps=int(m["steps"]), n_burn=int(m["burn"]), seed=int(m["seed"]),
+                        rhat_max=float(m["rhat_max"]), ess_min=float(m["ess_min"]), move=str(m["move"]))
+    hypothesis = fit.hypothesis
+    variables = [calibration.Variable(p.name, p.low, p.high, p.log_pdf, p.draw, "linear", mirrored=True) for p in hypothesis.priors]
+
+    def log_likelihood(rows):
+        ll = likelihood.log_likelihood(data, hypotheses.evaluate(hypothesis, rows, values, sampling, channels, settings.max_step), sigma)
+        return np.where(np.isnan(ll), -np.inf, ll)
+
+    rng = np.random.default_rng(mcmc.seed)
+    low, high = np.array([[p.low, p.high] for p in hypothesis.priors]).T
+    initial = calibration.draw_inside(lambda n: rng.multivariate_normal(fit.theta, fit.covariance, n), low, high, mcmc.n_walkers)
+    return calibration.sample_posterior(
+        variables, log_likelihood, initial, mcmc, rng,
+        {"y": xr.DataArray(data, dims=("channel", "time"), coords={"channel": list(channels), "time": sampling.times})},
+        {"hypothesis": hypothesis.name, "start": "Laplace approximation at the least-squares fit",
+         "support": {p.name: [p.low, p.high] for p in hypothesis.priors}},
+    )
+
+
+def _best_draw(idata, names) -> np.ndarray:
+    stats = idata.sample_stats["log_likelihood"].values
+    chain, draw = np.unravel_index(np.argmax(stats), stats.shape)
+    return np.array([float(idata.posterior[n].values[chain, draw]) for n in names])
+
+
+def _mcmc_parameters(idata, names) -> dict:
+    import arviz as az
+
+    best = _best_draw(idata, names)
+    rows = {}
+    for name, b in zip(names, best):
+        draws = idata.posterior[name].values.ravel()
+        low, high = az.hdi(draws, hdi_prob=HDI_PROB)
+        rows[name] = {"map": float(b), "mean": float(draws.mean()), "sd": float(draws.std(ddof=1)),
+                      "hdi_low": float(low), "hdi_high": float(high), "method": "mcmc"}
+    return rows
+
+
+def _write_rows(path, header, rows) -> None:
+    import csv
+
+    with open(path, "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(header)
+        writer.writerows(rows)
+
+
+def _attr(value):
+    return value.item() if isinstance(value, np.generic) else value
+
+
+VERSION_COLUMNS = ("version", "hypothesis", "chi2_red", "log_evidence")
+
+
+def write(diagnosis: Diagnosis, verdict_path, table_path, netcdf_path, mcmc_path, settings_json: str, code_hash: str) -> None:
+    """Write the verdict (JSON), the model versions' errors (CSV: χ², log-evidence, RMSE per channel),
+    the data, model versions, posteriors and signature distances (NetCDF) and the effect model's MCMC
+    posterior (ArviZ NetCDF); each file atomically."""
+    from . import provenance, sampling
+
+    m = diagnosis.measurement
+    stamp = provenance.attributes(code_hash)
+    verdict = {"measurement": m.name, **diagnosis.verdict, "channels": list(diagnosis.channels),
+               "settings": json.loads(settings_json), **stamp}
+    io.atomic_write(verdict_path, lambda tmp: open(tmp, "w").write(json.dumps(verdict, indent=1, default=_attr) + "\n"))
+    rmse_columns = [f"rmse_{c}" for c in diagnosis.channels]
+    rows = [[row["name"], row["hypothesis"], row["chi2"], row["log_evidence"], *row["rmse"].values()]
+            for row in diagnosis.verdict["model_versions"]]
+    io.atomic_write(table_path, lambda tmp: _write_rows(tmp, [*VERSION_COLUMNS, *rmse_columns], rows))
+
+    times = m.sampling.times
+    ds = xr.Dataset(
+        {
+            "y": (("channel", "time"), diagnosis.data),
+            "sigma": ("channel", diagnosis.sigma),
+            "model": (("version", "channel", "time"), np.stack(list(diagnosis.versions.values()))),
+            "hellinger": diagnosis.signatures,
+        },
+        coords={"channel": list(diagnosis.channels), "time": times, "version": list(diagnosis.versions),
+                "hypothesis_of_version": ("version", [diagnosis.verdict["models"][v] for v in diagnosis.versions])},
+        attrs={"title": f"newdyn diagnosis of {m.name}", "measurement": m.name, "verdict": diagnosis.verdict["verdict"],
+               "load_freq": float(m.operating["load_freq"]), "fs": float(m.sampling.fs), "noise_source": diagnosis.noise_source,
+               "settings": settings_json, **stamp},
+    )
+    for p, cal in diagnosis.calibrations.items():
+        post = cal.posterior
+        ds[f"posterior_{p}"] = (f"grid_{p}", post.density)
+        ds[f"prior_{p}"] = (f"grid_{p}", post.prior_density)
+        ds[f"scaled_likelihood_{p}"] = (f"grid_{p}", post.scaled_likelihood)
+        ds = ds.assign_coords({f"grid_{p}": post.grid})
+    io.write_netcdf(ds, netcdf_path)
+    sampling.save(diagnosis.effect_mcmc, mcmc_path)

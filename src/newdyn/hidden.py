@@ -1,0 +1,314 @@
+"""Blind test: hidden cases drawn from a seed, written without their truth, scored after diagnosis.
+
+A hidden set is ``cases`` measurements drawn from ``seed``: healthy rigs, pure parameter changes of a
+random rig parameter and size, and every library fault kind at a random severity, in equal shares.
+:func:`draw_cases` draws them, :func:`write_truth` puts the truth into the set's only file that holds
+it, :func:`write_case_measurement` writes each case as a measurement file with nothing but the signal,
+the operating condition and provenance (no scenario, fault, class, parameter value or noise level),
+and :func:`score` compares the diagnoses' verdicts with the truth.
+
+Default severity ranges (``hidden.faults`` in config/config.yaml), measured on the default rig at 40 dB over the
+default window (b1_x and w1, 5000 samples each); "residual" is the reduced-χ² excess (mean over the
+two channels) left by the best single-parameter drift (kT1, kT2, kT3 or k_bx, each fitted freely):
+
+* stick_slip T_max [1850, 2070] N·m, r_k [0.9, 1.0]: the healthy interface torque peaks at 2109 N·m
+  (1.307 T0), so every draw slips at each load peak.  Hardest corner T_max 2070, r_k 1: w1 differs
+  from healthy by 1.9-2.1 σ RMS, residual 1.8-2.2 (kT3 fits best); the effect collapses to 0.3-0.6
+  at 2090 N·m, so the range stops short of it.  Easiest corner (1850, 0.9): w1 off by ~170 σ.
+* breathing_crack alpha [0.15, 0.5]: w1 off by 1.8 σ, residual 0.69 (kT3 −8 % fits best) at 0.15;
+  residual 31 at 0.5.  Lower alphas are mostly a mean kT3 loss (0.27 at 0.1).
+* cubic_coupling gamma [0.05, 0.5]: w1 off by 4.5 σ but residual only 0.73 at 0.05 (any kT drift
+  stiffens alike); the residual saturates at 1.7 for gamma 0.1-0.5 (1.1 at 1.0, as the coupling
+  turns into a stiffer linear one): the hardest kind at every severity.
+* loose_bearing gap [2e-9, 2e-8] m: b1_x off by 2.2 σ, residual 0.66 (k_bx −2 %) at 2e-9; 35 at 2e-8.
+
+Two-parameter drifts (any pair of kT1, kT2, kT3, k_bx, k_s, beta) lower those residuals by < 10 %
+(stick-slip at its hardest: 1.8 -> 1.2 with kT2 + beta); no other fault kind fits a drawn fault better
+than its best drift.  The RK4 step error is < 1e-2 σ everywhere.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from . import faults, io, model, noise, provenance, simulation
+from .diagnosis import VERDICTS
+
+FAULT_CLASSES = tuple(kind for kind in faults.FAULT_KINDS if kind != "parameter_change")
+CLASSES = ("healthy", "parameter_change", *FAULT_CLASSES)
+PREDICTED_LABELS = (*CLASSES, "unexplained")
+MAX_DRAWS = 1000  # tries per case before a range is declared to admit no valid draw
+CHI2_MAX = 1.1  # a fault's fit explains the data when its reduced χ² is at most this
+
+# ----------------------------------------------------------------------------------------- drawing
+
+
+def draw_cases(hidden: Mapping, set_name: str, base_values: Mapping[str, float]) -> list[dict]:
+    """The cases of hidden set ``set_name``, deterministic from the set's seed.
+
+    Each case is ``{"name": "<set>_01", "class", "scenario": {"overrides", "fault"?}, "truth",
+    "noise_seed"}``; ``scenario`` goes to :func:`faults.scenario_values`, ``truth`` holds the drifted
+    parameter and its value, or the fault's drawn parameters (stick_slip also ``J2a_share``).
+    Classes come in equal shares (the remainder to classes picked by the seed), shuffled.
+    A draw that is not admissible on ``base_values`` is redrawn from the same stream.
+    """
+    if set_name not in hidden["sets"]:
+        raise KeyError(f"no hidden set '{set_name}' (known: {', '.join(hidden['sets'])})")
+    spec = hidden["sets"][set_name]
+    n, seed = int(spec["cases"]), int(spec["seed"])
+    classes = list(hidden["classes"])
+    base = model.complete(base_values)
+    # One stream shuffles the classes, one per case draws it: a case's draw does not depend on how
+    # often another case had to be redrawn.
+    streams = [np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(n + 1)]
+    order = list(streams[0].permutation(classes))
+    labels = [str(c) for c in streams[0].permutation((order * (n // len(classes) + 1))[:n])]
+    width = max(2, len(str(n)))
+    return [
+        {"name": f"{set_name}_{i + 1:0{width}d}", "class": label, **_draw(label, hidden, base, rng),
+         "noise_seed": int(rng.integers(0, 2**31 - 1))}
+        for i, (label, rng) in enumerate(zip(labels, streams[1:]))
+    ]
+
+
+def _draw(label: str, hidden: Mapping, base: Mapping[str, float], rng: np.random.Generator) -> dict:
+    """Scenario and truth of one case of class ``label``, redrawn until admissible."""
+    if label == "healthy":
+        return {"scenario": {"overrides": {}}, "truth": {}}
+    problems: list = []
+    for _ in range(MAX_DRAWS):
+        if label == "parameter_change":
+            drift = hidden["parameter_change"]
+            name = str(rng.choice(drift["parameters"]))
+            relative = float(rng.uniform(*drift["relative"])) * (1.0 if rng.random() < 0.5 else -1.0)
+            value = base[name] * (1.0 + relative)
+            problem = model.PARAMETER_BY_NAME[name].problem(value)
+            problems = [(name, problem)] if problem else []
+            if not problems:
+                return {"scenario": {"overrides": {}, "fault": {"kind": "parameter_change", "parameters": {name: value}}},
+                        "truth": {name: value}}
+        else:
+            ranges = hidden["faults"][label]
+            drawn = {name: float(rng.uniform(*ranges[name])) for name in sorted(ranges)}
+            parameters = {k: v for k, v in drawn.items() if k != faults.J2A_SHARE}
+            overrides = {}
+            if faults.J2A_SHARE in drawn:
+                total = base["J2a"] + base["J2b"]
+                overrides = {"J2a": drawn[faults.J2A_SHARE] * total, "J2b": total - drawn[faults.J2A_SHARE] * total}
+                problems = [(faults.J2A_SHARE, f"must lie in (0, 1) (got {drawn[faults.J2A_SHARE]:g})")] if not 0.0 < drawn[faults.J2A_SHARE] < 1.0 else []
+            else:
+                problems = []
+            problems += faults.fault_problems(label, parameters, {**base, **overrides})
+            if not problems:
+                return {"scenario": {"overrides": overrides, "fault": {"kind": label, "parameters": parameters}},
+                        "truth": drawn}
+    raise ValueError(f"hidden {label}: no admissible draw in {MAX_DRAWS} tries, last problem: {problems[0]}")
+
+
+def case_values(case: Mapping, base_values: Mapping[str, float]) -> dict[str, float]:
+    """All model parameter values of a case."""
+    return faults.scenario_values(case["scenario"], base_values)
+
+
+# ----------------------------------------------------------------------------------------- files
+
+
+def write_truth(cases: Sequence[Mapping], path: str | os.PathLike, code_hash: str = "") -> None:
+    """Write the cases with their truth (the only file that holds it) as JSON, atomically."""
+    document = {"cases": list(cases), **provenance.attributes(code_hash)}
+    io.atomic_write(path, lambda tmp: _write_json(tmp, document))
+
+
+def read_truth(path: str | os.PathLike) -> list[dict]:
+    """The cases written by :func:`write_truth`."""
+    with open(path) as f:
+        return json.load(f)["cases"]
+
+
+def write_case_measurement(
+    case: Mapping,
+    base_values: Mapping[str, float],
+    sampling: model.Sampling,
+    snr_db: float,
+    output: str | os.PathLike,
+    code_hash: str = "",
+    max_step: float = simulation.DEFAULT_MAX_STEP,
+) -> None:
+    """Simulate every channel of ``case``, add noise at ``snr_db`` from its noise seed, and write a
+    measurement file that carries the signal, the operating condition and provenance, nothing else:
+    no scenario, class, parameter value or noise level (σ or SNR)."""
+    values = case_values(case, base_values)
+    clean = simulation.simulate(values, sampling, model.CHANNELS, max_step)
+    noisy, _ = noise.add_noise(clean, model.CHANNELS, snr_db, int(case["noise_seed"]))
+    attrs = {"title": f"newdyn blind-test measurement {case['name']}", **provenance.attributes(code_hash)}
+    operating = {name: values[name] for name in model.OPERATING_PARAMETERS}
+    io.write_netcdf(io.measurement_dataset(noisy, model.CHANNELS, sampling, operating, attrs), output)
+
+
+# ----------------------------------------------------------------------------------------- scoring
+
+
+def predicted_label(verdict: Mapping) -> str:
+    """The class a verdict names: healthy, parameter_change, a fault kind, or unexplained."""
+    kind = verdict.get("verdict")
+    if kind in ("healthy", "parameter_change", "unexplained"):
+        return kind
+    if kind == "new_dynamics":
+        if verdict.get("effect") not in FAULT_CLASSES:
+            raise ValueError(f"verdict new_dynamics names no library fault kind (effect {verdict.get('effect')!r})")
+        return verdict["effect"]
+    raise ValueError(f"unknown verdict {kind!r} (known: {', '.join(VERDICTS)})")
+
+
+def is_correct(case: Mapping, verdict: Mapping) -> bool:
+    """Top-1 rule: the verdict names the case's class, and for a parameter change the drifted
+    parameter or one the verdict declares equivalent (unidentifiable from the measured channels)."""
+    label = predicted_label(verdict)
+    if case["class"] != "parameter_change":
+        return label == case["class"]
+    named = {verdict.get("effect"), *(verdict.get("equivalent") or [])}
+    return label == "parameter_change" and _drifted(case) in named
+
+
+def _drifted(case: Mapping) -> str:
+    (name,) = case["truth"]
+    return name
+
+
+def score(cases: Sequence[Mapping], verdicts: Mapping[str, Mapping], chi2_max: float = CHI2_MAX) -> dict:
+    """Score the verdicts (parsed ``verdict.json``, by case name) against the cases' truth.
+
+    Returns the per-case ``rows``, the ``confusion`` matrix (truth class × predicted label), top-1
+    ``accuracy`` overall and ``per_class``, the fitted-parameter errors of the correctly identified
+    cases (``parameter_errors``: relative error of the posterior mean, truth inside the 94 % HDI) and
+    ``fault_fit``: how many correctly identified fault cases the fault's fit explains (χ²_red ≤ chi2_max).
+    """
+    missing = [case["name"] for case in cases if case["name"] not in verdicts]
+    if missing:
+        raise ValueError(f"no verdict for hidden case(s) {', '.join(missing)}: not diagnosed")
+    truth_classes = [c for c in CLASSES if any(case["class"] == c for case in cases)]
+    counts = np.zeros((len(truth_classes), len(PREDICTED_LABELS)), dtype=int)
+    rows, errors = [], []
+    for case in cases:
+        verdict = verdicts[case["name"]]
+        try:
+            label = predicted_label(verdict)
+        except ValueError as exc:
+            raise ValueError(f"hidden case {case['name']}: {exc}") from None
+        correct = is_correct(case, verdict)
+        counts[truth_classes.index(case["class"]), PREDICTED_LABELS.index(label)] += 1
+        rows.append({
+            "name": case["name"], "class": case["class"], "truth": dict(case["truth"]),
+            "verdict": verdict["verdict"], "effect": verdict.get("effect"), "equivalent": list(verdict.get("equivalent") or []),
+            "predicted": label, "correct": correct,
+            "chi2_before": _float(verdict.get("chi2_before")), "chi2_after": _float(verdict.get("chi2_after")),
+        })
+        if correct:
+            errors += _parameter_errors(case, verdict)
+    per_class = {}
+    for c in truth_classes:
+        hits = [row["correct"] for row in rows if row["class"] == c]
+        per_class[c] = {"cases": len(hits), "correct": sum(hits), "accuracy": sum(hits) / len(hits)}
+    fault_rows = [row for row in rows if row["correct"] and row["class"] in FAULT_CLASSES]
+    explained = sum(1 for row in fault_rows if row["chi2_after"] is not None and row["chi2_after"] <= chi2_max)
+    covered = [e["in_hdi"] for e in errors if e["in_hdi"] is not None]
+    n_correct = sum(row["correct"] for row in rows)
+    return {
+        "cases": len(rows),
+        "correct": n_correct,
+        "accuracy": n_correct / len(rows) if rows else None,
+        "per_class": per_class,
+        "confusion": {"truth": truth_classes, "predicted": list(PREDICTED_LABELS), "counts": counts.tolist()},
+        "rows": rows,
+        "parameter_errors": errors,
+        "hdi_coverage": sum(covered) / len(covered) if covered else None,
+        "fault_fit": {"cases": len(fault_rows), "explained": explained, "chi2_max": chi2_max,
+                      "fraction": explained / len(fault_rows) if fault_rows else None},
+    }
+
+
+def _parameter_errors(case: Mapping, verdict: Mapping) -> list[dict]:
+    """Fitted vs true value of each truth parameter the verdict's fit (or, for a parameter change,
+    its ranking entry of the true parameter) estimated; truth parameters it did not fit are left out."""
+    if not case["truth"]:  # healthy
+        return []
+    if case["class"] == "parameter_change":
+        name = _drifted(case)
+        entry = next((r for r in verdict.get("ranking") or [] if r.get("hypothesis") == f"parameter_change:{name}"), None)
+        fitted, source = (entry.get("parameters") or {}, f"ranking parameter_change:{name}") if entry else (verdict.get("parameters") or {}, "verdict")
+        aliases = {name: (name,)}
+    else:
+        fitted, source = verdict.get("parameters") or {}, "verdict"
+        slots = faults.FAULT_KINDS[case["class"]].slots
+        aliases = {name: (name, slots.get(name, name)) for name in case["truth"]}
+    errors = []
+    for name, truth in case["truth"].items():
+        summary = next((fitted[a] for a in aliases.get(name, ()) if a in fitted), None)
+        if summary is None or _float(summary.get("mean")) is None:
+            continue
+        mean, low, high = _float(summary.get("mean")), _float(summary.get("hdi_low")), _float(summary.get("hdi_high"))
+        errors.append({
+            "case": case["name"], "class": case["class"], "parameter": name, "truth": float(truth),
+            "mean": mean, "sd": _float(summary.get("sd")), "hdi_low": low, "hdi_high": high,
+            "relative_error": (mean - truth) / abs(truth) if truth != 0 else None,
+            "in_hdi": None if low is None or high is None else bool(low <= truth <= high),
+            "source": source,
+        })
+    return errors
+
+
+def _float(value) -> float | None:
+    """A number from a verdict, None when absent or not finite."""
+    if value is None or isinstance(value, bool):
+        return None
+    value = float(value)
+    return value if math.isfinite(value) else None
+
+
+CSV_COLUMNS = ("name", "class", "truth", "verdict", "effect", "equivalent", "predicted", "correct",
+               "chi2_before", "chi2_after", "parameter_errors")
+
+
+def write_score(result: Mapping, json_path: str | os.PathLike, csv_path: str | os.PathLike, code_hash: str = "") -> None:
+    """Write the score as JSON (with provenance) and its per-case rows as CSV, each atomically."""
+    io.atomic_write(json_path, lambda tmp: _write_json(tmp, {**result, **provenance.attributes(code_hash)}))
+    by_case: dict[str, list] = {}
+    for e in result["parameter_errors"]:
+        by_case.setdefault(e["case"], []).append(
+            {k: e[k] for k in ("parameter", "truth", "mean", "relative_error", "in_hdi")})
+    table = [
+        {**row, "truth": json.dumps(row["truth"], sort_keys=True), "equivalent": ";".join(row["equivalent"]),
+         "effect": row["effect"] or "", "chi2_before": _cell(row["chi2_before"]), "chi2_after": _cell(row["chi2_after"]),
+         "parameter_errors": json.dumps(by_case.get(row["name"], []))}
+        for row in result["rows"]
+    ]
+    io.atomic_write(csv_path, lambda tmp: _write_csv(tmp, table))
+
+
+def _cell(value) -> str:
+    return "" if value is None else repr(float(value))
+
+
+def _write_json(path: str, document) -> None:
+    with open(path, "w") as f:
+        json.dump(document, f, indent=2, allow_nan=False, default=_jsonable)
+        f.write("\n")
+
+
+def _jsonable(value):
+    if isinstance(value, np.generic):
+        return value.item()
+    raise TypeError(f"{type(value).__name__} is not JSON serializable")
+
+
+def _write_csv(path: str, rows: list[dict]) -> None:
+    with open(path, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=CSV_COLUMNS)
+        writer.writeheader()
+        writer.writerows(rows)

@@ -1,0 +1,131 @@
+"""Diagnosis of a measurement against known truths, on the short record of the CI config (0.1 s)."""
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from newdyn import calibration, diagnosis, hypotheses, io, likelihood, model, noise, simulation
+
+ROOT = Path(__file__).resolve().parents[1]
+CONFIG = yaml.safe_load((ROOT / ".test" / "config.yaml").read_text())
+SETTINGS = diagnosis.Settings.from_config(CONFIG)
+SAMPLING = model.Sampling(fs=5000.0, t_first=0.5, n_samples=500)
+CHANNELS = ("b1_x", "w1", "torque_c")
+STICK_SLIP = {"T_max": 1854.95, "r_k": 1.0}
+
+
+def measurement(name, truth, seed=1, snr_db=40.0, known_sigma=True):
+    clean = simulation.simulate(model.complete(truth), SAMPLING, CHANNELS)
+    y, sigma = noise.add_noise(clean, CHANNELS, snr_db, seed)
+    operating = {k: model.DEFAULTS[k] for k in model.OPERATING_PARAMETERS}
+    return io.Measurement(name, CHANNELS, y, SAMPLING, operating, sigma if known_sigma else None)
+
+
+@pytest.fixture(scope="module")
+def diagnosed():
+    cases = {"healthy": {}, "kT1_up": {"kT1": 3.25e6}, "stick_slip": STICK_SLIP}
+    return {name: diagnosis.diagnose(measurement(name, truth), SETTINGS) for name, truth in cases.items()}
+
+
+def test_healthy_rig_is_healthy(diagnosed):
+    v = diagnosed["healthy"].verdict
+    assert v["verdict"] == "healthy" and v["effect"] is None
+    assert v["ranking"][0]["hypothesis"] == "healthy" and v["chi2_before"] == v["chi2_after"] < 1.1
+
+
+def test_a_stiffer_motor_shaft_is_a_parameter_change_and_its_equivalents_are_named(diagnosed):
+    v = diagnosed["kT1_up"].verdict
+    assert v["verdict"] == "parameter_change" and "kT1" in v["equivalent"]
+    assert v["chi2_before"] > 1.1 >= v["chi2_after"]
+    kT1 = next(r for r in v["ranking"] if r["hypothesis"] == "parameter_change:kT1")
+    assert kT1["parameters"]["kT1"]["mean"] == pytest.approx(3.25e6, rel=0.01)
+    assert kT1["parameters"]["kT1"]["hdi_low"] < 3.25e6 < kT1["parameters"]["kT1"]["hdi_high"]
+    if len(v["equivalent"]) > 1:  # seen through b1_x and w1 only, shaft stiffnesses trade off
+        assert all(name in v["identifiability"] for name in v["equivalent"])
+        assert v["separating_channels"][0]["channel"] not in SETTINGS.channels
+    confidences = [r["confidence"] for r in v["ranking"]]
+    assert sum(confidences) == pytest.approx(1.0) and confidences == sorted(confidences, reverse=True)
+
+
+def test_stick_slip_is_new_dynamics_and_adding_it_brings_chi2_to_the_noise(diagnosed):
+    d = diagnosed["stick_slip"]
+    v = d.verdict
+    assert (v["verdict"], v["effect"]) == ("new_dynamics", "stick_slip")
+    assert v["chi2_before"] > 10 and v["chi2_after"] <= 1.1
+    assert v["where_it_fails"] and all(f["channel"] in SETTINGS.channels for f in v["where_it_fails"])
+    assert set(v["parameters"]) == {"T_max", "r_k", "J2a_share", "kT1"}
+    assert all(p["hdi_low"] <= p["mean"] <= p["hdi_high"] for p in v["parameters"].values())
+    assert v["parameters"]["T_max"]["mean"] == pytest.approx(1854.95, rel=0.05)
+    # every RMSE falls and the final one sits at the noise
+    for channel, sigma in zip(SETTINGS.channels, d.sigma):
+        assert v["rmse_after"][channel] < v["rmse_before"][channel]
+        assert v["rmse_after"][channel] == pytest.approx(sigma, rel=0.1)
+    assert list(d.versions) == ["nominal", "calibrated", "effect", "after"]
+
+
+def test_the_noise_level_is_inferred_from_the_noise_floor_when_the_file_has_none():
+    m = measurement("no_sigma", {}, known_sigma=False)
+    rows = [CHANNELS.index(c) for c in SETTINGS.channels]
+    sigma, source = diagnosis.noise_level(m, rows, SETTINGS.noise_band_hz)
+    _, true_sigma = noise.add_noise(simulation.simulate({}, SAMPLING, CHANNELS), CHANNELS, 40.0, 1)
+    np.testing.assert_allclose(sigma, true_sigma[rows], rtol=0.15)  # 500 samples: ~4.5 % standard error
+    assert "noise floor" in source
+
+
+def test_a_measurement_without_a_diagnosis_channel_is_refused():
+    m = measurement("short", {})
+    m = io.Measurement(m.name, ("b1_x",), m.y[:1], m.sampling, m.operating, m.sigma[:1])
+    with pytest.raises(io.MeasurementError, match="no channel w1"):
+        diagnosis.diagnose(m, SETTINGS)
+
+
+def test_laplace_evidence_of_a_drift_agrees_with_exact_quadrature():
+    """One Normal-prior parameter, posterior well inside the prior: Laplace is nearly exact."""
+    m = measurement("kT1", {"kT1": 3.1e6}, seed=4)
+    data, sigma = m.y[:2], m.sigma[:2]
+    channels = CHANNELS[:2]
+    spec, prior = SETTINGS.grids["kT1"], SETTINGS.priors["kT1"]
+    values = model.complete({})
+    coarse = calibration.simulate_grid(values, "kT1", spec.axis, SAMPLING, channels)
+    exact = diagnosis._grid_evidence(calibration.calibrate(data, sigma, spec, prior, coarse, values, SAMPLING, channels, 41, 1.1).posterior)
+    drift = next(h for h in SETTINGS.hypotheses() if h.name == "parameter_change:kT1")
+    fit = hypotheses.fit(drift, data, sigma, values, SAMPLING, channels)
+    assert fit.values["kT1"] == pytest.approx(3.1e6, rel=0.01)
+    assert fit.log_evidence == pytest.approx(exact, abs=0.5)
+    healthy = hypotheses.fit(hypotheses.Hypothesis("healthy", "healthy"), data, sigma, values, SAMPLING, channels)
+    assert healthy.log_evidence == healthy.log_likelihood == pytest.approx(
+        float(likelihood.log_likelihood(data, simulation.simulate(values, SAMPLING, channels), sigma)))
+
+
+def test_a_fault_fit_recovers_the_truth_and_reports_the_values_the_model_ran_with():
+    truth = {"T_max": 1950.0, "r_k": 0.95}
+    m = measurement("stick", truth, seed=2)
+    stick = next(h for h in SETTINGS.hypotheses() if h.name == "stick_slip")
+    fit = hypotheses.fit(stick, m.y[:2], m.sigma[:2], model.complete({}), SAMPLING, CHANNELS[:2])
+    at_truth = hypotheses.fit(stick, m.y[:2], m.sigma[:2], model.complete({}), SAMPLING, CHANNELS[:2],
+                              [{"T_max": 1950.0, "r_k": 0.95, "J2a_share": 1 / 3, "kT1": 3e6}], search=False)
+    # 0.1 s holds one load cycle: a neighbouring local minimum may hold the fit (the diagnosis
+    # polishes it from its MCMC chains), but within the noise of the truth's misfit
+    assert fit.chi2_red < at_truth.chi2_red + 0.05
+    assert fit.values["T_max"] * fit.values["r_k"] == pytest.approx(1950.0 * 0.95, rel=0.01)  # the slipping torque
+    assert fit.values["J2a_share"] == pytest.approx(1 / 3, abs=0.1)
+    rows = stick.parameter_rows(fit.theta[None], model.complete({}))
+    assert rows[0, model.PARAMETER_INDEX["J2a"]] + rows[0, model.PARAMETER_INDEX["J2b"]] == pytest.approx(0.15)
+    # below the stall limit r_k·T_max = T0 the model runs with r_k raised to it
+    stalled = stick.parameter_rows(np.array([[1700.0, 0.6, 0.3, 3e6]]), model.complete({}))[0]
+    assert stalled[model.PARAMETER_INDEX["r_k"]] * 1700.0 == pytest.approx(model.DEFAULTS["T0"] * (1 + hypotheses.STALL_MARGIN))
+
+
+def test_a_parameter_the_data_ignore_costs_at_most_a_nat_of_evidence():
+    """Its uniform prior keeps its width in the Laplace approximation: no spurious Occam factor."""
+    m = measurement("healthy", {}, seed=3)
+    data, sigma, values = m.y[:2], m.sigma[:2], model.complete({})
+    drift = next(h for h in SETTINGS.hypotheses() if h.name == "parameter_change:kT1")
+    ignored = hypotheses.Hypothesis("ignored", "parameter_change", drift.priors + (hypotheses.Prior("crack_alpha", 0.0, 1e-12),))
+    base = hypotheses.fit(drift, data, sigma, values, SAMPLING, CHANNELS[:2])
+    extra = hypotheses.fit(ignored, data, sigma, values, SAMPLING, CHANNELS[:2])
+    assert extra.log_likelihood == pytest.approx(base.log_likelihood, abs=0.05)
+    assert abs(extra.log_evidence - base.log_evidence) < 1.1  # ½ log(2π/12), and log 2 if it sits at a bound

@@ -1,0 +1,67 @@
+# Diagnosis of one measurement (a user's file, or a hidden set's): verdict, model versions, figures.
+# The same rules serve both; {root} is "results" for measurements/<name>, "results/<set>" for hidden sets.
+wildcard_constraints:
+    root="|".join(["results"] + [f"results/{name}" for name in HIDDEN_SETS]),
+    name=r"[A-Za-z0-9_.-]+",
+
+
+rule diagnose:
+    input:
+        measurement=measurement_file,
+        grids=study_grids,
+    output:
+        verdict="{root}/diagnosis/{name}/verdict.json",
+        table=report(
+            "{root}/diagnosis/{name}/model_versions.csv",
+            caption="../report/diagnosis_table.rst",
+            category="4 Diagnosis",
+            subcategory="{name}",
+            labels={"measurement": "{name}", "figure": "model versions (table)"},
+        ),
+        netcdf="{root}/diagnosis/{name}/diagnosis.nc",
+        mcmc="{root}/diagnosis/{name}/effect_mcmc.nc",
+    log:
+        "{root}/logs/diagnose/{name}.log",
+    benchmark:
+        "{root}/benchmarks/diagnose/{name}.tsv"
+    conda:
+        "../envs/newdyn.yaml"
+    threads: 2
+    params:
+        spec=diagnosis_spec,
+        code=DIAGNOSIS_CODE,
+    shell:
+        "NUMBA_NUM_THREADS={threads} OPENBLAS_NUM_THREADS={threads} newdyn diagnose --measurement {input.measurement} "
+        "--grids {input.grids} --spec {params.spec:q} --code-hash {params.code} --verdict {output.verdict} --table {output.table} "
+        "--netcdf {output.netcdf} --mcmc {output.mcmc} > {log} 2>&1"
+
+
+rule plot_diagnosis:
+    input:
+        verdict="{root}/diagnosis/{name}/verdict.json",
+        netcdf="{root}/diagnosis/{name}/diagnosis.nc",
+        mcmc="{root}/diagnosis/{name}/effect_mcmc.nc",
+    output:
+        **{
+            figure: report(
+                f"{{root}}/diagnosis/{{name}}/figures/{figure}.png",
+                caption=f"../report/diagnosis_{figure}.rst",
+                category="4 Diagnosis",
+                subcategory="{name}",
+                labels={"measurement": "{name}", "figure": figure},
+            )
+            for figure in DIAGNOSIS_FIGURES
+        },
+        **{f"{figure}_pdf": f"{{root}}/diagnosis/{{name}}/figures/{figure}.pdf" for figure in DIAGNOSIS_FIGURES},
+    log:
+        "{root}/logs/plot_diagnosis/{name}.log",
+    benchmark:
+        "{root}/benchmarks/plot_diagnosis/{name}.tsv"
+    conda:
+        "../envs/newdyn.yaml"
+    params:
+        code=PLOT_CODE,
+    shell:
+        "newdyn plot-diagnosis --verdict {input.verdict} --netcdf {input.netcdf} --mcmc {input.mcmc} "
+        "--overlays {output.overlays} --residuals {output.residuals} --hypotheses {output.hypotheses} "
+        "--error-fall {output.error_fall} --effect-mcmc {output.effect_mcmc} --code-hash {params.code} > {log} 2>&1"

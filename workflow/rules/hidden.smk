@@ -1,0 +1,70 @@
+# Hidden-effect measurements: drawn from a seed (the truth goes into one file only), written as
+# measurement files without it, diagnosed by the same rules as a user's file, and only then scored.
+wildcard_constraints:
+    set="|".join(HIDDEN_SETS),
+
+
+rule hidden_draw:
+    output:
+        "results/{set}/truth.json",
+    log:
+        "results/logs/hidden_draw/{set}.log",
+    conda:
+        "../envs/newdyn.yaml"
+    params:
+        spec=hidden_spec,
+        code=HIDDEN_CODE,
+    shell:
+        "newdyn hidden-draw --spec {params.spec:q} --code-hash {params.code} --output {output} > {log} 2>&1"
+
+
+rule hidden_measurement:
+    input:
+        "results/{set}/truth.json",
+    output:
+        "results/{set}/measurements/{name}.nc",
+    log:
+        "results/logs/hidden_measurement/{set}/{name}.log",
+    benchmark:
+        "results/benchmarks/hidden_measurement/{set}/{name}.tsv"
+    conda:
+        "../envs/newdyn.yaml"
+    params:
+        spec=hidden_spec,
+        code=HIDDEN_CODE,
+    shell:
+        "NUMBA_NUM_THREADS={threads} OPENBLAS_NUM_THREADS={threads} newdyn hidden-measurement --truth {input} --case {wildcards.name} "
+        "--spec {params.spec:q} --code-hash {params.code} --output {output} > {log} 2>&1"
+
+
+rule hidden_score:
+    input:
+        truth="results/{set}/truth.json",
+        verdicts=lambda wildcards: expand(
+            "results/{set}/diagnosis/{name}/verdict.json", set=wildcards.set, name=hidden_cases(wildcards.set)
+        ),
+    output:
+        score="results/{set}/score.json",
+        table=report(
+            "results/{set}/cases.csv",
+            caption="../report/hidden_table.rst",
+            category="5 Blind test",
+            subcategory="{set}",
+        ),
+        png=report(
+            "results/{set}/blind_test.png",
+            caption="../report/hidden_score.rst",
+            category="5 Blind test",
+            subcategory="{set}",
+        ),
+        pdf="results/{set}/blind_test.pdf",
+    log:
+        "results/logs/hidden_score/{set}.log",
+    conda:
+        "../envs/newdyn.yaml"
+    params:
+        chi2_max=config["calibration"]["chi2_max"],
+        code=SCORE_CODE,
+    shell:
+        "newdyn hidden-score --truth {input.truth} --chi2-max {params.chi2_max} --code-hash {params.code} "
+        "--output {output.score} --table {output.table} --figure {output.png} {input.verdicts} > {log} 2>&1"
