@@ -1,5 +1,6 @@
 """Measurement files (shared/spec/measurements.md): round trips, and one clear line for every bad file."""
 
+import json
 import os
 
 import numpy as np
@@ -7,7 +8,7 @@ import pytest
 import xarray as xr
 
 from newdyn import model
-from newdyn.io import MeasurementError, measurement_dataset, read_measurement, write_netcdf
+from newdyn.io import MeasurementError, measurement_dataset, read_measurement, write_csv, write_json, write_netcdf
 
 SAMPLING = model.Sampling(fs=5000.0, t_first=0.5, n_samples=600)
 CHANNELS = ["b1_x", "w1"]
@@ -125,3 +126,16 @@ def test_written_files_get_ordinary_permissions(tmp_path):
     umask = os.umask(0)
     os.umask(umask)
     assert (tmp_path / "m.nc").stat().st_mode & 0o777 == 0o666 & ~umask
+
+
+def test_json_is_strict_with_numpy_scalars_and_non_finite_numbers_as_null(tmp_path):
+    write_json(tmp_path / "v.json", {"chi2": np.float64(1.02), "ok": np.bool_(True), "rhat": float("nan"),
+                                     "rows": [{"z": -np.inf, "n": np.int64(3)}]})
+    text = (tmp_path / "v.json").read_text()
+    assert "NaN" not in text and "Infinity" not in text
+    assert json.loads(text) == {"chi2": 1.02, "ok": True, "rhat": None, "rows": [{"z": None, "n": 3}]}
+
+
+def test_csv_rows_by_column_name(tmp_path):
+    write_csv(tmp_path / "t.csv", ["a", "b"], [{"a": 1, "b": "x"}, {"b": "y", "a": 2.5}])
+    assert (tmp_path / "t.csv").read_text().splitlines() == ["a,b", "1,x", "2.5,y"]

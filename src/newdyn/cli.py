@@ -265,7 +265,7 @@ def summarize(paths: list[str], output: str) -> None:
             with xr.open_dataset(path, engine="netcdf4") as ds:
                 results.append({**ds.attrs, "grid": ds["grid"].values, "posterior": ds["posterior"].values})
     rows = calibration.summary_rows(results)
-    io.atomic_write(output, lambda tmp: _write_csv(tmp, calibration.SUMMARY_COLUMNS, rows))
+    io.write_csv(output, calibration.SUMMARY_COLUMNS, rows)
     log.info("summarized %d calibrations into %s", len(rows), output)
 
 
@@ -371,15 +371,6 @@ def score_hidden(truth: str, verdict_paths: list[str], output: str, table: str, 
     plots.blind_test_figure(result, figure, f"hidden set {name}: top-1 {result['accuracy']:.0%} of {result['cases']}",
                             code_hash, [truth, *verdict_paths])
     log.info("hidden set %s: top-1 accuracy %.3f", name, result["accuracy"])
-
-
-def _write_csv(path, columns, rows):
-    import csv
-
-    with open(path, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=columns)
-        writer.writeheader()
-        writer.writerows(rows)
 
 
 def _sampling(window: dict):

@@ -201,7 +201,7 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
     verdict = _verdict(fits, calibrations, signatures, settings, values, sampling, data, sigma)
     verdict["effect_fit"] = {
         "hypothesis": best_fault, "parameters": _mcmc_parameters(effect_mcmc, hyps[best_fault].parameters),
-        **{key: _attr(effect_mcmc.attrs[key]) for key in ("converged", "rhat", "ess_bulk", "reason") if key in effect_mcmc.attrs},
+        **{key: effect_mcmc.attrs[key] for key in ("converged", "rhat", "ess_bulk", "reason") if key in effect_mcmc.attrs},
     }
     if verdict["verdict"] == "new_dynamics" and verdict["effect"] == best_fault:
         verdict["parameters"] = verdict["effect_fit"]["parameters"]
@@ -426,19 +426,6 @@ def _mcmc_parameters(idata, names) -> dict:
     return rows
 
 
-def _write_rows(path, header, rows) -> None:
-    import csv
-
-    with open(path, "w", newline="") as f:
-        writer = csv.writer(f)
-        writer.writerow(header)
-        writer.writerows(rows)
-
-
-def _attr(value):
-    return value.item() if isinstance(value, np.generic) else value
-
-
 VERSION_COLUMNS = ("version", "hypothesis", "chi2_red", "log_evidence")
 
 
@@ -452,11 +439,10 @@ def write(diagnosis: Diagnosis, verdict_path, table_path, netcdf_path, mcmc_path
     stamp = provenance.attributes(code_hash)
     verdict = {"measurement": m.name, **diagnosis.verdict, "channels": list(diagnosis.channels),
                "settings": json.loads(settings_json), **stamp}
-    io.atomic_write(verdict_path, lambda tmp: open(tmp, "w").write(json.dumps(verdict, indent=1, default=_attr) + "\n"))
-    rmse_columns = [f"rmse_{c}" for c in diagnosis.channels]
-    rows = [[row["name"], row["hypothesis"], row["chi2"], row["log_evidence"], *row["rmse"].values()]
-            for row in diagnosis.verdict["model_versions"]]
-    io.atomic_write(table_path, lambda tmp: _write_rows(tmp, [*VERSION_COLUMNS, *rmse_columns], rows))
+    io.write_json(verdict_path, verdict)
+    rows = [{"version": row["name"], "hypothesis": row["hypothesis"], "chi2_red": row["chi2"], "log_evidence": row["log_evidence"],
+             **{f"rmse_{c}": value for c, value in row["rmse"].items()}} for row in diagnosis.verdict["model_versions"]]
+    io.write_csv(table_path, [*VERSION_COLUMNS, *(f"rmse_{c}" for c in diagnosis.channels)], rows)
 
     times = m.sampling.times
     ds = xr.Dataset(

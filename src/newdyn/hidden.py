@@ -29,7 +29,6 @@ than its best drift.  The RK4 step error is < 1e-2 σ everywhere.
 
 from __future__ import annotations
 
-import csv
 import json
 import math
 import os
@@ -122,7 +121,7 @@ def case_values(case: Mapping, base_values: Mapping[str, float]) -> dict[str, fl
 def write_truth(cases: Sequence[Mapping], path: str | os.PathLike, code_hash: str = "") -> None:
     """Write the cases with their truth (the only file that holds it) as JSON, atomically."""
     document = {"cases": list(cases), **provenance.attributes(code_hash)}
-    io.atomic_write(path, lambda tmp: _write_json(tmp, document))
+    io.write_json(path, document)
 
 
 def read_truth(path: str | os.PathLike) -> list[dict]:
@@ -277,7 +276,7 @@ CSV_COLUMNS = ("name", "class", "truth", "verdict", "effect", "equivalent", "pre
 
 def write_score(result: Mapping, json_path: str | os.PathLike, csv_path: str | os.PathLike, code_hash: str = "") -> None:
     """Write the score as JSON (with provenance) and its per-case rows as CSV, each atomically."""
-    io.atomic_write(json_path, lambda tmp: _write_json(tmp, {**result, **provenance.attributes(code_hash)}))
+    io.write_json(json_path, {**result, **provenance.attributes(code_hash)})
     by_case: dict[str, list] = {}
     for e in result["parameter_errors"]:
         by_case.setdefault(e["case"], []).append(
@@ -288,27 +287,8 @@ def write_score(result: Mapping, json_path: str | os.PathLike, csv_path: str | o
          "parameter_errors": json.dumps(by_case.get(row["name"], []))}
         for row in result["rows"]
     ]
-    io.atomic_write(csv_path, lambda tmp: _write_csv(tmp, table))
+    io.write_csv(csv_path, CSV_COLUMNS, table)
 
 
 def _cell(value) -> str:
     return "" if value is None else repr(float(value))
-
-
-def _write_json(path: str, document) -> None:
-    with open(path, "w") as f:
-        json.dump(document, f, indent=2, allow_nan=False, default=_jsonable)
-        f.write("\n")
-
-
-def _jsonable(value):
-    if isinstance(value, np.generic):
-        return value.item()
-    raise TypeError(f"{type(value).__name__} is not JSON serializable")
-
-
-def _write_csv(path: str, rows: list[dict]) -> None:
-    with open(path, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=CSV_COLUMNS)
-        writer.writeheader()
-        writer.writerows(rows)

@@ -7,6 +7,7 @@ at t = 0) and ``channel``; optional operating-condition attributes, ``snr_db`` o
 
 from __future__ import annotations
 
+import csv
 import json
 import math
 import os
@@ -90,6 +91,41 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> None:
 
 def write_netcdf(ds: xr.Dataset, path: str | os.PathLike) -> None:
     atomic_write(path, lambda tmp: ds.to_netcdf(tmp, engine="netcdf4"))
+
+
+def write_csv(path: str | os.PathLike, columns: Sequence[str], rows: Sequence[Mapping]) -> None:
+    """Rows (mappings by column name) as CSV with a header, atomically."""
+
+    def write(tmp):
+        with open(tmp, "w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=list(columns))
+            writer.writeheader()
+            writer.writerows(rows)
+
+    atomic_write(path, write)
+
+
+def write_json(path: str | os.PathLike, document) -> None:
+    """``document`` as strict JSON, atomically: NumPy scalars become numbers, non-finite numbers null."""
+
+    def write(tmp):
+        with open(tmp, "w") as f:
+            json.dump(_finite_json(document), f, indent=1, allow_nan=False)
+            f.write("\n")
+
+    atomic_write(path, write)
+
+
+def _finite_json(value):
+    if isinstance(value, Mapping):
+        return {str(k): _finite_json(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_finite_json(v) for v in value]
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
 
 
 def read_measurement(path: str | os.PathLike, operating_defaults: Mapping[str, float] | None = None) -> Measurement:
