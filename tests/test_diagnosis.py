@@ -1,6 +1,6 @@
 """Diagnosis of a measurement against known truths, on the short record of the CI config (0.1 s)."""
 
-import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -73,6 +73,8 @@ def test_the_noise_level_is_inferred_from_the_noise_floor_when_the_file_has_none
     _, true_sigma = noise.add_noise(simulation.simulate({}, SAMPLING, CHANNELS), CHANNELS, 40.0, 1)
     np.testing.assert_allclose(sigma, true_sigma[rows], rtol=0.15)  # 500 samples: ~4.5 % standard error
     assert "noise floor" in source
+    stated = float(re.search(r"relative standard error ([0-9.]+)%", source).group(1))
+    assert 3.0 < stated < 7.0
 
 
 def test_a_measurement_without_a_diagnosis_channel_is_refused():
@@ -80,6 +82,18 @@ def test_a_measurement_without_a_diagnosis_channel_is_refused():
     m = io.Measurement(m.name, ("b1_x",), m.y[:1], m.sampling, m.operating, m.sigma[:1])
     with pytest.raises(io.MeasurementError, match="no channel w1"):
         diagnosis.diagnose(m, SETTINGS)
+
+
+def test_a_measurement_whose_noise_level_cannot_be_read_is_refused_before_any_work():
+    """Sampled at 1.5 kHz, nothing lies above the 1 kHz noise band: a stated σ makes it usable."""
+    slow = model.Sampling(fs=1500.0, t_first=0.5, n_samples=150)
+    y = simulation.simulate({}, slow, CHANNELS)
+    operating = {k: model.DEFAULTS[k] for k in model.OPERATING_PARAMETERS}
+    blind = io.Measurement("slow", CHANNELS, y, slow, operating)
+    with pytest.raises(io.MeasurementError, match=r"^measurements/slow.nc: states no noise level .* below Nyquist \(750 Hz\)"):
+        diagnosis.check_measurement(blind, SETTINGS.channels, SETTINGS.noise_band_hz, "measurements/slow.nc")
+    stated = io.Measurement("slow", CHANNELS, y, slow, operating, np.ones(len(CHANNELS)))
+    diagnosis.check_measurement(stated, SETTINGS.channels, SETTINGS.noise_band_hz)
 
 
 def test_laplace_evidence_of_a_drift_agrees_with_exact_quadrature():

@@ -291,6 +291,7 @@ def diagnosed(study):
     np.savetxt(folder / "with_nan.csv", np.where(np.arange(rows.size).reshape(rows.shape) == 7, np.nan, rows),
                delimiter=",", header="time," + ",".join(noisy.channels), comments="")
     (folder / "unknown_channel.csv").write_text("time,b1_z\n" + "\n".join(f"{0.5 + k / 5000},0.0" for k in range(500)))
+    (folder / "slow.csv").write_text("time,b1_x,w1\n" + "\n".join(f"{0.5 + k / 1500},1e-6,155.0" for k in range(150)))
     run = snakemake(study)
     assert run.returncode == 0, run.stderr[-3000:]
     return study, run
@@ -299,7 +300,7 @@ def diagnosed(study):
 def test_every_bad_measurement_gets_one_line_and_the_good_ones_are_diagnosed(diagnosed):
     study, run = diagnosed
     for name, problem in (("one_sample.csv", "only 1 sample"), ("with_nan.csv", "non-finite value"),
-                          ("unknown_channel.csv", "unknown channel 'b1_z'")):
+                          ("unknown_channel.csv", "unknown channel 'b1_z'"), ("slow.csv", "states no noise level")):
         lines = [line for line in run.stderr.splitlines() if f"measurements/{name}" in line]
         assert lines and problem in lines[0] and len(set(lines)) == 1
         assert not (study / "results" / "diagnosis" / Path(name).stem).exists()

@@ -27,7 +27,7 @@ from typing import Mapping, Sequence
 import numpy as np
 import xarray as xr
 from scipy.integrate import trapezoid
-from scipy.special import logsumexp
+from scipy.special import erfinv, logsumexp
 
 from . import calibration, comparison, faults, hypotheses, io, likelihood, model, noise, residuals, simulation
 from .hypotheses import HEALTHY, PARAMETER_CHANGE
@@ -85,6 +85,21 @@ class Settings:
         return hypotheses.library(priors, self.fault_ranges, self.drift)
 
 
+def check_measurement(measurement: io.Measurement, channels: Sequence[str], band_hz: float, path=None) -> None:
+    """Refuse, in one line naming ``path`` (else the measurement's name), a measurement a diagnosis
+    cannot use: one of ``channels`` is missing, or the file states no noise level and its spectrum
+    above ``band_hz`` is too thin to read σ from."""
+    where = path if path is not None else measurement.name
+    missing = [c for c in channels if c not in measurement.channels]
+    if missing:
+        raise io.MeasurementError(where, f"no channel {missing[0]} (diagnosis.channels needs it)")
+    if measurement.sigma is None and "snr_db" not in measurement.attrs:
+        try:
+            noise.floor_band(measurement.sampling.n_samples, measurement.sampling.fs, band_hz)
+        except ValueError as error:
+            raise io.MeasurementError(where, f"states no noise level (sigma or snr_db) and its {error}") from None
+
+
 def noise_level(measurement: io.Measurement, rows: Sequence[int], band_hz: float) -> tuple[np.ndarray, str]:
     """Per-channel noise σ of the measurement's ``rows`` and where it came from."""
     if measurement.sigma is not None:
@@ -93,7 +108,7 @@ def noise_level(measurement: io.Measurement, rows: Sequence[int], band_hz: float
     if "snr_db" in measurement.attrs:
         return noise.sigma_from_snr(y, float(measurement.attrs["snr_db"])), f"the file's snr_db = {measurement.attrs['snr_db']} dB"
     sigma, error = noise.noise_floor_sigma(y, measurement.sampling.fs, band_hz)
-    return sigma, f"the noise floor above {band_hz:g} Hz (relative standard error {float(np.max(error)):.1%})"
+    return sigma, f"the noise floor above {band_hz:g} Hz (relative standard error {float(np.max(error / sigma)):.1%})"
 
 
 def _grid_evidence(posterior: likelihood.GridPosterior) -> float:
@@ -148,9 +163,7 @@ class Diagnosis:
 def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mapping[str, str] | None = None) -> Diagnosis:
     """Diagnose ``measurement`` (already read and checked); ``grid_paths`` are the study's shared
     coarse-grid files per calibration parameter, reused when their condition is the measurement's."""
-    missing = [c for c in settings.channels if c not in measurement.channels]
-    if missing:
-        raise io.MeasurementError(measurement.name, f"has no channel {missing[0]} (diagnosis.channels needs it)")
+    check_measurement(measurement, settings.channels, settings.noise_band_hz)
     rows = [measurement.channels.index(c) for c in settings.channels]
     channels, data, sampling = settings.channels, measurement.y[rows], measurement.sampling
     sigma, noise_source = noise_level(measurement, rows, settings.noise_band_hz)
@@ -354,15 +367,9 @@ def _laplace_parameters(fit: hypotheses.Fit) -> dict:
     if fit.covariance is None:
         return {}
     sd = np.sqrt(np.diag(fit.covariance))
-    z = float(np.sqrt(2) * _erfinv(HDI_PROB))
+    z = float(np.sqrt(2) * erfinv(HDI_PROB))  # the Normal's central HDI_PROB interval is mean ± z·sd
     return {name: {"map": v, "mean": v, "sd": float(s), "hdi_low": v - z * float(s), "hdi_high": v + z * float(s), "method": "laplace"}
             for (name, v), s in zip(fit.values.items(), sd)}
-
-
-def _erfinv(p: float) -> float:
-    from scipy.special import erfinv
-
-    return float(erfinv(p))
 
 
 def _separating_channels(equivalent: Sequence[hypotheses.Fit], values, sampling, data, sigma, settings: Settings) -> list[dict]:

@@ -228,8 +228,10 @@ def fit(
     log_prior_u = float(hypothesis.log_prior(theta_star[None])[0] + np.sum(np.log(span)))
     at_bound = tuple(p.name for p, a in zip(hypothesis.priors, best.active_mask) if a)
     log_evidence = ll + log_prior_u + 0.5 * k * math.log(2 * math.pi) - 0.5 * log_det - len(at_bound) * math.log(2)
+    covariance_u = np.linalg.inv(hessian)
+    covariance_u = 0.5 * (covariance_u + covariance_u.T)  # symmetric as H is, not just to rounding
     return Fit(
         hypothesis, hypothesis.effective_values(theta_star, base), model_star, ll,
         float(likelihood.reduced_chi2(data, model_star, sigma, n_fitted=k)), float(log_evidence), n_runs, at_bound,
-        span[:, None] * np.linalg.inv(hessian) * span[None, :],
+        span[:, None] * covariance_u * span[None, :],
     )

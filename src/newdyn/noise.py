@@ -55,10 +55,20 @@ def noise_floor_sigma(y: np.ndarray, fs: float, band_low_hz: float) -> tuple[np.
     its variance follows from the covariances of the windowed DFT coefficients (:func:`_floor_relative_variance`).
     """
     y = np.atleast_2d(np.asarray(y, dtype=float))
+    band = floor_band(y.shape[-1], fs, band_low_hz)
     nperseg = min(WELCH_SEGMENT, y.shape[-1])
-    frequency, density = scipy.signal.welch(
-        y, fs=fs, window="hann", nperseg=nperseg, noverlap=nperseg // 2, detrend="linear", axis=-1
-    )
+    _, density = scipy.signal.welch(y, fs=fs, window="hann", nperseg=nperseg, noverlap=nperseg // 2, detrend="linear", axis=-1)
+    sigma = np.sqrt(np.mean(density[:, band], axis=-1) * fs / 2)
+    # σ̂ = sqrt(σ̂²): its relative error is half that of σ̂².
+    relative_se = 0.5 * np.sqrt(_floor_relative_variance(y.shape[-1], nperseg, np.flatnonzero(band)))
+    return sigma, relative_se * sigma
+
+
+def floor_band(n_samples: int, fs: float, band_low_hz: float) -> np.ndarray:
+    """Which Welch bins of a record of ``n_samples`` at ``fs`` [Hz] :func:`noise_floor_sigma` averages:
+    from ``band_low_hz`` up to but without Nyquist.  ValueError when they are too few to read σ from."""
+    nperseg = min(WELCH_SEGMENT, n_samples)
+    frequency = np.fft.rfftfreq(nperseg, 1.0 / fs)
     band = (frequency >= band_low_hz) & (frequency < fs / 2)
     if band_low_hz >= fs / 2:
         raise ValueError(f"noise band from {band_low_hz:g} Hz is empty: it must start below Nyquist ({fs / 2:g} Hz)")
@@ -67,10 +77,7 @@ def noise_floor_sigma(y: np.ndarray, fs: float, band_low_hz: float) -> tuple[np.
             f"noise band from {band_low_hz:g} Hz to Nyquist ({fs / 2:g} Hz) holds {band.sum()} Welch bins of "
             f"{fs / nperseg:.3g} Hz, fewer than {MIN_FLOOR_BINS}: lower band_low_hz or record longer"
         )
-    sigma = np.sqrt(np.mean(density[:, band], axis=-1) * fs / 2)
-    # σ̂ = sqrt(σ̂²): its relative error is half that of σ̂².
-    relative_se = 0.5 * np.sqrt(_floor_relative_variance(y.shape[-1], nperseg, np.flatnonzero(band)))
-    return sigma, relative_se * sigma
+    return band
 
 
 def _floor_relative_variance(n_samples: int, nperseg: int, bins: np.ndarray) -> float:

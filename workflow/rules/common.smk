@@ -245,6 +245,7 @@ HIDDEN_SETS = config["hidden"]["sets"]
 def _checked_measurements(folder="measurements"):
     """name -> file of every good measurement in ``folder``; each bad one gets its one line on stderr
     and is left out, so it never stops the diagnosis of the good ones."""
+    import newdyn.diagnosis
     import newdyn.io
 
     found = {}
@@ -257,9 +258,9 @@ def _checked_measurements(folder="measurements"):
             if len(paths) > 1:
                 raise newdyn.io.MeasurementError(paths[0], f"{' and '.join(map(str, paths))} share the name '{name}'")
             measurement = newdyn.io.read_measurement(paths[0], config["operating"])
-            missing = [c for c in config["diagnosis"]["channels"] if c not in measurement.channels]
-            if missing:
-                raise newdyn.io.MeasurementError(paths[0], f"no channel {missing[0]} (diagnosis.channels needs it)")
+            newdyn.diagnosis.check_measurement(
+                measurement, config["diagnosis"]["channels"], config["diagnosis"]["noise_band_hz"], paths[0]
+            )
             if not re.fullmatch(r"[A-Za-z0-9_.-]+", name):
                 raise newdyn.io.MeasurementError(paths[0], "name may hold letters, digits, '_', '-' and '.' only")
         except newdyn.io.MeasurementError as error:
