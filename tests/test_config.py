@@ -149,6 +149,12 @@ BAD = {
     "unknown hidden fault parameter": (_set("hidden.faults.stick_slip.T_maks", [1800.0, 1900.0]),
                                        "hidden.faults.stick_slip.T_maks", "unknown parameter of stick_slip"),
     "hidden class without ranges": (_del("hidden.faults.loose_bearing"), "hidden.classes[5]", "hidden.faults.loose_bearing"),
+    "hidden set's class without ranges": (
+        lambda c: (_del("hidden.faults.loose_bearing")(c), _set("hidden.classes", ["healthy"])(c),
+                   _set("hidden.sets.demo.classes", ["healthy", "loose_bearing"])(c)),
+        "hidden.sets.demo.classes[1]", "hidden.faults.loose_bearing",
+    ),
+    "unknown class of a hidden set": (_set("hidden.sets.demo.classes", ["healthy", "wobble"]), "hidden.sets.demo.classes[1]"),
     # structure (schema)
     "missing sampling.fs": (_del("sampling.fs"), "sampling.fs", "missing required key"),
     "missing section": (_del("noise"), "noise", "missing required key"),

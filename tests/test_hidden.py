@@ -40,6 +40,8 @@ def test_classes_balanced_and_shuffled(blind):
     assert labels != sorted(labels, key=hidden.CLASSES.index)
     demo = hidden.draw_cases(HIDDEN, "demo", BASE)
     assert len(demo) == 1 and demo[0]["name"] == "demo_01"
+    assert HIDDEN["sets"]["demo"]["classes"] == list(FAULT_KINDS)  # the demo set's own classes: a hidden effect
+    assert demo[0]["class"] in FAULT_KINDS
 
 
 def test_every_case_admissible_and_within_ranges(blind):
@@ -86,16 +88,17 @@ def test_inadmissible_draws_are_redrawn_deterministically():
     """A T_max range straddling T0 / r_k: every drawn stick-slip case still carries the mean load."""
     config = copy.deepcopy(HIDDEN)
     config["classes"] = ["stick_slip"]
+    config["sets"]["one"] = {"cases": 1, "seed": 7}
     config["faults"]["stick_slip"] = {"T_max": [1500.0, 1900.0], "r_k": [0.8, 1.0]}
     cases = hidden.draw_cases(config, "blind", BASE)
     assert cases == hidden.draw_cases(config, "blind", BASE)
     assert all(c["truth"]["r_k"] * c["truth"]["T_max"] > BASE["T0"] for c in cases)
     config["faults"]["stick_slip"] = {"T_max": [1000.0, 1500.0]}
     with pytest.raises(ValueError, match="no admissible draw"):
-        hidden.draw_cases(config, "demo", BASE)
+        hidden.draw_cases(config, "one", BASE)
     config["faults"]["stick_slip"] = {"T_maks": [1800.0, 1900.0]}
     with pytest.raises(ValueError, match="T_maks.*unknown parameter of stick_slip"):
-        hidden.draw_cases(config, "demo", BASE)
+        hidden.draw_cases(config, "one", BASE)
 
 
 def _texts(value):

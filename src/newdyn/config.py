@@ -355,9 +355,12 @@ def _hidden_problems(config: Mapping) -> Iterator[tuple[str, str]]:
         yield "hidden.parameter_change.relative", f"must be 0 <= low < high < 1 (got [{low:g}, {high:g}])"
     for kind, ranges in hidden["faults"].items():
         yield from _range_problems(f"hidden.faults.{kind}", kind, ranges)
-    for i, kind in enumerate(hidden["classes"]):
-        if kind in faults.FAULT_KINDS and kind != "parameter_change" and kind not in hidden["faults"]:
-            yield f"hidden.classes[{i}]", f"'{kind}' needs its severity ranges under hidden.faults.{kind}"
+    listed = [("hidden.classes", hidden["classes"])]
+    listed += [(f"hidden.sets.{name}.classes", spec["classes"]) for name, spec in hidden["sets"].items() if "classes" in spec]
+    for where, classes in listed:
+        for i, kind in enumerate(classes):
+            if kind in faults.FAULT_KINDS and kind != "parameter_change" and kind not in hidden["faults"]:
+                yield f"{where}[{i}]", f"'{kind}' needs its severity ranges under hidden.faults.{kind}"
     for name in hidden["sets"]:
         if name in variant_names(config) or name in ("diagnosis", "figures", "logs", "benchmarks"):
             yield f"hidden.sets.{name}", f"'{name}' would share results/{name}/ with the study; choose another name"

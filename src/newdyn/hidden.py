@@ -54,14 +54,15 @@ def draw_cases(hidden: Mapping, set_name: str, base_values: Mapping[str, float])
     Each case is ``{"name": "<set>_01", "class", "scenario": {"overrides", "fault"?}, "truth",
     "noise_seed"}``; ``scenario`` goes to :func:`faults.scenario_values`, ``truth`` holds the drifted
     parameter and its value, or the fault's drawn parameters (stick_slip also ``J2a_share``).
-    Classes come in equal shares (the remainder to classes picked by the seed), shuffled.
+    Classes (the set's own ``classes``, else ``hidden["classes"]``) come in equal shares (the
+    remainder to classes picked by the seed), shuffled.
     A draw that is not admissible on ``base_values`` is redrawn from the same stream.
     """
     if set_name not in hidden["sets"]:
         raise KeyError(f"no hidden set '{set_name}' (known: {', '.join(hidden['sets'])})")
     spec = hidden["sets"][set_name]
     n, seed = int(spec["cases"]), int(spec["seed"])
-    classes = list(hidden["classes"])
+    classes = list(spec.get("classes", hidden["classes"]))
     base = model.complete(base_values)
     # One stream shuffles the classes, one per case draws it: a case's draw does not depend on how
     # often another case had to be redrawn.

@@ -320,11 +320,12 @@ def diagnosis_targets(root, names):
 
 
 def hidden_spec(wildcards):
-    """What draws and simulates a hidden set: its name and seed, the draw's ranges, the rig and the record."""
+    """What draws and simulates a hidden set: its name, cases and seed (not the other sets'), the draw's
+    ranges, the rig and the record."""
     return newdyn.config.canonical_json(
         {
             "set": wildcards.set,
-            "hidden": config["hidden"],
+            "hidden": {**config["hidden"], "sets": {wildcards.set: HIDDEN_SETS[wildcards.set]}},
             "values": newdyn.config.base_values(config),
             "sampling": _sampling_spec(config),
             "max_step": config["simulation"]["max_step"],
