@@ -34,12 +34,16 @@ def test_healthy_rig_is_healthy(diagnosed):
     v = diagnosed["healthy"].verdict
     assert v["verdict"] == "healthy" and v["effect"] is None
     assert v["ranking"][0]["hypothesis"] == "healthy" and v["chi2_before"] == v["chi2_after"] < 1.1
+    assert v["statement"].startswith("healthy: the nominal model explains the data")
+    assert v["where_nominal_fails"] == []
 
 
 def test_a_stiffer_motor_shaft_is_a_parameter_change_and_its_equivalents_are_named(diagnosed):
     v = diagnosed["kT1_up"].verdict
     assert v["verdict"] == "parameter_change" and "kT1" in v["equivalent"]
     assert v["chi2_before"] > 1.1 >= v["chi2_after"]
+    assert v["statement"].startswith(f"parameter change: {v['effect']} = ")
+    assert v["where_nominal_fails"] and v["where_it_fails"] == []  # the nominal model fails, the drift fits
     kT1 = next(r for r in v["ranking"] if r["hypothesis"] == "parameter_change:kT1")
     assert kT1["parameters"]["kT1"]["mean"] == pytest.approx(3.25e6, rel=0.01)
     assert kT1["parameters"]["kT1"]["hdi_low"] < 3.25e6 < kT1["parameters"]["kT1"]["hdi_high"]
@@ -56,6 +60,7 @@ def test_stick_slip_is_new_dynamics_and_adding_it_brings_chi2_to_the_noise(diagn
     assert (v["verdict"], v["effect"]) == ("new_dynamics", "stick_slip")
     assert v["chi2_before"] > 10 and v["chi2_after"] <= 1.1
     assert v["where_it_fails"] and all(f["channel"] in SETTINGS.channels for f in v["where_it_fails"])
+    assert v["statement"].startswith("new dynamics: stick_slip added to the model, with T_max = ")
     assert set(v["parameters"]) == {"T_max", "r_k", "J2a_share", "kT1"}
     assert all(p["hdi_low"] <= p["mean"] <= p["hdi_high"] for p in v["parameters"].values())
     assert v["parameters"]["T_max"]["mean"] == pytest.approx(1854.95, rel=0.05)
@@ -143,3 +148,15 @@ def test_a_parameter_the_data_ignore_costs_at_most_a_nat_of_evidence():
     extra = hypotheses.fit(ignored, data, sigma, values, SAMPLING, CHANNELS[:2])
     assert extra.log_likelihood == pytest.approx(base.log_likelihood, abs=0.05)
     assert abs(extra.log_evidence - base.log_evidence) < 1.1  # ½ log(2π/12), and log 2 if it sits at a bound
+
+
+def test_an_unexplained_verdict_says_where_the_residual_remains():
+    remaining = [
+        {"channel": "w1", "kind": "band", "low_hz": 0.0, "high_hz": 10.0, "excess": 12.0, "p_value": 0.0},
+        {"channel": "b1_x", "kind": "phase", "phase_low": 0.25, "phase_high": 0.5, "excess": 3.0, "p_value": 1e-9},
+    ]
+    verdict = {"verdict": "unexplained", "effect": None, "equivalent": [], "parameters": {}, "chi2_before": 40.0,
+               "chi2_after": 3.2, "models": {"after": "stick_slip"}, "remaining": remaining}
+    text = diagnosis.statement(verdict, 1.1)
+    assert text.startswith("unexplained: no hypothesis of the library brings reduced chi2 to 1.1 or below")
+    assert "stick_slip, leaves 3.2" in text and "w1 0-10 Hz (x12" in text and "b1_x at load-cycle phase 0.25-0.5" in text

@@ -220,10 +220,11 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
         verdict["parameters"] = verdict["effect_fit"]["parameters"]
         verdict["converged"] = bool(verdict["effect_fit"]["converged"])
     versions = {name: fits[hypothesis].model for name, hypothesis in verdict["models"].items()}
-    for key, version in (("where_it_fails", "calibrated"), ("remaining", "after")):
+    for key, version in (("where_nominal_fails", "nominal"), ("where_it_fails", "calibrated"), ("remaining", "after")):
         verdict[key] = residuals.where_it_fails(data - versions[version], sigma, channels, sampling.times,
                                                 sampling.fs, values["load_freq"])
     verdict["noise"] = {"sigma": dict(zip(channels, sigma.tolist())), "source": noise_source}
+    verdict["statement"] = statement(verdict, settings.chi2_max)
     return Diagnosis(measurement, channels, data, sigma, noise_source, calibrations, fits, signatures, verdict,
                      versions, effect_mcmc)
 
@@ -334,6 +335,34 @@ def _verdict(fits, calibrations, signatures, settings: Settings, values, samplin
                else "no single added channel would separate them")
         )
     return result
+
+
+def statement(verdict: Mapping, chi2_max: float) -> str:
+    """The verdict in one plain sentence: what explains the data, with which values, and how far the
+    error fell; or, when nothing does, where the best model's residual remains above the noise."""
+    before, after = verdict["chi2_before"], verdict["chi2_after"]
+    fitted = ", ".join(f"{name} = {p['mean']:.4g} (94 % HDI {p['hdi_low']:.4g} to {p['hdi_high']:.4g})"
+                       for name, p in verdict["parameters"].items())
+    kind, effect = verdict["verdict"], verdict["effect"]
+    if kind == "healthy":
+        return f"healthy: the nominal model explains the data (reduced chi2 {before:.3g} <= {chi2_max:g})"
+    if kind == "parameter_change":
+        others = [e for e in verdict["equivalent"] if e != effect]
+        return (f"parameter change: {fitted} brings reduced chi2 from {before:.3g} to {after:.3g}"
+                + (f"; a drift of {' or '.join(others)} explains the data equally well (see identifiability)" if others else ""))
+    if kind == "new_dynamics":
+        return f"new dynamics: {effect} added to the model, with {fitted}, brings reduced chi2 from {before:.3g} to {after:.3g}"
+    where = "; ".join(_finding(f) for f in verdict["remaining"][:3]) or "no single band or load phase"
+    return (f"unexplained: no hypothesis of the library brings reduced chi2 to {chi2_max:g} or below; the closest, "
+            f"{verdict['models']['after']}, leaves {after:.3g}, above the noise in {where}")
+
+
+def _finding(finding: Mapping) -> str:
+    """A finding of :func:`residuals.where_it_fails` in words."""
+    if finding["kind"] == "band":
+        return f"{finding['channel']} {finding['low_hz']:g}-{finding['high_hz']:g} Hz (x{finding['excess']:.3g} the noise power)"
+    return (f"{finding['channel']} at load-cycle phase {finding['phase_low']:.3g}-{finding['phase_high']:.3g} "
+            f"(x{finding['excess']:.3g} the noise power)")
 
 
 def _best_of(fits, cls: str) -> str:
