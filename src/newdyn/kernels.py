@@ -52,6 +52,11 @@ OUT_STATE = 100
 # Lanes per block: four AVX2 vectors of doubles.  Fewer lanes share the per-step scalar work (the
 # load torque) among fewer simulations; 32 lanes no longer fit the work array in L1 (measured slower).
 LANES = 16
+# LLVM vectorizes the lane loops VECTOR lanes at a time (two AVX2 vectors) and runs the remainder
+# scalar: a block of 4 lanes took 19 ms, one of 8 lanes 12 ms (healthy, 1.5 s).  Blocks of more
+# than SCALAR_MAX lanes are therefore padded to a multiple of VECTOR lanes.
+VECTOR = 8
+SCALAR_MAX = 2
 
 # Rows of the work array.  Per-lane constants come first (parameters, then derived quantities),
 # then the modes, so that the event path sets up its scratch lane by copying two ranges of rows.
@@ -577,18 +582,25 @@ def _simulate_block(params, first, n_lanes, t_first, fs, n_samples, substeps, co
     for lane in range(n_lanes):
         _setup_lane(w, lane, params[first + lane])
         events_possible = events_possible or params[first + lane, TMAX] < math.inf or params[first + lane, GAP] > 0.0
+    # Padding lanes (never recorded): the last lane's rig without its switching faults, so they
+    # never take the event path; lanes are independent, so they change no other lane's result.
+    n_run = n_lanes if n_lanes <= SCALAR_MAX else min(LANES, (n_lanes + VECTOR - 1) // VECTOR * VECTOR)
+    for lane in range(n_lanes, n_run):
+        _setup_lane(w, lane, params[first + n_lanes - 1])
+        w[_at(TMAX, lane)] = math.inf
+        w[_at(GAP, lane)] = 0.0
     h_target = 1.0 / (fs * substeps)
     t = 0.0
     n_warm = int(math.ceil(t_first / h_target - 1e-9))
     for k in range(n_warm):
-        t = _step(w, alone, t, (k + 1) * t_first / n_warm - t, n_lanes, events_possible)
+        t = _step(w, alone, t, (k + 1) * t_first / n_warm - t, n_run, events_possible)
     t = t_first
     for k in range(n_samples):
         if k > 0:
             t_sample = t_first + k / fs
             for s in range(substeps):
                 t_next = t_first + (k - 1 + (s + 1) / substeps) / fs
-                t = _step(w, alone, t, t_next - t, n_lanes, events_possible)
+                t = _step(w, alone, t, t_next - t, n_run, events_possible)
             t = t_sample
         _record(w, codes, out, first, k, n_lanes)
 
@@ -597,10 +609,10 @@ def _simulate_block(params, first, n_lanes, t_first, fs, n_samples, substeps, co
 def _simulate_batch(params, t_first, fs, n_samples, substeps, codes, n_threads):
     n = params.shape[0]
     out = np.empty((n, codes.shape[0], n_samples))
-    # Blocks of at most LANES simulations, at least as many as threads while each keeps >= 4 lanes
-    # (one AVX2 vector), of equal width rounded up to a multiple of 4.
-    n_blocks = max((n + LANES - 1) // LANES, min(n_threads, (n + 3) // 4))
-    width = min(LANES, ((n + n_blocks - 1) // n_blocks + 3) // 4 * 4) if n > 0 else 1
+    # Blocks of at most LANES simulations, at least as many as threads while each keeps VECTOR lanes
+    # (a narrower block costs as much as one of VECTOR lanes), of equal width rounded up to VECTOR.
+    n_blocks = max((n + LANES - 1) // LANES, min(n_threads, (n + VECTOR - 1) // VECTOR))
+    width = min(LANES, ((n + n_blocks - 1) // n_blocks + VECTOR - 1) // VECTOR * VECTOR) if n > 0 else 1
     for b in prange((n + width - 1) // width):
         first = b * width
         _simulate_block(params, first, min(width, n - first), t_first, fs, n_samples, substeps, codes, out)
