@@ -17,7 +17,7 @@ from typing import Sequence
 
 import matplotlib
 import numpy as np
-import scipy.signal
+import scipy  # subpackages load on first use: most figures never need scipy.signal
 import xarray as xr
 from matplotlib.colors import LogNorm, Normalize
 from matplotlib.figure import Figure

@@ -15,8 +15,7 @@ import math
 from typing import NamedTuple, Sequence
 
 import numpy as np
-import scipy.signal
-import scipy.stats
+import scipy  # scipy.signal and scipy.stats load on first use
 
 # [Hz]: octaves from the rotation (≈ 24.7 Hz) and load harmonics (12 Hz up to ~72 Hz) up to Nyquist.
 DEFAULT_BANDS: tuple[tuple[float, float], ...] = (
