@@ -368,8 +368,7 @@ def score_hidden(truth: str, verdict_paths: list[str], output: str, table: str, 
     result = hidden.score(hidden.read_truth(truth), verdicts, chi2_max)
     hidden.write_score(result, output, table, code_hash)
     name = Path(truth).parent.name
-    plots.blind_test_figure(result, figure, f"hidden set {name}: top-1 {result['accuracy']:.0%} of {result['cases']}",
-                            code_hash, [truth, *verdict_paths])
+    plots.blind_test_figure(result, figure, f"hidden set {name}", code_hash, [truth, *verdict_paths])
     log.info("hidden set %s: top-1 accuracy %.3f", name, result["accuracy"])
 
 
