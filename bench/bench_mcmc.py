@@ -10,7 +10,7 @@ import time
 
 import numba
 
-from newdyn import calibration, model, noise
+from newdyn import calibration, mcmc_calibration, model, noise
 from newdyn.sampling import MOVES, MCMCSettings
 from newdyn.simulation import simulate
 
@@ -31,7 +31,7 @@ def main() -> None:
         for steps in (150, 400):
             settings = MCMCSettings(n_walkers=16, n_steps=steps, n_burn=30, seed=1, move=move)
             t0 = time.perf_counter()
-            idata = calibration.calibrate_mcmc(data, sigma, grid, prior, start, {}, SAMPLING, CHANNELS, settings)
+            idata = mcmc_calibration.calibrate_mcmc(data, sigma, grid, prior, start, {}, SAMPLING, CHANNELS, settings)
             seconds = time.perf_counter() - t0
             ess, rhat = idata.attrs["ess_bulk"], idata.attrs["rhat"]
             print(f"{move:8s} {steps:6d} {seconds:7.1f}s {ess:9.0f} {rhat:7.4f} {ess / seconds:7.0f}")

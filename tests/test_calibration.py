@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from newdyn import calibration, comparison, model, noise
+from newdyn import calibration, comparison, mcmc_calibration, model, noise
 from newdyn.sampling import MCMCSettings
 from newdyn.simulation import simulate
 
@@ -85,8 +85,8 @@ def test_mcmc_on_the_simulator_agrees_with_the_grid(coarse_models):
     data, sigma = noise.add_noise(clean, CHANNELS, 40.0, 1)
     grid = calibration.calibrate(data, sigma, GRIDS["kT1"], PRIORS["kT1"], coarse_models["kT1"], {}, SAMPLING, CHANNELS, 41, 1.1)
     settings = MCMCSettings(n_walkers=16, n_steps=300, n_burn=30, seed=1)
-    idata = calibration.calibrate_mcmc(data, sigma, GRIDS["kT1"], PRIORS["kT1"], grid.posterior, {}, SAMPLING, CHANNELS, settings)
-    row = calibration.mcmc_summary(idata, "kT1", PRIORS["kT1"], grid.posterior, sigma, 1.1)
+    idata = mcmc_calibration.calibrate_mcmc(data, sigma, GRIDS["kT1"], PRIORS["kT1"], grid.posterior, {}, SAMPLING, CHANNELS, settings)
+    row = mcmc_calibration.mcmc_summary(idata, "kT1", PRIORS["kT1"], grid.posterior, sigma, 1.1)
     assert row["converged"] and row["verdict"] == "explained"
     assert row["hellinger_to_grid"] < 0.05
     assert abs(row["mean"] - grid.posterior.mean) < 0.2 * grid.posterior.sd
@@ -113,10 +113,10 @@ def test_mcmc_of_a_posterior_cut_by_the_grid_bound_folds_back_into_the_range(coa
     converged = 0
     for seed in (1, 2, 3):
         settings = MCMCSettings(n_walkers=16, n_steps=300, n_burn=30, seed=seed)
-        idata = calibration.calibrate_mcmc(data, sigma, spec, PRIORS["kT1"], grid.posterior, {}, SAMPLING, CHANNELS, settings)
+        idata = mcmc_calibration.calibrate_mcmc(data, sigma, spec, PRIORS["kT1"], grid.posterior, {}, SAMPLING, CHANNELS, settings)
         draws = idata.posterior["kT1"].values
         assert spec.low <= draws.min() and draws.max() <= spec.high
-        row = calibration.mcmc_summary(idata, "kT1", PRIORS["kT1"], grid.posterior, sigma, 1.1)
+        row = mcmc_calibration.mcmc_summary(idata, "kT1", PRIORS["kT1"], grid.posterior, sigma, 1.1)
         assert abs(row["mean"] - grid.posterior.mean) < 0.2 * grid.posterior.sd
         if row["converged"]:
             converged += 1

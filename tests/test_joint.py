@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from newdyn import calibration, cli, io, likelihood, model, noise
+from newdyn import calibration, cli, io, likelihood, mcmc_calibration, model, noise
 from newdyn import sampling as mcmc
 from newdyn.simulation import simulate
 
@@ -40,7 +40,7 @@ def kT1_up():
 
 def joint(kT1_up, settings, infer_sigma=False):
     data, sigma, posteriors = kT1_up
-    return calibration.calibrate_joint(
+    return mcmc_calibration.calibrate_joint(
         data, None if infer_sigma else sigma, GRIDS, PRIORS, posteriors, {}, SAMPLING, CHANNELS, settings,
         infer_sigma=infer_sigma,
     )
@@ -73,20 +73,20 @@ def test_sigma_posterior_under_the_jeffreys_prior_is_inverse_gamma():
     fixed = np.vstack([np.sin(np.arange(n)), np.cos(np.arange(n))])
     data = fixed + true_sigma[:, None] * rng.standard_normal((2, n))
     rss = np.sum((data - fixed) ** 2, axis=-1)
-    low, high = calibration.sigma_prior_bounds(data)
+    low, high = mcmc_calibration.sigma_prior_bounds(data)
     np.testing.assert_allclose(low, 1e-4 * data.std(axis=-1))
     np.testing.assert_allclose(high, data.std(axis=-1))
 
     # log posterior of σ_c on a grid vs the Inverse-Gamma density of σ² carried to σ (Jacobian 2σ)
     s = np.sqrt(rss[0] / n) * np.linspace(0.7, 1.4, 201)
-    log_post = likelihood.log_likelihood(data[:1], fixed[:1], s[:, None]) + calibration.sigma_log_prior(s, low[0], high[0])
+    log_post = likelihood.log_likelihood(data[:1], fixed[:1], s[:, None]) + mcmc_calibration.sigma_log_prior(s, low[0], high[0])
     exact = stats.invgamma(n / 2, scale=rss[0] / 2).logpdf(s**2) + np.log(2 * s)
     assert np.ptp(log_post - exact) < 1e-8 * np.ptp(exact)
-    assert np.all(np.isneginf(calibration.sigma_log_prior([0.5 * low[0], 2 * high[0]], low[0], high[0])))
+    assert np.all(np.isneginf(mcmc_calibration.sigma_log_prior([0.5 * low[0], 2 * high[0]], low[0], high[0])))
 
-    variables = [calibration._sigma_variable(c, lo, hi) for c, lo, hi in zip(CHANNELS, low, high)]
+    variables = [mcmc_calibration._sigma_variable(c, lo, hi) for c, lo, hi in zip(CHANNELS, low, high)]
     settings = mcmc.MCMCSettings(n_walkers=16, n_steps=1500, n_burn=100, seed=2)
-    idata = calibration.sample_posterior(
+    idata = mcmc_calibration.sample_posterior(
         variables, lambda rows: likelihood.log_likelihood(data, fixed, rows),
         np.log(np.sqrt(rss / n)) + 0.05 * rng.standard_normal((16, 2)), settings, np.random.default_rng(1),
     )
@@ -117,7 +117,7 @@ def test_joint_kT1_kT3_finds_the_ridge_and_covers_the_truth(kT1_up):
     best_1d = ["kT1", "kT3"][int(np.argmax([p.log_likelihood.max() for p in posteriors]))]
     assert start["from"] == best_1d and start["n_simulations"] < 100  # the start is cheap
 
-    rows = rows_by_name(calibration.joint_summary(idata, dict(zip(["kT1", "kT3"], PRIORS)), 1.1, sigma))
+    rows = rows_by_name(mcmc_calibration.joint_summary(idata, dict(zip(["kT1", "kT3"], PRIORS)), 1.1, sigma))
     truth = {"kT1": 3.25e6, "kT3": 2.5e6}
     n_obs = data.size
     for name, prior, grid_post in zip(["kT1", "kT3"], PRIORS, posteriors):
@@ -141,7 +141,7 @@ def test_inferred_sigma_covers_the_true_sigma(kT1_up):
     assert list(idata.posterior.data_vars) == ["kT1", "kT3", "sigma_b1_x", "sigma_w1"]
     assert idata.attrs["jointly"] == "kT1+kT3+sigma_b1_x+sigma_w1"
     priors = dict(zip(["kT1", "kT3"], PRIORS))
-    rows = rows_by_name(calibration.joint_summary(idata, priors, 1.1))
+    rows = rows_by_name(mcmc_calibration.joint_summary(idata, priors, 1.1))
     for channel, true in zip(CHANNELS, sigma):
         row = rows[f"sigma_{channel}"]
         assert row["hdi_low"] < true < row["hdi_high"]
@@ -156,7 +156,7 @@ def test_inferred_sigma_covers_the_true_sigma(kT1_up):
     assert min(row["ess_bulk"] for row in rows.values()) > 600
     # χ² against the σ it fitted is ≈ 1 by construction; against the known σ it is a real check
     assert rows["kT1"]["chi2_red"] == pytest.approx(1.0, abs=0.02)
-    known = calibration.joint_summary(idata, priors, 1.1, sigma)[0]["chi2_red"]
+    known = mcmc_calibration.joint_summary(idata, priors, 1.1, sigma)[0]["chi2_red"]
     assert abs(known - 1) < 4 * np.sqrt(2 / data.size)
     bounds = json.loads(idata.attrs["sigma_prior"])["bounds"]
     np.testing.assert_allclose(bounds["sigma_w1"], [1e-4 * data[1].std(), data[1].std()])
@@ -173,9 +173,9 @@ def test_too_few_walkers_or_a_missing_sigma_are_refused(kT1_up):
         run(mcmc.MCMCSettings(n_walkers=8, n_steps=10, n_burn=0, seed=1), infer_sigma=True)
     settings = mcmc.MCMCSettings(n_walkers=16, n_steps=10, n_burn=0, seed=1)
     with pytest.raises(ValueError, match="sigma"):
-        calibration.calibrate_joint(data, None, GRIDS, PRIORS, posteriors, {}, SAMPLING, CHANNELS, settings)
+        mcmc_calibration.calibrate_joint(data, None, GRIDS, PRIORS, posteriors, {}, SAMPLING, CHANNELS, settings)
     with pytest.raises(ValueError, match="sigma"):
-        calibration.calibrate_joint(data, sigma, GRIDS, PRIORS, posteriors, {}, SAMPLING, CHANNELS, settings, infer_sigma=True)
+        mcmc_calibration.calibrate_joint(data, sigma, GRIDS, PRIORS, posteriors, {}, SAMPLING, CHANNELS, settings, infer_sigma=True)
 
 
 def test_cli_round_trip(tmp_path):
@@ -221,7 +221,7 @@ def test_cli_round_trip(tmp_path):
     assert attrs["measurement"] == "kT1_up_nosigma" and attrs["method"] == "mcmc"
     assert attrs["jointly"] == "kT1+kT3+sigma_b1_x+sigma_w1" and attrs["code_hash"] == "abc123"
     assert json.loads(attrs["settings"]) == spec
-    assert json.loads(attrs["start"])["procedure"] == calibration.START_LAPLACE
+    assert json.loads(attrs["start"])["procedure"] == mcmc_calibration.START_LAPLACE
     rows = json.loads(attrs["summary"])
     assert [r["parameter"] for r in rows] == ["kT1", "kT3", "sigma_b1_x", "sigma_w1"]
     assert all(r["jointly"] == attrs["jointly"] for r in rows)

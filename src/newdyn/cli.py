@@ -133,18 +133,18 @@ def calibrate_with_mcmc(measurement_path: str, grid_result_path: str, spec: dict
     """Write the MCMC posterior (ArviZ InferenceData) of one parameter for one measurement."""
     import numpy as np
 
-    from . import calibration, provenance
+    from . import mcmc_calibration, provenance
     from . import sampling as mcmc
 
     measurement, data, sigma, values, grid, prior = _calibration_inputs(measurement_path, spec)
     grid_posterior = _grid_posterior(grid_result_path, prior)
     start = time.perf_counter()
-    idata = calibration.calibrate_mcmc(
+    idata = mcmc_calibration.calibrate_mcmc(
         data, sigma, grid, prior, grid_posterior, values, measurement.sampling, spec["channels"], _mcmc_settings(spec["mcmc"]),
         spec["max_step"],
         attrs={"settings": json.dumps(spec, sort_keys=True), **provenance.attributes(code_hash)},
     )
-    row = calibration.mcmc_summary(idata, grid.parameter, prior, grid_posterior, sigma, spec["chi2_max"])
+    row = mcmc_calibration.mcmc_summary(idata, grid.parameter, prior, grid_posterior, sigma, spec["chi2_max"])
     log.info("MCMC of %s on %s in %.1f s: %s", grid.parameter, measurement.name, time.perf_counter() - start, row)
     idata.attrs.update({**_labels(measurement), "parameter": grid.parameter, "method": "mcmc",
                         **{k: int(v) if isinstance(v, (bool, np.bool_)) else v for k, v in row.items()}})
@@ -154,10 +154,10 @@ def calibrate_with_mcmc(measurement_path: str, grid_result_path: str, spec: dict
 def calibrate_jointly(measurement_path: str, grid_result_paths: list[str], spec: dict, output: str, code_hash: str) -> None:
     """Write the joint MCMC posterior (ArviZ InferenceData) of several parameters, with the channels'
     noise σ known or inferred (``infer_sigma``), for one measurement; the summary rows
-    (:func:`calibration.joint_summary`, χ² against the file's σ when it has one) are the ``summary``
+    (:func:`mcmc_calibration.joint_summary`, χ² against the file's σ when it has one) are the ``summary``
     attribute as JSON.  ``grid_result_paths`` are the parameters' grid calibrations, in the order of
     ``spec["parameters"]``."""
-    from . import calibration, provenance
+    from . import calibration, mcmc_calibration, provenance
     from . import sampling as mcmc
 
     infer_sigma = bool(spec.get("infer_sigma", False))
@@ -169,12 +169,12 @@ def calibrate_jointly(measurement_path: str, grid_result_paths: list[str], spec:
     priors = [calibration.NormalPrior(**spec["parameters"][name]["prior"]) for name in names]
     grid_posteriors = [_grid_posterior(path, prior, name) for path, prior, name in zip(grid_result_paths, priors, names)]
     start = time.perf_counter()
-    idata = calibration.calibrate_joint(
+    idata = mcmc_calibration.calibrate_joint(
         data, None if infer_sigma else sigma, grids, priors, grid_posteriors, values, measurement.sampling,
         spec["channels"], _mcmc_settings(spec["mcmc"]), infer_sigma, spec["max_step"],
         attrs={"settings": json.dumps(spec, sort_keys=True), **provenance.attributes(code_hash)},
     )
-    rows = calibration.joint_summary(idata, dict(zip(names, priors)), spec["chi2_max"], sigma)
+    rows = mcmc_calibration.joint_summary(idata, dict(zip(names, priors)), spec["chi2_max"], sigma)
     log.info("joint MCMC of %s on %s in %.1f s: %s", idata.attrs["jointly"], measurement.name, time.perf_counter() - start, rows)
     idata.attrs.update({**_labels(measurement), "method": "mcmc", "summary": json.dumps(rows)})
     mcmc.save(idata, output)

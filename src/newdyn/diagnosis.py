@@ -29,7 +29,7 @@ import xarray as xr
 from scipy.integrate import trapezoid
 from scipy.special import erfinv, logsumexp
 
-from . import calibration, comparison, faults, hypotheses, io, likelihood, model, noise, residuals, simulation
+from . import calibration, comparison, faults, hypotheses, io, likelihood, mcmc_calibration, model, noise, residuals, simulation
 from .hypotheses import HEALTHY, PARAMETER_CHANGE
 
 log = logging.getLogger("newdyn")
@@ -426,7 +426,7 @@ def _sample_effect(fit: hypotheses.Fit, data, sigma, values, sampling, channels,
     mcmc = MCMCSettings(n_walkers=int(m["walkers"]), n_steps=int(m["steps"]), n_burn=int(m["burn"]), seed=int(m["seed"]),
                         rhat_max=float(m["rhat_max"]), ess_min=float(m["ess_min"]), move=str(m["move"]))
     hypothesis = fit.hypothesis
-    variables = [calibration.Variable(p.name, p.low, p.high, p.log_pdf, p.draw, "linear", mirrored=True) for p in hypothesis.priors]
+    variables = [mcmc_calibration.Variable(p.name, p.low, p.high, p.log_pdf, p.draw, "linear", mirrored=True) for p in hypothesis.priors]
 
     def log_likelihood(rows):
         ll = likelihood.log_likelihood(data, hypotheses.evaluate(hypothesis, rows, values, sampling, channels, settings.max_step), sigma)
@@ -434,8 +434,8 @@ def _sample_effect(fit: hypotheses.Fit, data, sigma, values, sampling, channels,
 
     rng = np.random.default_rng(mcmc.seed)
     low, high = np.array([[p.low, p.high] for p in hypothesis.priors]).T
-    initial = calibration.draw_inside(lambda n: rng.multivariate_normal(fit.theta, fit.covariance, n), low, high, mcmc.n_walkers)
-    return calibration.sample_posterior(
+    initial = mcmc_calibration.draw_inside(lambda n: rng.multivariate_normal(fit.theta, fit.covariance, n), low, high, mcmc.n_walkers)
+    return mcmc_calibration.sample_posterior(
         variables, log_likelihood, initial, mcmc, rng,
         {"y": xr.DataArray(data, dims=("channel", "time"), coords={"channel": list(channels), "time": sampling.times})},
         {"hypothesis": hypothesis.name, "start": "Laplace approximation at the least-squares fit",

@@ -23,7 +23,7 @@ SIMULATION_CODE = newdyn.provenance.source_hash("model", "faults", "kernels", "s
 NOISE_CODE = newdyn.provenance.source_hash("noise", "io")
 CALIBRATION_CODE = newdyn.provenance.source_hash("model", "kernels", "simulation", "io", "likelihood", "calibration")
 MCMC_CODE = newdyn.provenance.source_hash(
-    "model", "kernels", "simulation", "io", "likelihood", "calibration", "sampling", "comparison"
+    "model", "kernels", "simulation", "io", "likelihood", "calibration", "mcmc_calibration", "sampling", "comparison"
 )
 SUMMARY_CODE = newdyn.provenance.source_hash("calibration", "comparison", "sampling")
 COMPARISON_CODE = newdyn.provenance.source_hash("comparison")
@@ -231,6 +231,7 @@ DIAGNOSIS_CODE = newdyn.provenance.source_hash(
     "noise",
     "likelihood",
     "calibration",
+    "mcmc_calibration",
     "sampling",
     "comparison",
     "residuals",
