@@ -206,7 +206,7 @@ def test_cli_round_trip(tmp_path):
 
     spec = {
         **common, "parameters": parameters, "infer_sigma": True, "chi2_max": 1.1,
-        "mcmc": {"walkers": 12, "steps": 30, "burn": 5, "seed": 1, "rhat_max": 1.01, "ess_min": 400, "move": "kde"},
+        "mcmc": {"walkers": 12, "steps": 30, "burn": 5, "seed": 1, "rhat_max": 1.01, "ess_min": 400, "move": "kde", "max_rounds": 1},
     }
     output = tmp_path / "joint.nc"
     argv = ["calibrate-joint", "--measurement", str(without_sigma), "--grid-results", *results,

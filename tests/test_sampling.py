@@ -96,6 +96,29 @@ def test_too_short_run_is_reported_not_converged():
     assert idata.attrs["reason"] == diag["reason"]
 
 
+def test_a_run_that_misses_its_thresholds_goes_on_in_rounds_and_keeps_its_first_steps():
+    precision = 1 / TAU0**2 + len(Y) / SIGMA**2
+    start = np.random.default_rng(0).normal(Y.sum() / SIGMA**2 / precision, precision**-0.5, size=(16, 1))
+    base = dict(n_walkers=16, n_steps=20, n_burn=0, seed=3)  # 320 draws from the posterior: ESS < 400
+    one = sampling.run(conjugate_loglik, conjugate_logprior, ["theta"], start, sampling.MCMCSettings(**base))
+    more = sampling.run(conjugate_loglik, conjugate_logprior, ["theta"], start, sampling.MCMCSettings(**base, max_rounds=20))
+    assert not one.attrs["converged"] and one.attrs["rounds"] == 1
+    rounds = int(more.attrs["rounds"])
+    assert more.attrs["converged"] == 1 and 1 < rounds < 20  # it stops at the first round that meets them
+    assert draws(more, "theta").shape == (16, 20 * rounds)
+    np.testing.assert_array_equal(draws(more, "theta")[:, :20], draws(one, "theta"))  # one chain, continued
+    shorter = sampling.run(conjugate_loglik, conjugate_logprior, ["theta"], start, sampling.MCMCSettings(**base, max_rounds=rounds - 1))
+    assert shorter.attrs["rounds"] == rounds - 1 and shorter.attrs["converged"] == 0  # and runs no further than allowed
+
+
+def test_rounds_stop_at_max_rounds_and_the_run_is_marked_unconverged():
+    settings = sampling.MCMCSettings(n_walkers=8, n_steps=20, n_burn=10, seed=1, ess_min=1e9, max_rounds=3)
+    idata = sampling.run(conjugate_loglik, conjugate_logprior, ["theta"], np.zeros((8, 1)) + 0.1 * np.arange(8)[:, None], settings)
+    assert idata.attrs["rounds"] == 3 and idata.attrs["converged"] == 0
+    assert idata.attrs["n_draws"] == 8 * 60
+    assert "ess_bulk" in idata.attrs["reason"]
+
+
 class GuardedLikelihood:
     """A 'simulator' that must never see a parameter outside the unit square."""
 

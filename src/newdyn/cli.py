@@ -140,8 +140,8 @@ def calibrate_with_mcmc(measurement_path: str, grid_result_path: str, spec: dict
     grid_posterior = _grid_posterior(grid_result_path, prior)
     start = time.perf_counter()
     idata = mcmc_calibration.calibrate_mcmc(
-        data, sigma, grid, prior, grid_posterior, values, measurement.sampling, spec["channels"], _mcmc_settings(spec["mcmc"]),
-        spec["max_step"],
+        data, sigma, grid, prior, grid_posterior, values, measurement.sampling, spec["channels"],
+        mcmc.MCMCSettings.from_config(spec["mcmc"]), spec["max_step"],
         attrs={"settings": json.dumps(spec, sort_keys=True), **provenance.attributes(code_hash)},
     )
     row = mcmc_calibration.mcmc_summary(idata, grid.parameter, prior, grid_posterior, sigma, spec["chi2_max"])
@@ -171,22 +171,13 @@ def calibrate_jointly(measurement_path: str, grid_result_paths: list[str], spec:
     start = time.perf_counter()
     idata = mcmc_calibration.calibrate_joint(
         data, None if infer_sigma else sigma, grids, priors, grid_posteriors, values, measurement.sampling,
-        spec["channels"], _mcmc_settings(spec["mcmc"]), infer_sigma, spec["max_step"],
+        spec["channels"], mcmc.MCMCSettings.from_config(spec["mcmc"]), infer_sigma, spec["max_step"],
         attrs={"settings": json.dumps(spec, sort_keys=True), **provenance.attributes(code_hash)},
     )
     rows = mcmc_calibration.joint_summary(idata, dict(zip(names, priors)), spec["chi2_max"], sigma)
     log.info("joint MCMC of %s on %s in %.1f s: %s", idata.attrs["jointly"], measurement.name, time.perf_counter() - start, rows)
     idata.attrs.update({**_labels(measurement), "method": "mcmc", "summary": json.dumps(rows)})
     mcmc.save(idata, output)
-
-
-def _mcmc_settings(m: dict):
-    from .sampling import MCMCSettings
-
-    return MCMCSettings(
-        n_walkers=int(m["walkers"]), n_steps=int(m["steps"]), n_burn=int(m["burn"]), seed=int(m["seed"]),
-        rhat_max=m["rhat_max"], ess_min=m["ess_min"], move=m["move"],
-    )
 
 
 def _grid_posterior(path: str, prior, parameter: str | None = None):

@@ -74,7 +74,7 @@ class Settings:
             chi2_max=float(c["chi2_max"]),
             refine_points=int(c["refine_points"]),
             max_step=float(config["simulation"]["max_step"]),
-            mcmc={**{k: c["mcmc"][k] for k in ("rhat_max", "ess_min", "move")}, **d["mcmc"]},
+            mcmc={**{k: c["mcmc"][k] for k in ("rhat_max", "ess_min", "move", "max_rounds")}, **d["mcmc"]},
         )
 
     def hypotheses(self) -> list[hypotheses.Hypothesis]:
@@ -422,9 +422,7 @@ def _sample_effect(fit: hypotheses.Fit, data, sigma, values, sampling, channels,
     """emcee posterior (InferenceData) of a fault model's parameters, started from its Laplace approximation."""
     from .sampling import MCMCSettings
 
-    m = settings.mcmc
-    mcmc = MCMCSettings(n_walkers=int(m["walkers"]), n_steps=int(m["steps"]), n_burn=int(m["burn"]), seed=int(m["seed"]),
-                        rhat_max=float(m["rhat_max"]), ess_min=float(m["ess_min"]), move=str(m["move"]))
+    mcmc = MCMCSettings.from_config(settings.mcmc)
     hypothesis = fit.hypothesis
     variables = [mcmc_calibration.Variable(p.name, p.low, p.high, p.log_pdf, p.draw, "linear", mirrored=True) for p in hypothesis.priors]
 

@@ -174,18 +174,13 @@ def sample_posterior(
 
     names = [v.name for v in variables]
     prior_samples = {v.name: v.draw(rng, 4 * settings.n_steps) for v in variables}
-    idata = mcmc.run(
+    return mcmc.run(
         lambda x: log_likelihood(_values(variables, x)),
         lambda x: np.sum([v.log_prior(x[:, i]) for i, v in enumerate(variables)], axis=0),
-        names, initial, settings,
+        names, initial, settings, to_values=lambda x: _values(variables, x),
         prior_samples=prior_samples, observed=observed,
         attrs={**(attrs or {}), "coordinates": {v.name: v.coordinate + (", mirrored" if v.mirrored else "") for v in variables}},
     )
-    if any(v.coordinate != "linear" or v.mirrored for v in variables):
-        for v in variables:
-            idata.posterior[v.name] = idata.posterior[v.name].copy(data=v.value(idata.posterior[v.name].values))
-        mcmc.diagnostics(idata, settings)  # rank diagnostics nearly ignore the coordinate; ESS and R-hat of values
-    return idata
 
 
 def _observed(data: np.ndarray, sampling: model.Sampling, channels: Sequence[str]) -> dict:

@@ -10,8 +10,9 @@ The result is an :class:`arviz.InferenceData` with groups ``posterior`` (chain =
 ``log_likelihood`` (``y``: the *total* log-likelihood of the data per draw, not pointwise, so LOO/WAIC
 do not apply), ``sample_stats`` (``lp``, ``log_likelihood``, ``acceptance_fraction`` per walker, emcee's
 integrated autocorrelation time ``tau`` per parameter), and, when given, ``prior`` and
-``observed_data``.  Its attributes hold the settings, the seed, the versions, the caller's attributes
-and the convergence diagnostics, including ``converged`` (1 or 0: netCDF has no booleans).
+``observed_data``.  Its attributes hold the settings, the seed, the versions, the caller's attributes,
+the number of ``rounds`` run (see :class:`MCMCSettings`) and the convergence diagnostics, including
+``converged`` (1 or 0: netCDF has no booleans).
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ MOVES = {"kde": emcee.moves.KDEMove, "stretch": emcee.moves.StretchMove, "de": e
 
 # Attribute keys that run() and diagnostics() write; a caller's ``attrs`` may not use them.
 DIAGNOSTIC_KEYS = ("rhat", "ess_bulk", "ess_tail", "acceptance", "tau", "n_draws", "converged", "reason")
-RESERVED_KEYS = ("mcmc_settings", "seed", "sampler", "emcee_version", "arviz_version") + DIAGNOSTIC_KEYS
+RESERVED_KEYS = ("mcmc_settings", "seed", "sampler", "emcee_version", "arviz_version", "rounds") + DIAGNOSTIC_KEYS
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -43,7 +44,10 @@ class MCMCSettings:
     """Run length, seed and convergence thresholds.
 
     The sampler runs ``n_burn + n_steps`` steps, discards the first ``n_burn`` and keeps every
-    ``thin``-th of the rest, so each walker contributes ``n_steps // thin`` draws.
+    ``thin``-th of the rest, so each walker contributes ``n_steps // thin`` draws.  A run that misses
+    its thresholds then goes on, ``n_steps`` more steps at a time, until it meets them or has run
+    ``max_rounds`` × ``n_steps``; only then is it marked unconverged.  Every round keeps all steps
+    after the burn-in.
     """
 
     n_walkers: int
@@ -53,10 +57,21 @@ class MCMCSettings:
     thin: int = 1
     rhat_max: float = 1.01
     ess_min: float = 400.0
+    max_rounds: int = 1
     # emcee proposal. "kde" (KDEMove) decorrelates the low-dimensional, near-Gaussian calibration
     # posteriors in ~2 steps; the default stretch move needs ~18 in 1-D (measured), too slow when
     # every step simulates the rig.
     move: str = "kde"
+
+    @classmethod
+    def from_config(cls, mcmc: Mapping) -> "MCMCSettings":
+        """From a config block (``calibration.mcmc``'s keys: walkers, steps, burn, seed, rhat_max,
+        ess_min, move, max_rounds)."""
+        return cls(
+            n_walkers=int(mcmc["walkers"]), n_steps=int(mcmc["steps"]), n_burn=int(mcmc["burn"]), seed=int(mcmc["seed"]),
+            rhat_max=float(mcmc["rhat_max"]), ess_min=float(mcmc["ess_min"]), move=str(mcmc["move"]),
+            max_rounds=int(mcmc["max_rounds"]),
+        )
 
     def __post_init__(self):
         if self.move not in MOVES:
@@ -69,6 +84,8 @@ class MCMCSettings:
             raise ValueError(f"n_steps must be >= thin ({self.thin}), got {self.n_steps}")
         if self.n_burn < 0:
             raise ValueError(f"n_burn must be >= 0, got {self.n_burn}")
+        if self.max_rounds < 1:
+            raise ValueError(f"max_rounds must be >= 1, got {self.max_rounds}")
         if not 0 <= self.seed < 2**32:
             raise ValueError(f"seed must be in [0, 2**32), got {self.seed}")
 
@@ -80,6 +97,7 @@ def run(
     initial: np.ndarray,
     settings: MCMCSettings,
     *,
+    to_values: BatchFn | None = None,
     prior_samples: Mapping[str, np.ndarray] | None = None,
     observed: Mapping[str, np.ndarray | xr.DataArray] | None = None,
     attrs: Mapping[str, object] | None = None,
@@ -88,6 +106,9 @@ def run(
 
     ``initial`` (n_walkers, ndim) are the start positions; all must have a finite prior.  The
     likelihood must return ``-inf``, never NaN, where a simulation fails (emcee stops on NaN).
+    ``to_values`` maps rows of walker positions (n, ndim) to the variables' values when the walkers
+    move in other coordinates: the posterior group and the convergence diagnostics are of the values
+    (emcee's ``tau`` stays in the walkers' coordinates).
     ``prior_samples`` ({name: (draw,) or (chain, draw) array}) becomes the ``prior`` group and
     ``observed`` ({name: array or DataArray}, e.g. a measurement Dataset) the ``observed_data`` group.
     Identical arguments give bit-identical chains: all randomness comes from ``settings.seed``.
@@ -118,9 +139,29 @@ def run(
     # factors), never numpy's global one: sample() sets it from the State's random_state.
     start = emcee.State(initial, random_state=np.random.RandomState(settings.seed).get_state())
     sampler.run_mcmc(start, settings.n_burn + settings.n_steps, progress=False)
+    rounds = 1
+    while True:
+        idata = _inference_data(sampler, names, settings, to_values, prior_samples, observed)
+        idata.attrs = {
+            **{k: _netcdf_attr(v) for k, v in (attrs or {}).items()},
+            "mcmc_settings": json.dumps(dataclasses.asdict(settings)),
+            "seed": settings.seed,
+            "sampler": f"emcee.EnsembleSampler(moves={MOVES[settings.move].__name__}(), vectorize=True); chain = walker",
+            "emcee_version": emcee.__version__,
+            "arviz_version": az.__version__,
+            "rounds": rounds,
+        }
+        if diagnostics(idata, settings)["converged"] or rounds == settings.max_rounds:
+            return idata
+        sampler.run_mcmc(None, settings.n_steps, progress=False)  # continues from the last state and random state
+        rounds += 1
 
+
+def _inference_data(sampler, names, settings, to_values, prior_samples, observed) -> az.InferenceData:
     kept = dict(discard=settings.n_burn, thin=settings.thin)
     chain = sampler.get_chain(**kept).swapaxes(0, 1)  # (walker, draw, ndim)
+    if to_values is not None:
+        chain = np.asarray(to_values(chain.reshape(-1, len(names))), dtype=np.float64).reshape(chain.shape)
     lp = sampler.get_log_prob(**kept).T  # (walker, draw)
     ll = sampler.get_blobs(**kept).T
     tau = sampler.get_autocorr_time(quiet=True, **kept)  # in steps; emcee logs if the run is < 50 tau
@@ -140,17 +181,7 @@ def run(
         groups["observed_data"] = xr.Dataset(
             {k: v if isinstance(v, xr.DataArray) else _data_array(k, v) for k, v in observed.items()}
         )
-    idata = az.InferenceData(**groups)
-    idata.attrs = {
-        **{k: _netcdf_attr(v) for k, v in (attrs or {}).items()},
-        "mcmc_settings": json.dumps(dataclasses.asdict(settings)),
-        "seed": settings.seed,
-        "sampler": f"emcee.EnsembleSampler(moves={MOVES[settings.move].__name__}(), vectorize=True); chain = walker",
-        "emcee_version": emcee.__version__,
-        "arviz_version": az.__version__,
-    }
-    diagnostics(idata, settings)
-    return idata
+    return az.InferenceData(**groups)
 
 
 def diagnostics(idata: az.InferenceData, settings: MCMCSettings) -> dict:
