@@ -64,6 +64,11 @@ def test_stick_slip_is_new_dynamics_and_adding_it_brings_chi2_to_the_noise(diagn
     assert set(v["parameters"]) == {"T_max", "r_k", "J2a_share", "kT1"}
     assert all(p["hdi_low"] <= p["mean"] <= p["hdi_high"] for p in v["parameters"].values())
     assert v["parameters"]["T_max"]["mean"] == pytest.approx(1854.95, rel=0.05)
+    # the drift is sampled as 1/kT1 (where it trades off with a fault along a straight ridge), but
+    # its posterior and summary are of kT1 itself
+    assert "reciprocal" in d.effect_mcmc.attrs["coordinates"]
+    kT1 = d.effect_mcmc.posterior["kT1"].values
+    assert 1.5e6 <= kT1.min() and kT1.max() <= 4.5e6 and kT1.mean() == pytest.approx(3.0e6, rel=0.05)
     # every RMSE falls and the final one sits at the noise
     for channel, sigma in zip(SETTINGS.channels, d.sigma):
         assert v["rmse_after"][channel] < v["rmse_before"][channel]

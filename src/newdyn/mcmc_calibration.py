@@ -138,7 +138,8 @@ def _values(variables: Sequence[Variable], x: np.ndarray, fold: bool = True) -> 
     return np.column_stack([v.value(x[:, i], fold) for i, v in enumerate(variables)])
 
 
-def _sampled(variables: Sequence[Variable], values: np.ndarray) -> np.ndarray:
+def sampled_rows(variables: Sequence[Variable], values: np.ndarray) -> np.ndarray:
+    """Rows of values (n, n_variables) -> rows of sampled coordinates (walker positions)."""
     return np.column_stack([v.sampled(values[:, i]) for i, v in enumerate(variables)])
 
 
@@ -347,9 +348,9 @@ def _joint_start(data, sigma, variables, priors, grid_posteriors, values, sampli
     k0 = np.array([model.complete(values)[name] for name in names])
     k0[best] = grid_posteriors[best].map
     k0 = np.clip(k0, [v.low for v in params], [v.high for v in params])
-    x0 = np.clip(_sampled(params, k0[None])[0], low + inner, high - inner)
+    x0 = np.clip(sampled_rows(params, k0[None])[0], low + inner, high - inner)
     k_sd = np.array([g.sd for g in grid_posteriors])
-    scale = np.abs(_sampled(params, (k0 + k_sd)[None])[0] - x0)  # 1-D posterior sds in sampled units
+    scale = np.abs(sampled_rows(params, (k0 + k_sd)[None])[0] - x0)  # 1-D posterior sds in sampled units
     scale = np.where(scale > 0, scale, np.abs(x0) * 1e-6 + 1e-12)
     mean, sd = np.array([p.mean for p in priors]), np.array([p.sd for p in priors])
 
