@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import yaml
 
-from newdyn import calibration, diagnosis, hypotheses, io, likelihood, model, noise, simulation
+from newdyn import calibration, diagnosis, hypotheses, io, likelihood, model, noise, sampling, simulation
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = yaml.safe_load((ROOT / ".test" / "config.yaml").read_text())
@@ -165,3 +165,10 @@ def test_an_unexplained_verdict_says_where_the_residual_remains():
     text = diagnosis.statement(verdict, 1.1)
     assert text.startswith("unexplained: no hypothesis of the library brings reduced chi2 to 1.1 or below")
     assert "stick_slip, leaves 3.2" in text and "w1 0-10 Hz (x12" in text and "b1_x at load-cycle phase 0.25-0.5" in text
+
+
+def test_effect_mcmc_rounds_default_to_the_calibrations_and_can_be_set_apart():
+    assert SETTINGS.mcmc["max_rounds"] == CONFIG["calibration"]["mcmc"]["max_rounds"]
+    config = {**CONFIG, "diagnosis": {**CONFIG["diagnosis"], "mcmc": {**CONFIG["diagnosis"]["mcmc"], "max_rounds": 5}}}
+    assert diagnosis.Settings.from_config(config).mcmc["max_rounds"] == 5
+    assert sampling.MCMCSettings.from_config(diagnosis.Settings.from_config(config).mcmc).max_rounds == 5
