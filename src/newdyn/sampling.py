@@ -205,7 +205,7 @@ def diagnostics(idata: az.InferenceData, settings: MCMCSettings) -> dict:
     }
     failed = []
     if not result["rhat"] <= settings.rhat_max:  # written so that NaN fails
-        failed.append(f"rhat {result['rhat']:.3g} > {settings.rhat_max}")
+        failed.append(f"rhat {result['rhat']:.4f} > {settings.rhat_max}")
     for ess in ("ess_bulk", "ess_tail"):
         if not result[ess] >= settings.ess_min:
             failed.append(f"{ess} {result[ess]:.0f} < {settings.ess_min:g}")
