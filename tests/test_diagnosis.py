@@ -170,5 +170,4 @@ def test_an_unexplained_verdict_says_where_the_residual_remains():
 def test_effect_mcmc_rounds_default_to_the_calibrations_and_can_be_set_apart():
     assert SETTINGS.mcmc["max_rounds"] == CONFIG["calibration"]["mcmc"]["max_rounds"]
     config = {**CONFIG, "diagnosis": {**CONFIG["diagnosis"], "mcmc": {**CONFIG["diagnosis"]["mcmc"], "max_rounds": 5}}}
-    assert diagnosis.Settings.from_config(config).mcmc["max_rounds"] == 5
     assert sampling.MCMCSettings.from_config(diagnosis.Settings.from_config(config).mcmc).max_rounds == 5
