@@ -7,7 +7,10 @@ rule grid_models:
         "results/benchmarks/grid_models/{variant}/{parameter}.tsv"
     conda:
         "../envs/newdyn.yaml"
-    threads: 2
+    # One thread, first: a two-thread job waits for both cores to be free, which with the study's
+    # one-thread jobs queued is near the end, and every grid calibration and diagnosis waits on it.
+    threads: 1
+    priority: 2
     params:
         spec=grid_models_spec,
         code=CALIBRATION_CODE,
