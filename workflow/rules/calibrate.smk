@@ -5,12 +5,12 @@ rule grid_models:
         "results/logs/grid_models/{variant}/{parameter}.log",
     benchmark:
         "results/benchmarks/grid_models/{variant}/{parameter}.tsv"
+    # First, on one thread (below): a two-thread job waits for both cores to be free, which with the
+    # study's one-thread jobs queued is near the end, and every grid calibration and diagnosis waits on it.
+    priority: 2
     conda:
         "../envs/newdyn.yaml"
-    # One thread, first: a two-thread job waits for both cores to be free, which with the study's
-    # one-thread jobs queued is near the end, and every grid calibration and diagnosis waits on it.
     threads: 1
-    priority: 2
     params:
         spec=grid_models_spec,
         code=CALIBRATION_CODE,

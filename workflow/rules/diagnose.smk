@@ -24,12 +24,12 @@ rule diagnose:
         "{root}/logs/diagnose/{name}.log",
     benchmark:
         "{root}/benchmarks/diagnose/{name}.tsv"
+    # First, on one thread (below): its fits and MCMC are serial, a second thread saves nothing (32 s on 1,
+    # 35 s on 2); two diagnoses run side by side, and the study's demo beside the calibrations, not after.
+    priority: 1
     conda:
         "../envs/newdyn.yaml"
-    # One thread: its fits and MCMC are serial and a second thread saves nothing (32 s on 1, 35 s on 2), so
-    # two diagnoses run side by side; the priority starts the study's demo beside the calibrations, not after.
     threads: 1
-    priority: 1
     params:
         spec=diagnosis_spec,
         code=DIAGNOSIS_CODE,
