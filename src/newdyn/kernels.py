@@ -1,630 +1,368 @@
-"""Compiled simulation kernel of the reference rig (rig.md), batched over parameter sets.
+"""The batched simulation kernel, compiled once per set of effects.
 
-Fixed-step classical Runge-Kutta (RK4) with exact event location: a switching fault (stick-slip
-onset and re-stick, loose-bearing contact) changes the force law only at a located event, so each
-step integrates a smooth right-hand side and keeps fourth-order accuracy.
-
-Design for speed: up to ``LANES`` parameter sets are integrated together as the lanes of a block.
-Every per-lane quantity (parameters, modes, state, stage values) is a row of one flat work array
-indexed ``row * LANES + lane``, and the hot loops run over lanes with bodies that have no calls and
-no data-dependent branches (mode switches are selects, sin/cos is the inline :func:`_sincos`), so
-LLVM turns them into AVX lanes.  After each step the event functions of all lanes are checked
-together; a lane whose step crosses an event is redone by the event-locating path, which runs the
-same RK4 and RHS code on a one-lane scratch block.  The arithmetic is that of the scalar original,
-operation for operation (no fast-math), so results do not depend on how simulations are grouped
-into lanes; only sin/cos of the disk angles may differ from libm's by an ulp.  Blocks run in
-parallel threads (``NUMBA_NUM_THREADS``).
-
-State layout (42): positions θ1 θ2a θ2b θ3 θ4, x[8], y[8] (nodes b1 m1 b2 m2 m3 b3 m4 b4), then
-the same velocities.  θ2a/θ2b move as one body J2a + J2b while stuck.
+``kernel_template.py`` holds the kernel of the healthy rig (RK4, event location, lanes, threads);
+:func:`module` renders it for the active effects (:mod:`newdyn.effects`): their parameter slots and
+mode rows, and straight-line code that adds each effect's force at its place, evaluates its event
+function and applies its switch.  The rendered module is written under the cache folder
+(``NEWDYN_CACHE``, default ``~/.cache/newdyn``) with a name that hashes the template, the effects'
+files and numba's version, so numba caches its machine code beside it: an effect set compiles
+once, and an edit of an effect file compiles anew.
 """
 
 from __future__ import annotations
 
-import math
+import ast
+import hashlib
+import importlib.util
+import inspect
+import os
+import textwrap
+import sys
+import tempfile
+from pathlib import Path
+from types import ModuleType
 
+import numba
 import numpy as np
-from numba import get_num_threads, njit, prange
+from numba import get_num_threads
 
-from .model import PARAMETER_INDEX as _I
-from .model import PARAMETER_NAMES as _NAMES
+from . import effects, model
 
-# Parameter slots (compile-time constants for numba); parameter k of a lane lives in work row k.
-J1, J2A, J2B, J3, J4 = _I["J1"], _I["J2a"], _I["J2b"], _I["J3"], _I["J4"]
-M1, M2, M3, M4, MB = _I["m1"], _I["m2"], _I["m3"], _I["m4"], _I["m_b"]
-KT1, KT2, KT3 = _I["kT1"], _I["kT2"], _I["kT3"]
-KS, KH, KC, KBX, KBY = _I["k_s"], _I["k_h"], _I["k_c"], _I["k_bx"], _I["k_by"]
-BETA, SLIP, U1, U4 = _I["beta"], _I["slip"], _I["u1"], _I["u4"]
-SPEED, T0, LOAD_AMP, LOAD_FREQ, LOAD_HARM = _I["speed_rpm"], _I["T0"], _I["load_amp"], _I["load_freq"], _I["load_harm"]
-TMAX, RK, ALPHA, GAMMA, GAP = _I["T_max"], _I["r_k"], _I["crack_alpha"], _I["cubic_gamma"], _I["bearing_gap"]
-N_PAR = len(_NAMES)
+TEMPLATE = Path(__file__).with_name("kernel_template.py")
 
-NQ = 21  # positions
-NY = 42  # state
+# Where each torsional place's coordinate is in the state (position offsets a, b: x = q[a] − q[b];
+# b None: x = q[a]) and which element torque its force is added to, with which sign.
+_TORSIONAL = {
+    "motor": ((0, None), "torque1", "+"),
+    "motor_shaft": ((0, 1), "t_s1", "-"),
+    "slip_joint": ((1, 2), "f_joint", "+"),
+    "coupling": ((2, 3), "t_c", "+"),
+    "load_shaft": ((3, 4), "t_s3", "+"),
+    "load": ((4, None), "torque4", "+"),
+}
 
-# Output codes: 0..10 are model.CHANNELS in order; then diagnostics; STATE + i is state component i.
-OUT_SLIP_ONSETS = 11  # cumulative number of slip onsets up to the sample
-OUT_SLIPPING = 12  # 1 while the stick-slip interface slips, else 0
-OUT_INTERFACE_TORQUE = 13  # the torque the interface would carry if stuck (the T_f of Eq. 3b)
-OUT_BEARING_CONTACT = 14  # loose-bearing contact state -1, 0, +1
+
+def cache_folder() -> Path:
+    return Path(os.environ.get("NEWDYN_CACHE") or Path.home() / ".cache" / "newdyn")
+
+
+def _coordinate(place: str, src: str) -> tuple[str, str, str]:
+    """(x, v, accumulator) expressions of a place at state rows ``src``."""
+    if place in _TORSIONAL:
+        (a, b), target, _ = _TORSIONAL[place]
+        x = f"w[_at({src} + {a}, lane)]" + (f" - w[_at({src} + {b}, lane)]" if b is not None else "")
+        v = f"w[_at({src} + NQ + {a}, lane)]" + (f" - w[_at({src} + NQ + {b}, lane)]" if b is not None else "")
+        return x, v, target
+    node, _, axis = place.partition("_")
+    row = (5 if axis == "x" else 13) + model.NODES.index(node)
+    return f"w[_at({src} + {row}, lane)]", f"w[_at({src} + NQ + {row}, lane)]", f"f{axis}{model.NODES.index(node)}"
+
+
+def _reads(function, argument: int) -> set[str] | None:
+    """The attributes ``function`` reads of its argument number ``argument``; None if it hands the
+    argument on whole (then anything may be read)."""
+    definition = ast.parse(textwrap.dedent(inspect.getsource(function))).body[0]
+    name = definition.args.args[argument].arg
+    uses = [node for node in ast.walk(definition) if isinstance(node, ast.Name) and node.id == name]
+    attributes = [node.attr for node in ast.walk(definition)
+                  if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id == name]
+    return set(attributes) if len(uses) == len(attributes) else None
+
+
+def rig_fields(effect: type[effects.Effect]) -> tuple[str, ...]:
+    """The rig values an effect's functions read (``rig.<name>``); all of them if one hands ``rig`` on.
+
+    Each effect gets a rig tuple of just these: LLVM then has less to prove dead, which shortens the
+    kernel's compile time against one tuple of every rig value."""
+    used: set[str] = set()
+    for function in (effect.force, effect.event, effect.switch):
+        if function is not None:
+            reads = _reads(function, 2)
+            if reads is None:
+                return effects.base.RIG_FIELDS
+            used |= reads
+    return tuple(name for name in effects.base.RIG_FIELDS if name in used)
+
+
+def force_reads_joint_torque(effect: type[effects.Effect]) -> bool:
+    """Whether an effect's force reads ``s.joint_torque``.  The right-hand side computes that torque
+    only for such a force: computed on every evaluation it made a lone simulation 6x slower."""
+    reads = _reads(effect.force, 0)
+    return reads is None or "joint_torque" in reads
+
+
+def dense_rows(active: dict[str, type[effects.Effect]]) -> list[int]:
+    """Position rows the switching effects' event functions read: the torsional ones (angles, twists,
+    the slip joint's torque) and the lateral node each acts on."""
+    rows = list(range(5))
+    for effect in active.values():
+        if effect.switching() and effect.acts_on not in _TORSIONAL:
+            node, _, axis = effect.acts_on.partition("_")
+            rows.append((5 if axis == "x" else 13) + model.NODES.index(node))
+    return sorted(set(rows))
+
+
+def render(active: dict[str, type[effects.Effect]]) -> str:
+    """The kernel module's source for the effects ``active`` (name -> effect), in their order."""
+    index = model.slot_index()
+    switching = [kind for kind, effect in active.items() if effect.switching()]
+    layout = [
+        "# Generated by newdyn.kernels for the effects " + (", ".join(active) or "(none)") + ": do not edit.",
+        f"_I = {dict(model.PARAMETER_INDEX)!r}",
+        f"N_PAR = {len(index)}",
+        f"N_SWITCHING = {len(switching)}",
+        f"SWITCHING_ON = np.array({[index[model.effect_slot(kind)] for kind in switching]!r}, dtype=np.int64)",
+        f"DENSE_ROWS = np.array({dense_rows(active)!r}, dtype=np.int64)",
+    ]
+    for i, (kind, effect) in enumerate(active.items()):
+        names = tuple(p.name for p in effect.kernel_parameters()) or ("unused",)
+        layout += [
+            f"_EFFECT_{i} = load_file({effect.source!r})  # {kind}",
+            f"_force_{i} = njit(**_EFFECT_JIT)(_EFFECT_{i}.force)",
+            f"_P{i} = namedtuple('_P{i}', {names!r})",
+            f"_R{i} = namedtuple('_R{i}', {rig_fields(effect) or ('unused',)!r})",
+        ]
+        if effect.switching():
+            layout += [f"_event_{i} = njit(**_EFFECT_JIT)(_EFFECT_{i}.event)", f"_switch_{i} = njit(**_EFFECT_JIT)(_EFFECT_{i}.switch)"]
+    source = TEMPLATE.read_text(encoding="utf-8").replace("# @layout@", "\n".join(layout))
+    return source + "\n\n" + _generated(active, index, switching)
+
+
+def _parameters(i: int, effect, index: dict[str, int]) -> str:
+    slots = [index[model.effect_slot(effect.name, p.name)] for p in effect.kernel_parameters()]
+    return f"_P{i}(" + ", ".join(f"w[_at({slot}, lane)]" for slot in slots) + ")" if slots else f"_P{i}(0.0)"
+
+
+def _rig(i: int, effect) -> str:
+    rows = {name: f"w[_at({row}, lane)]" for row, name in enumerate(model.PARAMETER_NAMES)} | {"Omega": "w[_at(R_OMEGA, lane)]"}
+    return f"_R{i}(" + ", ".join(rows[name] for name in rig_fields(effect) or ("Omega",)) + ")"
+
+
+def _mode(kind: str, switching: list[str]) -> str:
+    return f"w[_at(R_MODES + {switching.index(kind)}, lane)]" if kind in switching else "0.0"
+
+
+def _kinematics(place: str, src: str, joint_torque: str) -> str:
+    """A Kinematics of ``place`` at state rows ``src``; its joint torque is the expression ``joint_torque``
+    on the slip joint (0 elsewhere)."""
+    x, v, _ = _coordinate(place, src)
+    return (f"Kinematics(t, {x}, {v}, w[_at({src}, lane)], w[_at({src} + 4, lane)], w[_at({src} + NQ, lane)], "
+            f"w[_at({src} + NQ + 4, lane)], {joint_torque if place == 'slip_joint' else '0.0'})")
+
+
+def _effect_lines(i: int, kind: str, effect, index, switching, src: str) -> list[str]:
+    """Code that adds effect i's force at its place (to the local accumulator of that place)."""
+    _, _, target = _coordinate(effect.acts_on, src)
+    sign = _TORSIONAL[effect.acts_on][2] if effect.acts_on in _TORSIONAL else "+"
+    present = f"w[_at({index[model.effect_slot(kind)]}, lane)] != 0.0"
+    lines = [
+        f"    # {kind} on {effect.acts_on}",
+        f"    mode_{i} = {_mode(kind, switching)}",
+        f"    force_{i} = _force_{i}({_kinematics(effect.acts_on, src, 'joint_torque' if force_reads_joint_torque(effect) else '0.0')}, "
+        f"{_parameters(i, effect, index)}, {_rig(i, effect)}, mode_{i})",
+    ]
+    if effect.acts_on == "slip_joint":
+        opened = f"({present}) & (mode_{i} != 0.0)" if effect.locks_joint else f"({present})"
+        return lines + [f"    open_{i} = {opened}",
+                        f"    f_joint = f_joint + force_{i} if open_{i} else f_joint",
+                        f"    joint_open = 1.0 if open_{i} else joint_open"]
+    return lines + [f"    {target} = {target} {sign} force_{i} if {present} else {target}"]
+
+
+def _generated(active, index, switching) -> str:
+    items = list(enumerate(active.items()))
+    shafts = [(i, k, e) for i, (k, e) in items if e.acts_on in ("motor_shaft", "coupling")]
+    others = [(i, k, e) for i, (k, e) in items if e.acts_on not in ("motor_shaft", "coupling", "slip_joint")]
+    joint = [(i, k, e) for i, (k, e) in items if e.acts_on == "slip_joint"]
+    lines = [
+        "# --- generated from the effects -------------------------------------------------------------------",
+        "@njit(**_JIT, inline='always')",
+        "def _joint_torques(w, lane, src, t):",
+        '    """(t_s1, t_c, T_f): the torques of shaft 1 on disk 1 and of the coupling on disk 3 with their effects',
+        '    added, and the torque the slip joint carries while locked."""',
+        "    t_s1, t_c = _shaft_torques(w, lane, src)",
+    ]
+    if shafts:
+        lines.append("    joint_torque = 0.0")
+    for i, kind, effect in shafts:
+        lines += _effect_lines(i, kind, effect, index, switching, "src")
+    lines += [
+        "    return t_s1, t_c, _stick_torque(w, lane, t_s1, t_c)",
+        "",
+        "",
+        "@njit(**_JIT, inline='always')",
+        "def _forces(w, lane, src, t):",
+        '    """Element torques and node forces of one lane at state rows src, time t, with every present',
+        "    effect's force added at its place: (torque on disk 1, t_s1, t_c, t_s3, torque on disk 4, slip-joint",
+        '    torque, 1.0 if the slip joint is open else 0.0, its locked torque, fx[8], fy[8], sin/cos θ1, θ4)."""',
+        "    s1, c1 = sincos(w[_at(src, lane)])",
+        "    s4, c4 = sincos(w[_at(src + 4, lane)])",
+        "    t_s1, t_c, joint_torque = _joint_torques(w, lane, src, t)",
+        "    t_s3 = _load_shaft_torque(w, lane, src)",
+        "    torque1 = w[_at(T0, lane)] - w[_at(R_CM, lane)] * (w[_at(src + NQ, lane)] - w[_at(R_OMEGA, lane)])",
+        "    torque4 = -w[_at(R_TL, lane)]",
+        "    fx0, fx1, fx2, fx3, fx4, fx5, fx6, fx7 = _lateral(w, lane, src + 5, w[_at(KBX, lane)])",
+        "    fy0, fy1, fy2, fy3, fy4, fy5, fy6, fy7 = _lateral(w, lane, src + 13, w[_at(KBY, lane)])",
+        "    f_joint = 0.0",
+        "    joint_open = 0.0",
+    ]
+    for i, kind, effect in others + joint:
+        lines += _effect_lines(i, kind, effect, index, switching, "src")
+    lines += [
+        "    torque1 = torque1 + t_s1  # the disks' net torques, with the shafts' effects",
+        "    torque4 = t_s3 + torque4",
+        "    return (torque1, t_s1, t_c, t_s3, torque4, f_joint, joint_open, joint_torque, fx0, fx1, fx2, fx3, fx4, fx5, fx6, fx7,",
+        "            fy0, fy1, fy2, fy3, fy4, fy5, fy6, fy7, s1, c1, s4, c4)",
+        "",
+        "",
+        "@njit(**_JIT, inline='always')",
+        "def _event_value(w, lane, src, t):",
+        '    """(g, which): the largest event function of the present switching effects (j + 1), or (-inf, 0)."""',
+        "    g = -math.inf",
+        "    which = 0.0",
+    ]
+    if switching:
+        lines.append("    joint_torque = _joint_torques(w, lane, src, t)[2]")
+    for i, (kind, effect) in items:
+        if not effect.switching():
+            continue
+        j = switching.index(kind)
+        present = f"w[_at({index[model.effect_slot(kind)]}, lane)] != 0.0"
+        lines += [
+            f"    g_{i} = _event_{i}({_kinematics(effect.acts_on, 'src', 'joint_torque')}, {_parameters(i, effect, index)}, {_rig(i, effect)}, {_mode(kind, switching)})",
+            f"    first_{i} = ({present}) & (g_{i} > g)",
+            f"    which = {float(j + 1)} if first_{i} else which",
+            f"    g = g_{i} if first_{i} else g",
+        ]
+    lines += [
+        "    return g, which",
+        "",
+        "",
+        "@njit(**_JIT)",
+        "def _switch_effect(w, lane, which, t):",
+        '    """Switch effect ``which`` (j + 1) at the state in rows R_Y of ``lane``: its new mode, the momentum-',
+        '    weighted common speed of 2a and 2b where it locks the slip joint, and its count of onsets."""',
+    ]
+    if switching:
+        lines.append("    joint_torque = _joint_torques(w, lane, R_Y, t)[2]")
+    else:
+        lines.append("    return")
+    for i, (kind, effect) in items:
+        if not effect.switching():
+            continue
+        j = switching.index(kind)
+        lines += [
+            f"    if which == {float(j + 1)}:",
+            f"        old = w[_at(R_MODES + {j}, lane)]",
+            f"        new = _switch_{i}({_kinematics(effect.acts_on, 'R_Y', 'joint_torque')}, {_parameters(i, effect, index)}, {_rig(i, effect)}, old)",
+            f"        w[_at(R_MODES + {j}, lane)] = new",
+            "        if old == 0.0 and new != 0.0:",
+            f"            w[_at(R_ONSETS + {j}, lane)] += 1.0",
+        ]
+        if effect.locks_joint:
+            lines += [
+                "        if new == 0.0 and old != 0.0:  # the joint locks: both sides take the momentum-weighted common speed",
+                "            momentum = w[_at(J2A, lane)] * w[_at(R_Y + NQ + 1, lane)] + w[_at(J2B, lane)] * w[_at(R_Y + NQ + 2, lane)]",
+                "            common = momentum * w[_at(R_INVJ2, lane)]",
+                "            w[_at(R_Y + NQ + 1, lane)] = common",
+                "            w[_at(R_Y + NQ + 2, lane)] = common",
+            ]
+    lines += [
+        "",
+        "",
+        "@njit(**_JIT, inline='always')",
+        "def _joint_open(w, lane):",
+        '    """Whether a present effect holds the slip joint open in its current mode."""',
+        "    is_open = False",
+    ]
+    for i, (kind, effect) in items:
+        if effect.acts_on == "slip_joint":
+            present = f"w[_at({index[model.effect_slot(kind)]}, lane)] != 0.0"
+            condition = f"({present}) & ({_mode(kind, switching)} != 0.0)" if effect.locks_joint else f"({present})"
+            lines.append(f"    is_open = is_open | ({condition})")
+    lines.append("    return is_open")
+    return "\n".join(lines) + "\n"
+
+
+_MODULES: dict[str, ModuleType] = {}  # by kernel digest
+_LOADED: dict[tuple, ModuleType] = {}  # by the (name, effect class) pairs of the active set
+
+
+def kernel_digest(active: dict[str, type[effects.Effect]], source: str | None = None) -> str:
+    """The name of the compiled kernel of the effects ``active``: a hash of its rendered source, of the
+    effects' files and of numba's and Python's versions.  The source only names the effects' files, so
+    their contents go in too: an edited effect gets a kernel of its own, never the machine code that
+    numba cached for the old one."""
+    digest = hashlib.sha256(((source or render(active)) + numba.__version__ + sys.version).encode())
+    for effect in active.values():
+        digest.update(Path(effect.source).read_bytes())
+    return digest.hexdigest()[:16]
+
+
+def module(active: dict[str, type[effects.Effect]] | None = None) -> ModuleType:
+    """The compiled kernel module of the effects ``active`` (default: :func:`newdyn.effects.active`)."""
+    active = dict(active if active is not None else effects.active())
+    # Rendering parses the effects' sources (~25 ms): once per set of effect classes (a changed file
+    # is a new class, see newdyn.effects.load_file), not on every simulation.
+    key = tuple(active.items())
+    if key in _LOADED:
+        return _LOADED[key]
+    source = render(active)
+    digest = kernel_digest(active, source)
+    if digest in _MODULES:
+        _LOADED[key] = _MODULES[digest]
+        return _MODULES[digest]
+    folder = cache_folder() / "kernels"
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / f"kernel_{digest}.py"
+    if not path.exists():
+        # Written once and never rewritten: numba's cache is keyed on the file's time stamp.
+        with tempfile.NamedTemporaryFile("w", dir=folder, suffix=".tmp", delete=False, encoding="utf-8") as f:
+            f.write(source)
+        try:
+            os.link(f.name, path)
+        except FileExistsError:
+            pass  # another process wrote the same source first
+        finally:
+            os.unlink(f.name)
+    spec = importlib.util.spec_from_file_location(f"newdyn_kernel_{digest}", path)
+    compiled = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = compiled
+    spec.loader.exec_module(compiled)
+    _MODULES[digest] = _LOADED[key] = compiled
+    return compiled
+
+
+def output_code(name: str, active: dict[str, type[effects.Effect]] | None = None) -> int | None:
+    """The kernel's output code of a diagnostic: ``joint_torque``, ``<kind>.<mode_name>`` or ``<kind>.onsets``."""
+    active = dict(active if active is not None else effects.active())
+    switching = [(kind, e) for kind, e in active.items() if e.switching()]
+    if name == "joint_torque":
+        return 11
+    for j, (kind, effect) in enumerate(switching):
+        if name == f"{kind}.{effect.mode_name}":
+            return 12 + j
+        if name == f"{kind}.onsets":
+            return 12 + len(switching) + j
+    return None
+
+
+def diagnostics(active: dict[str, type[effects.Effect]] | None = None) -> tuple[str, ...]:
+    """Names of the diagnostic outputs of the active effects."""
+    active = dict(active if active is not None else effects.active())
+    switching = [(kind, e) for kind, e in active.items() if e.switching()]
+    return ("joint_torque", *[f"{k}.{e.mode_name}" for k, e in switching], *[f"{k}.onsets" for k, _ in switching])
+
+
 OUT_STATE = 100
 
-# Lanes per block: four AVX2 vectors of doubles.  Fewer lanes share the per-step scalar work (the
-# load torque) among fewer simulations; 32 lanes no longer fit the work array in L1 (measured slower).
-LANES = 16
-# LLVM vectorizes the lane loops VECTOR lanes at a time (two AVX2 vectors) and runs the remainder
-# scalar: a block of 4 lanes took 19 ms, one of 8 lanes 12 ms (healthy, 1.5 s).  Blocks of more
-# than SCALAR_MAX lanes are therefore padded to a multiple of VECTOR lanes.
-VECTOR = 8
-SCALAR_MAX = 2
 
-# Rows of the work array.  Per-lane constants come first (parameters, then derived quantities),
-# then the modes, so that the event path sets up its scratch lane by copying two ranges of rows.
-R_OMEGA = N_PAR  # synchronous speed Ω
-R_CM = R_OMEGA + 1  # motor torque slope c_m
-R_INVJ2 = R_CM + 1  # 1 / (J2a + J2b)
-R_MU2 = R_INVJ2 + 1  # J2a J2b / (J2a + J2b)
-R_DELTA0 = R_MU2 + 1  # coupling reference twist T0 / kT2
-R_INVM = R_DELTA0 + 1  # 8 inverse node masses
-R_KLAT = R_INVM + 8  # 7 lateral spring stiffnesses
-R_JRED1 = R_KLAT + 7  # J1 - u1² / m1: the disk-1 inertia left by the imbalance coupling
-R_JRED4 = R_JRED1 + 1  # J4 - u4² / m4
-R_SAME_LOAD = R_JRED4 + 1  # 1 if the load parameters equal those of the lane to the left, else 0
-N_CONST = R_SAME_LOAD + 1
-R_SLIP = N_CONST  # stick-slip mode: 0 stuck, ±1 slipping (the sign d of T_f at the onset)
-R_CONTACT = R_SLIP + 1  # loose-bearing contact: -1, 0, +1
-R_ONSETS = R_CONTACT + 1  # number of slip onsets so far
-N_MODES = 3
-R_TL = R_ONSETS + 1  # load torque T_l at the stage time
-R_TL_TIME = R_TL + 1  # lane 0 only: the time of the values in row R_TL (NaN: none)
-R_G = R_TL_TIME + 1  # event function value (> 0: an event lies inside the step)
-R_WHICH = R_G + 1  # which event: 0 none, 1 slip onset, 2 re-stick, 3 bearing contact change
-R_Y = R_WHICH + 1  # state at the step start
-R_TRIAL = R_Y + NY  # state at the step end while events are checked
-R_STAGE = R_TRIAL + NY  # RK4 stage state
-R_ACC = R_STAGE + NY  # RHS output: the 21 accelerations (dq/dt is the stage velocity itself)
-R_K1V = R_ACC + NQ  # k1, velocity part (its position part is the velocity in R_Y)
-R_K23 = R_K1V + NQ  # k2 + k3
-N_ROWS = R_K23 + NY
-
-# Options of every kernel function: 'numpy' error model so that x / 0 gives inf instead of a branch
-# to a ZeroDivisionError (such a branch blocks vectorization); no fast-math, so every operation is
-# the IEEE operation of the scalar original and vector and scalar lanes agree bit for bit.
-_JIT = dict(cache=True, error_model="numpy")
-
-
-@njit(**_JIT, inline="always")
-def _at(row, lane):
-    """Flat index of (row, lane).  Unsigned, so numba emits no negative-index wraparound select,
-    which would hide the unit lane stride from LLVM's vectorizer."""
-    return np.uint64(row * LANES + lane)
-
-
-# --- sin and cos that vectorize -------------------------------------------------------------------
-# Cody-Waite reduction by π/2 and the fdlibm (musl) kernels.  Error ≤ 1 ulp, ≤ 1.2e-16 absolute, for
-# |x| < 1e6 (k·_PIO2_HI stays exact); libm's result differs by one ulp in ~3 % of arguments.
-_INV_PIO2 = 6.36619772367581382433e-01
-_PIO2_HI = 1.57079632673412561417e00  # first 33 bits of π/2
-_PIO2_LO = 6.07710050650619224932e-11  # π/2 - _PIO2_HI
-_ROUNDER = 6755399441055744.0  # 1.5·2^52: (x + R) - R rounds x to the nearest integer
-_S1, _S2, _S3 = -1.66666666666666324348e-01, 8.33333333332248946124e-03, -1.98412698298579493134e-04
-_S4, _S5, _S6 = 2.75573137070700676789e-06, -2.50507602534068634195e-08, 1.58969099521155010221e-10
-_C1, _C2, _C3 = 4.16666666666666019037e-02, -1.38888888888741095749e-03, 2.48015872894767294178e-05
-_C4, _C5, _C6 = -2.75573143513906633035e-07, 2.08757232129817482790e-09, -1.13596475577881948265e-11
-
-
-@njit(**_JIT, inline="always")
-def _sincos(x):
-    """(sin x, cos x) without calls or branches (math.sin/cos would block vectorization)."""
-    k = (x * _INV_PIO2 + _ROUNDER) - _ROUNDER  # nearest integer to x / (π/2)
-    r = x - k * _PIO2_HI  # exact
-    tail = k * _PIO2_LO
-    hi = r - tail  # reduced argument hi + lo, |hi| ≤ π/4
-    lo = (r - hi) - tail
-    z = hi * hi
-    zz = z * z
-    v = z * hi
-    rs = _S2 + z * (_S3 + z * _S4) + z * zz * (_S5 + z * _S6)
-    sin_r = hi - ((z * (0.5 * lo - v * rs) - lo) - v * _S1)
-    rc = z * (_C1 + z * (_C2 + z * _C3)) + zz * zz * (_C4 + z * (_C5 + z * _C6))
-    half_z = 0.5 * z
-    one_minus = 1.0 - half_z
-    cos_r = one_minus + (((1.0 - one_minus) - half_z) + (z * rc - hi * lo))
-    quadrant = k - 4.0 * (((k * 0.25 - 0.375) + _ROUNDER) - _ROUNDER)  # k mod 4 (floor by rounding)
-    odd = (quadrant == 1.0) | (quadrant == 3.0)
-    s = cos_r if odd else sin_r
-    c = sin_r if odd else cos_r
-    s = -s if quadrant >= 2.0 else s
-    c = -c if (quadrant == 1.0) | (quadrant == 2.0) else c
-    return s, c
-
-
-# --- the physics: one lane at state rows ``src`` ---------------------------------------------------
-@njit(**_JIT, inline="always")
-def _shaft_torques(w, lane, src):
-    """(t_s1, t_c): torque of shaft 1 on disk 1 (+) and of the coupling element on disk 3 (+)."""
-    beta = w[_at(BETA, lane)]
-    t_s1 = w[_at(KT1, lane)] * (
-        (w[_at(src + 1, lane)] - w[_at(src, lane)]) + beta * (w[_at(src + NQ + 1, lane)] - w[_at(src + NQ, lane)])
-    )
-    delta = w[_at(src + 2, lane)] - w[_at(src + 3, lane)]
-    ratio = delta / w[_at(R_DELTA0, lane)]
-    cubic = 1.0 + w[_at(GAMMA, lane)] * (ratio * ratio)  # exactly 1 when γ = 0
-    t_c = w[_at(KT2, lane)] * (delta * cubic + beta * (w[_at(src + NQ + 2, lane)] - w[_at(src + NQ + 3, lane)]))
-    return t_s1, t_c
-
-
-@njit(**_JIT, inline="always")
-def _load_shaft_torque(w, lane, src, cos4):
-    """Torque of shaft 3 on disk 4 (+); the breathing crack softens kT3 with cos θ4 (exactly kT3 if α = 0)."""
-    k3 = w[_at(KT3, lane)] * (1.0 - 0.5 * w[_at(ALPHA, lane)] * (1.0 - cos4))
-    beta = w[_at(BETA, lane)]
-    return k3 * ((w[_at(src + 3, lane)] - w[_at(src + 4, lane)]) + beta * (w[_at(src + NQ + 3, lane)] - w[_at(src + NQ + 4, lane)]))
-
-
-@njit(**_JIT, inline="always")
-def _stick_torque(w, lane, t_s1, t_c):
-    """Interface torque T_f while stuck (paper Eq. 3b): F_2a = -t_s1 on 2a, F_2b = -t_c on 2b."""
-    return (-t_s1 / w[_at(J2A, lane)] + t_c / w[_at(J2B, lane)]) * w[_at(R_MU2, lane)]
-
-
-@njit(**_JIT, inline="always")
-def _spring(w, lane, pos, s, beta):
-    """Force of lateral spring s (with its damper) between nodes s and s+1: + on s, - on s+1."""
-    vel = pos + NQ
-    return w[_at(R_KLAT + s, lane)] * (
-        (w[_at(pos + s + 1, lane)] - w[_at(pos + s, lane)]) + beta * (w[_at(vel + s + 1, lane)] - w[_at(vel + s, lane)])
-    )
-
-
-@njit(**_JIT, inline="always")
-def _ground(w, lane, pos, node, beta, k_ground):
-    """Force of the ground spring (with its damper) at bearing ``node``, negated."""
-    return k_ground * (w[_at(pos + node, lane)] + beta * w[_at(pos + NQ + node, lane)])
-
-
-@njit(**_JIT, inline="always")
-def _lateral(w, lane, pos, k_ground, b1_grounded, b1_offset):
-    """Spring + damper forces (f0, ..., f7) on the 8 nodes of one direction (position rows pos..,
-    velocities NQ further).  Bearings b2, b3, b4 have their ground spring; b1's acts only while
-    ``b1_grounded``, relative to ``b1_offset`` (the loose-bearing dead zone).  Returned as values,
-    not stored, so that they can stay in registers."""
-    beta = w[_at(BETA, lane)]
-    s0, s1, s2, s3 = _spring(w, lane, pos, 0, beta), _spring(w, lane, pos, 1, beta), _spring(w, lane, pos, 2, beta), _spring(w, lane, pos, 3, beta)
-    s4, s5, s6 = _spring(w, lane, pos, 4, beta), _spring(w, lane, pos, 5, beta), _spring(w, lane, pos, 6, beta)
-    ground_b1 = k_ground * ((w[_at(pos, lane)] - b1_offset) + beta * w[_at(pos + NQ, lane)])
-    f0 = s0 - ground_b1 if b1_grounded else s0
-    f2 = (-s1 + s2) - _ground(w, lane, pos, 2, beta, k_ground)
-    f5 = (-s4 + s5) - _ground(w, lane, pos, 5, beta, k_ground)
-    f7 = -s6 - _ground(w, lane, pos, 7, beta, k_ground)
-    return f0, -s0 + s1, f2, -s2 + s3, -s3 + s4, f5, -s5 + s6, f7
-
-
-@njit(**_JIT, inline="always")
-def _disk(w, lane, src, theta, node, u, jred, torque, s, c, fx, fy):
-    """Imbalance disk with angle θ_theta at ``node``: exact 3×3 Lagrange solve (rig.md).  Returns
-    its angular acceleration and the node forces (fx, fy) with the imbalance reaction added."""
-    inv_m = w[_at(R_INVM + node, lane)]
-    speed = w[_at(src + NQ + theta, lane)]
-    acc = (torque + u * (s * fx - c * fy) * inv_m) / jred
-    return acc, fx + u * (speed * speed * c + s * acc), fy + u * (speed * speed * s - c * acc)
-
-
-@njit(**_JIT, inline="always")
-def _node_accelerations(w, lane, out, node, fx, fy):
-    inv_m = w[_at(R_INVM + node, lane)]
-    w[_at(out + 5 + node, lane)] = fx * inv_m
-    w[_at(out + 13 + node, lane)] = fy * inv_m
-
-
-@njit(**_JIT, inline="always")
-def _rhs(w, lane, src, out):
-    """The right-hand side: the 21 accelerations of one lane at state rows src.., into rows out..
-    (the other half of dy/dt, dq/dt, is the velocity itself).  The load torque is row R_TL.
-
-    Straight-line code: both sides of a mode switch are computed and one is selected, so that lane
-    loops vectorize.
-    """
-    s1, c1 = _sincos(w[_at(src, lane)])
-    s4, c4 = _sincos(w[_at(src + 4, lane)])
-    t_s1, t_c = _shaft_torques(w, lane, src)
-    t_s3 = _load_shaft_torque(w, lane, src, c4)
-    t_motor = w[_at(T0, lane)] - w[_at(R_CM, lane)] * (w[_at(src + NQ, lane)] - w[_at(R_OMEGA, lane)])
-    torque1 = t_s1 + t_motor
-    torque4 = t_s3 - w[_at(R_TL, lane)]
-
-    # Lateral springs; with a clearance g > 0 b1's ground spring in x acts only in contact, from the
-    # housing wall at contact·g.
-    gap = w[_at(GAP, lane)]
-    contact = w[_at(R_CONTACT, lane)]
-    fx = _lateral(w, lane, src + 5, w[_at(KBX, lane)], (gap == 0.0) | (contact != 0.0), contact * gap)
-    fy = _lateral(w, lane, src + 13, w[_at(KBY, lane)], True, 0.0)
-    acc1, fx1, fy1 = _disk(w, lane, src, 0, 1, w[_at(U1, lane)], w[_at(R_JRED1, lane)], torque1, s1, c1, fx[1], fy[1])
-    acc4, fx6, fy6 = _disk(w, lane, src, 4, 6, w[_at(U4, lane)], w[_at(R_JRED4, lane)], torque4, s4, c4, fx[6], fy[6])
-
-    # Stick-slip interface: stuck, 2a and 2b move as one body; slipping, each feels ±r_k T_max.
-    slip = w[_at(R_SLIP, lane)]
-    common = (-t_s1 - t_c) * w[_at(R_INVJ2, lane)]
-    friction = w[_at(RK, lane)] * w[_at(TMAX, lane)] * slip  # NaN if stuck with T_max = inf: unused then
-    acc_2a = (-t_s1 - friction) / w[_at(J2A, lane)]
-    acc_2b = (-t_c + friction) / w[_at(J2B, lane)]
-    w[_at(out, lane)] = acc1
-    w[_at(out + 1, lane)] = common if slip == 0.0 else acc_2a
-    w[_at(out + 2, lane)] = common if slip == 0.0 else acc_2b
-    w[_at(out + 3, lane)] = (t_c - t_s3) / w[_at(J3, lane)]
-    w[_at(out + 4, lane)] = acc4
-    _node_accelerations(w, lane, out, 0, fx[0], fy[0])
-    _node_accelerations(w, lane, out, 1, fx1, fy1)
-    _node_accelerations(w, lane, out, 2, fx[2], fy[2])
-    _node_accelerations(w, lane, out, 3, fx[3], fy[3])
-    _node_accelerations(w, lane, out, 4, fx[4], fy[4])
-    _node_accelerations(w, lane, out, 5, fx[5], fy[5])
-    _node_accelerations(w, lane, out, 6, fx6, fy6)
-    _node_accelerations(w, lane, out, 7, fx[7], fy[7])
-
-
-@njit(**_JIT)
-def _load_torque(t, w, lane):
-    """T_l(t) = T0 [1 + a Σ_h sin(2π h f_l t)/h]; sin(hx) by the Chebyshev recurrence (one sin/cos)."""
-    x = 2.0 * math.pi * w[_at(LOAD_FREQ, lane)] * t
-    s1, c1 = math.sin(x), math.cos(x)
-    s_prev, s_h, total = 0.0, s1, 0.0
-    for h in range(1, int(w[_at(LOAD_HARM, lane)]) + 1):
-        total += s_h / h
-        s_prev, s_h = s_h, 2.0 * c1 * s_h - s_prev
-    return w[_at(T0, lane)] * (1.0 + w[_at(LOAD_AMP, lane)] * total)
-
-
-# --- RK4 over the lanes of a block ------------------------------------------------------------------
-@njit(**_JIT)
-def _accelerations_at_stage(w, n_lanes):
-    """Rows R_ACC ← the RHS at the stage state rows R_STAGE, for lanes 0..n_lanes-1 (vectorized).
-
-    Stages 2-4 share this one compiled loop: a copy per stage would no longer fit the CPU's
-    micro-op cache (measured slower).
-    """
-    for lane in range(n_lanes):
-        _rhs(w, lane, R_STAGE, R_ACC)
-
-
-@njit(**_JIT)
-def _accelerations_at_start(w, n_lanes):
-    """Rows R_ACC ← the RHS at the step start (rows R_Y); saves stage 1 a copy of the state."""
-    for lane in range(n_lanes):
-        _rhs(w, lane, R_Y, R_ACC)
-
-
-@njit(**_JIT)
-def _set_load_torques(w, t, n_lanes):
-    """Row R_TL ← T_l(t) per lane.
-
-    T_l costs a libm sin and cos (kept for exact agreement with the scalar code), so it is skipped
-    when the row already holds time t (stage 4 of a step and stage 1 of the next share their time),
-    and a lane with the same load parameters as its left neighbour (R_SAME_LOAD) copies its value.
-    """
-    if w[_at(R_TL_TIME, 0)] == t:
-        return
-    w[_at(R_TL_TIME, 0)] = t
-    for lane in range(n_lanes):
-        if lane > 0 and w[_at(R_SAME_LOAD, lane)] != 0.0:
-            w[_at(R_TL, lane)] = w[_at(R_TL, lane - 1)]
-        else:
-            w[_at(R_TL, lane)] = _load_torque(t, w, lane)
-
-
-@njit(**_JIT)
-def _rk4(w, t, h, n_lanes, in_place):
-    """One RK4 step of size h from (t, rows R_Y) into rows R_TRIAL, or into R_Y if ``in_place``,
-    for lanes 0..n_lanes-1.
-
-    A stage derivative is k = (stage velocity, accelerations), so only accelerations are stored, and
-    k2's position part is recomputed rather than stored (these loops are bound by stores).  Each
-    combination loop handles position row i with its velocity row NQ+i; the operations are the
-    scalar original's (stage = y + c k, then y + h/6 (k1 + 2 (k2 + k3) + k4)), so the rounding is the
-    same.
-    """
-    half = 0.5 * h
-    _set_load_torques(w, t, n_lanes)
-    _accelerations_at_start(w, n_lanes)
-    for i in range(NQ):  # k1 = (y', a1); stage 2 at y + h/2 k1
-        for lane in range(n_lanes):
-            a = w[_at(R_ACC + i, lane)]
-            w[_at(R_K1V + i, lane)] = a
-            w[_at(R_STAGE + i, lane)] = w[_at(R_Y + i, lane)] + half * w[_at(R_Y + NQ + i, lane)]
-            w[_at(R_STAGE + NQ + i, lane)] = w[_at(R_Y + NQ + i, lane)] + half * a
-    _set_load_torques(w, t + 0.5 * h, n_lanes)
-    _accelerations_at_stage(w, n_lanes)
-    for i in range(NQ):  # k2 = (stage-2 velocity, a2); stage 3 at y + h/2 k2
-        for lane in range(n_lanes):
-            v = w[_at(R_STAGE + NQ + i, lane)]
-            a = w[_at(R_ACC + i, lane)]
-            w[_at(R_K23 + NQ + i, lane)] = a
-            w[_at(R_STAGE + i, lane)] = w[_at(R_Y + i, lane)] + half * v
-            w[_at(R_STAGE + NQ + i, lane)] = w[_at(R_Y + NQ + i, lane)] + half * a
-    _accelerations_at_stage(w, n_lanes)
-    for i in range(NQ):  # k2 + k3, the stage-2 velocity recomputed; stage 4 at y + h k3
-        for lane in range(n_lanes):
-            v = w[_at(R_STAGE + NQ + i, lane)]
-            a = w[_at(R_ACC + i, lane)]
-            v2 = w[_at(R_Y + NQ + i, lane)] + half * w[_at(R_K1V + i, lane)]
-            w[_at(R_K23 + i, lane)] = v2 + v
-            w[_at(R_K23 + NQ + i, lane)] += a
-            w[_at(R_STAGE + i, lane)] = w[_at(R_Y + i, lane)] + h * v
-            w[_at(R_STAGE + NQ + i, lane)] = w[_at(R_Y + NQ + i, lane)] + h * a
-    _set_load_torques(w, t + h, n_lanes)
-    _accelerations_at_stage(w, n_lanes)
-    if in_place:  # two inlined copies, so that each loop has constant rows
-        _finish_step(w, h, n_lanes, R_Y)
-    else:
-        _finish_step(w, h, n_lanes, R_TRIAL)
-
-
-@njit(**_JIT, inline="always")
-def _finish_step(w, h, n_lanes, out):
-    """Rows out ← y + h/6 (k1 + 2 (k2 + k3) + k4), with k4 = (stage velocity, R_ACC); out may be R_Y."""
-    sixth = h / 6.0
-    for i in range(NQ):
-        for lane in range(n_lanes):
-            q = w[_at(R_Y + i, lane)]
-            v = w[_at(R_Y + NQ + i, lane)]
-            q_new = q + sixth * (v + 2.0 * w[_at(R_K23 + i, lane)] + w[_at(R_STAGE + NQ + i, lane)])
-            v_new = v + sixth * (w[_at(R_K1V + i, lane)] + 2.0 * w[_at(R_K23 + NQ + i, lane)] + w[_at(R_ACC + i, lane)])
-            w[_at(out + i, lane)] = q_new
-            w[_at(out + NQ + i, lane)] = v_new
-
-
-# --- events -------------------------------------------------------------------------------------------
-@njit(**_JIT)
-def _events(w, src, n_lanes):
-    """Event function of the current modes at state rows src, per lane, into rows R_G and R_WHICH.
-
-    An event lies where the function turns positive: the larger of the active ones (slip onset or
-    re-stick; bearing contact change) is stored with its number (1, 2; 3), or -inf and 0 when no
-    fault is active.  Straight-line code, so that it vectorizes.
-    """
-    for lane in range(n_lanes):
-        t_max = w[_at(TMAX, lane)]
-        slip = w[_at(R_SLIP, lane)]
-        t_s1, t_c = _shaft_torques(w, lane, src)
-        g_onset = (abs(_stick_torque(w, lane, t_s1, t_c)) - t_max) / t_max
-        g_restick = -(w[_at(src + NQ + 1, lane)] - w[_at(src + NQ + 2, lane)]) * slip / w[_at(R_OMEGA, lane)]
-        stuck = slip == 0.0
-        has_stick_slip = t_max < math.inf
-        g = (g_onset if stuck else g_restick) if has_stick_slip else -math.inf
-        which = (1.0 if stuck else 2.0) if has_stick_slip else 0.0
-        gap = w[_at(GAP, lane)]
-        contact = w[_at(R_CONTACT, lane)]
-        x = w[_at(src + 5, lane)] / gap
-        g_gap = abs(x) - 1.0 if contact == 0.0 else 1.0 - contact * x
-        gap_first = (gap > 0.0) & (g_gap > g)
-        w[_at(R_G, lane)] = g_gap if gap_first else g
-        w[_at(R_WHICH, lane)] = 3.0 if gap_first else which
-
-
-@njit(**_JIT)
-def _switch(w, lane, which):
-    """Apply the mode change of event ``which`` at the located state (rows R_Y) of ``lane``."""
-    if which == 3.0:
-        contact = w[_at(R_CONTACT, lane)]
-        w[_at(R_CONTACT, lane)] = 0.0 if contact != 0.0 else (1.0 if w[_at(R_Y + 5, lane)] > 0.0 else -1.0)
-        return
-    if which == 2.0:  # re-stick: both sides take the momentum-weighted common speed
-        momentum = w[_at(J2A, lane)] * w[_at(R_Y + NQ + 1, lane)] + w[_at(J2B, lane)] * w[_at(R_Y + NQ + 2, lane)]
-        common = momentum * w[_at(R_INVJ2, lane)]
-        w[_at(R_Y + NQ + 1, lane)] = common
-        w[_at(R_Y + NQ + 2, lane)] = common
-        w[_at(R_SLIP, lane)] = 0.0
-    # Slip in the direction of T_f: at an onset, or at once again if the re-stuck interface cannot
-    # carry its torque.
-    t_s1, t_c = _shaft_torques(w, lane, R_Y)
-    t_f = _stick_torque(w, lane, t_s1, t_c)
-    if abs(t_f) > w[_at(TMAX, lane)] or which == 1.0:
-        w[_at(R_SLIP, lane)] = 1.0 if t_f > 0.0 else -1.0
-
-
-@njit(**_JIT)
-def _advance_alone(w, t, h):
-    """Advance lane 0 of block ``w`` from (t, rows R_Y) by h, locating and applying every event.
-
-    The event path, for a lane whose plain step crosses an event: Illinois regula falsi on the step
-    fraction, a stop just past the event, the mode switch, and on with the rest of the step.
-    """
-    t_end = t + h
-    while True:
-        step = t_end - t
-        if step <= 0.0:
-            return
-        _rk4(w, t, step, 1, False)
-        _events(w, R_TRIAL, 1)
-        g_end, which = w[_at(R_G, 0)], w[_at(R_WHICH, 0)]
-        if g_end <= 0.0:
-            _copy_lane_rows(w, 0, w, 0, R_TRIAL, R_Y, NY)
-            return
-        # g(0) < 0 because we start inside the mode.
-        _events(w, R_Y, 1)
-        g0 = min(w[_at(R_G, 0)], 0.0)
-        lo, hi, g_lo, g_hi, side = 0.0, 1.0, g0, g_end, 0
-        for _ in range(60):
-            frac = (lo * g_hi - hi * g_lo) / (g_hi - g_lo) if g_hi != g_lo else 0.5 * (lo + hi)
-            if not lo < frac < hi:
-                frac = 0.5 * (lo + hi)
-            _rk4(w, t, frac * step, 1, False)
-            _events(w, R_TRIAL, 1)
-            g = w[_at(R_G, 0)]
-            if g > 0.0:
-                hi, g_hi = frac, g
-                which = w[_at(R_WHICH, 0)]
-                if side == 1:
-                    g_lo *= 0.5
-                side = 1
-            else:
-                lo, g_lo = frac, g
-                if side == -1:
-                    g_hi *= 0.5
-                side = -1
-            # The switch is applied at hi, so converge there: just past the boundary, or pinned in time.
-            if g_hi < 1e-13 or (hi - lo) * step < 1e-13:
-                break
-        # Stop just on the far side of the event so the new mode starts at its own boundary.
-        _rk4(w, t, hi * step, 1, False)
-        _copy_lane_rows(w, 0, w, 0, R_TRIAL, R_Y, NY)
-        t = t + hi * step
-        _switch(w, 0, which)
-        if which != 3.0 and w[_at(R_SLIP, 0)] != 0.0:
-            w[_at(R_ONSETS, 0)] += 1.0
-
-
-@njit(**_JIT)
-def _copy_lane_rows(a, lane_a, b, lane_b, first_a, first_b, count):
-    """Rows first_b.. of lane_b in block b ← rows first_a.. of lane_a in block a."""
-    for i in range(count):
-        b[_at(first_b + i, lane_b)] = a[_at(first_a + i, lane_a)]
-
-
-# --- driver ---------------------------------------------------------------------------------------
-@njit(**_JIT)
-def _step(w, alone, t, h, n_lanes, events_possible):
-    """Advance all lanes of block ``w`` from t by h; a lane whose step crosses an event is redone by
-    the event path on the one-lane scratch block ``alone``.  Returns the new time."""
-    t_end = t + h
-    step = t_end - t
-    if step <= 0.0:
-        return t_end
-    if not events_possible:
-        _rk4(w, t, step, n_lanes, True)
-        return t_end
-    _rk4(w, t, step, n_lanes, False)
-    _events(w, R_TRIAL, n_lanes)
-    for lane in range(n_lanes):
-        if not w[_at(R_G, lane)] <= 0.0:
-            _copy_lane_rows(w, lane, alone, 0, 0, 0, N_CONST + N_MODES)
-            _copy_lane_rows(w, lane, alone, 0, R_Y, R_Y, NY)
-            alone[_at(R_TL_TIME, 0)] = math.nan  # another lane's load torque
-            _advance_alone(alone, t, h)
-            _copy_lane_rows(alone, 0, w, lane, R_SLIP, R_SLIP, N_MODES)
-            _copy_lane_rows(alone, 0, w, lane, R_Y, R_TRIAL, NY)
-    for j in range(NY * LANES):
-        w[_at(R_Y, j)] = w[_at(R_TRIAL, j)]
-    return t_end
-
-
-@njit(**_JIT)
-def _setup_lane(w, lane, p):
-    """Parameters, derived quantities, modes and the rig.md initial state of one lane."""
-    for k in range(N_PAR):
-        w[_at(k, lane)] = p[k]
-    omega = 2.0 * math.pi * p[SPEED] / 60.0
-    w[_at(R_OMEGA, lane)] = omega
-    w[_at(R_CM, lane)] = p[T0] / (p[SLIP] * omega)
-    w[_at(R_INVJ2, lane)] = 1.0 / (p[J2A] + p[J2B])
-    w[_at(R_MU2, lane)] = p[J2A] * p[J2B] / (p[J2A] + p[J2B])
-    w[_at(R_DELTA0, lane)] = p[T0] / p[KT2]
-    masses = (p[MB], p[M1], p[MB], p[M2], p[M3], p[MB], p[M4], p[MB])
-    for i in range(8):
-        w[_at(R_INVM + i, lane)] = 1.0 / masses[i]
-    springs = (p[KS], p[KS], p[KH], p[KC], p[KH], p[KS], p[KS])
-    for i in range(7):
-        w[_at(R_KLAT + i, lane)] = springs[i]
-    w[_at(R_JRED1, lane)] = p[J1] - p[U1] * p[U1] * w[_at(R_INVM + 1, lane)]
-    w[_at(R_JRED4, lane)] = p[J4] - p[U4] * p[U4] * w[_at(R_INVM + 6, lane)]
-    same = lane > 0
-    for k in (T0, LOAD_AMP, LOAD_FREQ, LOAD_HARM):
-        same = same and p[k] == w[_at(k, lane - 1)]
-    w[_at(R_SAME_LOAD, lane)] = 1.0 if same else 0.0
-    for k in range(N_MODES):
-        w[_at(R_SLIP + k, lane)] = 0.0
-    for i in range(NY):
-        w[_at(R_Y + i, lane)] = 0.0
-    theta3 = p[T0] / p[KT3]
-    theta2 = theta3 + p[T0] / p[KT2]
-    for i, theta in enumerate((theta2 + p[T0] / p[KT1], theta2, theta2, theta3, 0.0)):
-        w[_at(R_Y + i, lane)] = theta
-        w[_at(R_Y + NQ + i, lane)] = omega
-
-
-@njit(**_JIT)
-def _record(w, codes, out, first, k, n_lanes):
-    """Sample k of every output code for the block's lanes (simulations first, first + 1, ...)."""
-    for c in range(codes.shape[0]):
-        code = codes[c]
-        if code == 10 or code == OUT_INTERFACE_TORQUE:
-            for lane in range(n_lanes):
-                t_s1, t_c = _shaft_torques(w, lane, R_Y)
-                out[first + lane, c, k] = t_c if code == 10 else _stick_torque(w, lane, t_s1, t_c)
-            continue
-        if code == OUT_SLIPPING:
-            for lane in range(n_lanes):
-                out[first + lane, c, k] = 1.0 if w[_at(R_SLIP, lane)] != 0.0 else 0.0
-            continue
-        if code < 8:  # bearing displacement: (node b1,b2,b3,b4) × (x,y)
-            row = R_Y + 5 + 8 * (code % 2) + (0, 2, 5, 7)[code // 2]
-        elif code == 8:
-            row = R_Y + NQ
-        elif code == 9:
-            row = R_Y + NQ + 4
-        elif code == OUT_SLIP_ONSETS:
-            row = R_ONSETS
-        elif code == OUT_BEARING_CONTACT:
-            row = R_CONTACT
-        else:
-            row = R_Y + code - OUT_STATE
-        for lane in range(n_lanes):
-            out[first + lane, c, k] = w[_at(row, lane)]
-
-
-@njit(**_JIT)
-def _simulate_block(params, first, n_lanes, t_first, fs, n_samples, substeps, codes, out):
-    """Simulate rows first .. first+n_lanes-1 of ``params`` together, one per lane."""
-    w = np.zeros(N_ROWS * LANES)  # unused lanes stay finite: the flat copy in _step reads them
-    alone = np.zeros(N_ROWS * LANES)  # scratch block of the event path (lane 0 only)
-    w[_at(R_TL_TIME, 0)] = math.nan
-    events_possible = False
-    for lane in range(n_lanes):
-        _setup_lane(w, lane, params[first + lane])
-        events_possible = events_possible or params[first + lane, TMAX] < math.inf or params[first + lane, GAP] > 0.0
-    # Padding lanes (never recorded): the last lane's rig without its switching faults, so they
-    # never take the event path; lanes are independent, so they change no other lane's result.
-    n_run = n_lanes if n_lanes <= SCALAR_MAX else min(LANES, (n_lanes + VECTOR - 1) // VECTOR * VECTOR)
-    for lane in range(n_lanes, n_run):
-        _setup_lane(w, lane, params[first + n_lanes - 1])
-        w[_at(TMAX, lane)] = math.inf
-        w[_at(GAP, lane)] = 0.0
-    h_target = 1.0 / (fs * substeps)
-    t = 0.0
-    n_warm = int(math.ceil(t_first / h_target - 1e-9))
-    for k in range(n_warm):
-        t = _step(w, alone, t, (k + 1) * t_first / n_warm - t, n_run, events_possible)
-    t = t_first
-    for k in range(n_samples):
-        if k > 0:
-            t_sample = t_first + k / fs
-            for s in range(substeps):
-                t_next = t_first + (k - 1 + (s + 1) / substeps) / fs
-                t = _step(w, alone, t, t_next - t, n_run, events_possible)
-            t = t_sample
-        _record(w, codes, out, first, k, n_lanes)
-
-
-@njit(cache=True, error_model="numpy", parallel=True)
-def _simulate_batch(params, t_first, fs, n_samples, substeps, codes, n_threads):
-    n = params.shape[0]
-    out = np.empty((n, codes.shape[0], n_samples))
-    # Blocks of at most LANES simulations, at least as many as threads while each keeps VECTOR lanes
-    # (a narrower block costs as much as one of VECTOR lanes), of equal width rounded up to VECTOR.
-    n_blocks = max((n + LANES - 1) // LANES, min(n_threads, (n + VECTOR - 1) // VECTOR))
-    width = min(LANES, ((n + n_blocks - 1) // n_blocks + VECTOR - 1) // VECTOR * VECTOR) if n > 0 else 1
-    for b in prange((n + width - 1) // width):
-        first = b * width
-        _simulate_block(params, first, min(width, n - first), t_first, fs, n_samples, substeps, codes, out)
-    return out
-
-
-def simulate_batch(params, t_first, fs, n_samples, substeps, codes):
-    """Simulate each row of ``params`` (n, n_parameters); returns (n, len(codes), n_samples).
+def simulate_batch(params: np.ndarray, t_first, fs, n_samples, substeps, codes) -> np.ndarray:
+    """Simulate each row of ``params`` (n, len(model.slot_names())); returns (n, len(codes), n_samples).
 
     Samples lie at t_first + k/fs; the model starts from the rig.md initial state at t = 0.  Each
     sample interval takes ``substeps`` RK4 steps; the warm-up up to t_first takes steps of the same
     length or less.
     """
     # The thread count is read here: inside a compiled function it would make it uncacheable.
-    return _simulate_batch(params, t_first, fs, n_samples, substeps, codes, get_num_threads())
+    return module()._simulate_batch(params, t_first, fs, n_samples, substeps, codes, get_num_threads())

@@ -2,7 +2,9 @@
 
 Every model quantity has one name used everywhere: in config, in the kernel's flat parameter
 vector, in file attributes and in the calibration.  A model instance is just a mapping from these
-names to values; :func:`parameter_vector` packs it for the compiled kernel.
+names to values; :func:`parameter_vector` packs it for the compiled kernel.  Beside the rig and
+operating parameters, each active effect (:mod:`newdyn.effects`) has slots: ``<kind>`` (1 where the
+effect is present, else 0) and ``<kind>.<parameter>`` for each parameter its functions read.
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ class Parameter:
     default: float
     unit: str
     description: str
-    group: str  # "rig", "operating" or "fault"
+    group: str  # "rig", "operating" or "effect"
     lower: float = 0.0  # exclusive unless ``lower_inclusive``
     upper: float = math.inf
     lower_inclusive: bool = False
@@ -92,16 +94,6 @@ PARAMETERS: tuple[Parameter, ...] = tuple(
             ("load_harm", 6.0, "-", "number of load harmonics H", {"lower": 1.0, "lower_inclusive": True, "integer": True}),
         ],
     )
-    + _p(
-        "fault",
-        [
-            ("T_max", math.inf, "N·m", "stick-slip: static friction torque limit (inf: never slips)"),
-            ("r_k", 1.0, "-", "stick-slip: kinetic/static friction ratio", {"upper": 1.0, "upper_inclusive": True}),
-            ("crack_alpha", 0.0, "-", "breathing crack: relative kT3 loss when fully open", {**_NON_NEGATIVE, "upper": 1.0}),
-            ("cubic_gamma", 0.0, "-", "cubic coupling: hardening coefficient gamma", _NON_NEGATIVE),
-            ("bearing_gap", 0.0, "m", "loose bearing: clearance g of the b1 housing in x", _NON_NEGATIVE),
-        ],
-    )
 )
 
 PARAMETER_NAMES: tuple[str, ...] = tuple(p.name for p in PARAMETERS)
@@ -128,19 +120,47 @@ def omega(values: Mapping[str, float]) -> float:
     return 2.0 * math.pi * values["speed_rpm"] / 60.0
 
 
+def effect_slot(kind: str, parameter: str | None = None) -> str:
+    """The model value name of an effect's presence flag (``parameter`` None) or of one of its parameters."""
+    return kind if parameter is None else f"{kind}.{parameter}"
+
+
+def slot_names() -> tuple[str, ...]:
+    """The names of the kernel's parameter vector for the active effects: rig, operating, then per
+    effect its presence flag and the parameters its functions read."""
+    from . import effects  # noqa: PLC0415 - effects build on this module
+
+    names = list(PARAMETER_NAMES)
+    for kind, effect in effects.active().items():
+        names += [effect_slot(kind)] + [effect_slot(kind, p.name) for p in effect.kernel_parameters()]
+    return tuple(names)
+
+
+def slot_index() -> dict[str, int]:
+    return {name: i for i, name in enumerate(slot_names())}
+
+
 def complete(values: Mapping[str, float] | None = None) -> dict[str, float]:
-    """All parameters: the rig.md defaults overridden by ``values``; unknown names are an error."""
+    """All model values: the rig.md defaults overridden by ``values``, then every active effect's
+    slots (absent, its parameters at their defaults, unless ``values`` sets them); unknown names are an error."""
+    from . import effects  # noqa: PLC0415 - effects build on this module
+
     values = dict(values or {})
-    unknown = sorted(set(values) - set(PARAMETER_NAMES))
+    unknown = sorted(set(values) - set(slot_names()))
     if unknown:
         raise KeyError(f"unknown model parameter(s): {', '.join(unknown)}")
-    return {name: float(values.get(name, DEFAULTS[name])) for name in PARAMETER_NAMES}
+    full = {name: float(values.get(name, DEFAULTS[name])) for name in PARAMETER_NAMES}
+    for kind, effect in effects.active().items():
+        full[effect_slot(kind)] = float(values.get(effect_slot(kind), 0.0))
+        for p in effect.kernel_parameters():
+            default = p.default_value(full) if p.default is not None else p.prior[0]
+            full[effect_slot(kind, p.name)] = float(values.get(effect_slot(kind, p.name), default))
+    return full
 
 
 def parameter_vector(values: Mapping[str, float] | None = None) -> np.ndarray:
     """The kernel's flat parameter vector for ``values`` (missing names take their defaults)."""
-    full = complete(values)
-    return np.array([full[name] for name in PARAMETER_NAMES], dtype=np.float64)
+    return np.array(list(complete(values).values()), dtype=np.float64)
 
 
 @dataclass(frozen=True)

@@ -12,18 +12,24 @@ import json
 import platform
 from importlib import metadata
 from importlib.util import find_spec
+from pathlib import Path
+from typing import Sequence
 
 _DEPENDENCIES = ("numpy", "scipy", "numba", "xarray", "netCDF4")
 
 
-def source_hash(*modules: str) -> str:
-    """SHA-256 (first 16 hex digits) over the source files of ``newdyn.<module>`` for each module."""
+def source_hash(*modules: str, files: Sequence[str] = ()) -> str:
+    """SHA-256 (first 16 hex digits) over the source files of ``newdyn.<module>`` for each module and
+    over ``files`` (e.g. the files of the effects a job simulates)."""
     digest = hashlib.sha256()
+    origins = []
     for name in sorted(modules):
         spec = find_spec(f"newdyn.{name}")
         if spec is None or spec.origin is None:
             raise ModuleNotFoundError(f"newdyn.{name}")
-        with open(spec.origin, "rb") as source:
+        origins.append((name, spec.origin))
+    for name, path in origins + [(Path(path).name, path) for path in files]:
+        with open(path, "rb") as source:
             digest.update(name.encode() + b"\0" + source.read())
     return digest.hexdigest()[:16]
 

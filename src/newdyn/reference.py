@@ -3,11 +3,12 @@
 State layout (42), the same as :func:`newdyn.model.initial_state`: positions
 ``θ1 θ2a θ2b θ3 θ4, x[8], y[8]`` (nodes ``b1 m1 b2 m2 m3 b3 m4 b4``), then the same velocities.
 
-Switching state (the "mode"), carried beside the continuous state:
-
-* ``slip``: 0 while J2a and J2b stick (Karnopp), ±1 while they slip with friction torque direction d;
-* ``region``: where b1 sits in x relative to its housing clearance ±g: -1 beyond -g, 0 inside, +1
-  beyond +g.  Ignored when ``bearing_gap == 0`` (the ground spring then always acts).
+Effects (:mod:`newdyn.effects`) enter through their declarations alone, called as plain Python: each
+present effect's ``force`` is added at its place, and a switching effect's ``event`` is a terminal
+event of ``solve_ivp`` (located by its root finder on the dense output), after which ``switch`` gives
+the new mode and the integration restarts.  The switching state (the "modes") is one number per
+present switching effect, carried beside the continuous state; the slip joint is locked (2a and 2b
+one body) unless a present effect on it opens it.
 
 The integrator works in a frame rotating at Ω: it carries φ = θ - Ωt and φ̇ = θ̇ - Ω instead of θ and
 θ̇ (:func:`rhs` with ``rotating=True``).  That is an exact change of variables, done because θ grows to
@@ -24,7 +25,8 @@ from typing import Mapping, Sequence
 import numpy as np
 from scipy.integrate import solve_ivp
 
-from . import model
+from . import effects, model
+from .effects.check import effect_parameters_type
 
 N_DOF = 21  # θ1 θ2a θ2b θ3 θ4, x[8], y[8]
 _X0, _Y0 = 5, 13  # offsets of the lateral x and y blocks in the positions
@@ -35,6 +37,14 @@ _DISKS = ((0, model.DISK_NODES["1"]), (4, model.DISK_NODES["4"]))  # (angle inde
 # lateral components): angles φ ~1e-3 rad (the shaft twists T0/kT they form), lateral displacements
 # ~1e-7 m (imbalance response), speed ripple φ̇ ~1e-1 rad/s, lateral velocities ~1e-5 m/s.
 _SCALE = np.concatenate([np.full(5, 1e-3), np.full(16, 1e-7), np.full(5, 1e-1), np.full(16, 1e-5)])
+
+
+# Torsional places: (a, b) position indices, x = q[a] - q[b] (b None: x = q[a], an absolute angle).
+_TORSIONAL = {"motor": (0, None), "motor_shaft": (0, 1), "slip_joint": (1, 2), "coupling": (2, 3),
+              "load_shaft": (3, 4), "load": (4, None)}
+# An immediate second switch right after one needs its new mode's event function above this: a
+# located root leaves the function within ~1e-12 of zero on either side, a real re-slip far above it.
+IMMEDIATE_SWITCH = 1e-9
 
 
 @dataclass(frozen=True)
@@ -61,41 +71,45 @@ class Rig:
     load_amp: float
     load_freq: float
     harmonics: np.ndarray  # h = 1 … H
-    T_max: float
-    r_k: float
-    crack_alpha: float
-    cubic_gamma: float
-    bearing_gap: float
-    k_bx: float
-    K_lat: np.ndarray  # (16, 16) lateral stiffness; without b1's x ground spring when bearing_gap > 0
+    K_lat: np.ndarray  # (16, 16) lateral stiffness
     C_lat: np.ndarray  # (16, 16) lateral damping β·K_lat
     lateral_mass: np.ndarray  # (16,)
+    rig_values: tuple  # the rig values the effects' functions see (newdyn.effects.RigValues)
+    effects: tuple  # (effect class, its parameters as the named tuple its functions see) of each present effect
 
     @property
     def J2(self) -> float:
         return self.J2a + self.J2b
 
+    @property
+    def switching(self) -> tuple:
+        """The present effects that switch, in order: the modes tuple has one entry for each."""
+        return tuple(e for e in self.effects if e[0].switching())
+
 
 def prepare(values: Mapping[str, float] | None = None) -> Rig:
-    """The :class:`Rig` constants for ``values`` (missing names take their rig.md defaults)."""
+    """The :class:`Rig` constants for ``values`` (missing names take their defaults)."""
     v = model.complete(values)
     M, C, K = model.linear_matrices(v)
     # The lateral part is exactly the healthy matrix form; the torsional part is written element by
-    # element in rhs() because θ2 splits into 2a/2b and the crack/cubic faults make it nonlinear.
-    K_lat, C_lat = K[4:, 4:].copy(), C[4:, 4:].copy()
-    if v["bearing_gap"] > 0:  # b1's x ground spring and damper become the dead-zone element of rhs()
-        K_lat[0, 0] -= v["k_bx"]
-        C_lat[0, 0] -= v["beta"] * v["k_bx"]
-    names = ("J1", "J2a", "J2b", "J3", "J4", "m1", "m4", "kT1", "kT2", "kT3", "beta", "T0", "u1", "u4",
-             "load_amp", "load_freq", "T_max", "r_k", "crack_alpha", "cubic_gamma", "bearing_gap", "k_bx")
+    # element in rhs() because θ2 splits into 2a/2b.
+    names = ("J1", "J2a", "J2b", "J3", "J4", "m1", "m4", "kT1", "kT2", "kT3", "beta", "T0", "u1", "u4", "load_amp", "load_freq")
+    present = []
+    for kind, effect in effects.active().items():
+        if v[model.effect_slot(kind)] != 0.0:
+            parameters = effect_parameters_type(effect)(
+                *[v[model.effect_slot(kind, p.name)] for p in effect.kernel_parameters()])
+            present.append((effect, parameters))
     return Rig(
         values=v,
         Omega=model.omega(v),
         c_m=model.motor_slope(v),
         harmonics=np.arange(1, int(v["load_harm"]) + 1, dtype=float),
-        K_lat=K_lat,
-        C_lat=C_lat,
+        K_lat=K[4:, 4:].copy(),
+        C_lat=C[4:, 4:].copy(),
         lateral_mass=np.diag(M)[4:].copy(),
+        rig_values=effects.RigValues(**{n: v[n] for n in model.PARAMETER_NAMES}, Omega=model.omega(v)),
+        effects=tuple(present),
         **{n: v[n] for n in names},
     )
 
@@ -106,52 +120,76 @@ def load_torque(t: float, p: Rig) -> float:
     return p.T0 * (1.0 + p.load_amp * float(np.sin((2.0 * math.pi * p.load_freq * t) * h) @ (1.0 / h)))
 
 
-def shaft_torques(y: np.ndarray, p: Rig):
-    """Motor shaft torque τ1 (1 → 2a) and coupling torque τ2 (2b → 3), spring + damper.
-
-    Only twists enter, so this holds in either frame; works on a state (42,) or states (42, n).
-    τ2 = kT2 (δ + γ δ³/δ0²) + β kT2 δ̇, δ = θ2b - θ3, δ0 = T0/kT2 (the damper stays linear).
-    """
-    tau1 = p.kT1 * ((y[0] - y[1]) + p.beta * (y[N_DOF] - y[N_DOF + 1]))
-    delta = y[2] - y[3]
-    delta0 = p.T0 / p.kT2
-    tau2 = p.kT2 * (delta + p.cubic_gamma * delta**3 / delta0**2 + p.beta * (y[N_DOF + 2] - y[N_DOF + 3]))
-    return tau1, tau2
-
-
-def stuck_interface_torque(y: np.ndarray, p: Rig) -> float:
-    """Karnopp's T_f while sticking: (F_2a/J2a - F_2b/J2b)·J2a·J2b/J2 with F_2a = τ1, F_2b = -τ2."""
-    tau1, tau2 = shaft_torques(y, p)
-    return (tau1 * p.J2b + tau2 * p.J2a) / p.J2
+def _kinematics(place: str, t: float, y: np.ndarray, ref_angle: float, ref_speed: float, joint_torque: float):
+    """What an effect at ``place`` sees of state ``y`` (angles absolute, whatever the frame)."""
+    q, v = y[:N_DOF], y[N_DOF:]
+    if place in _TORSIONAL:
+        a, b = _TORSIONAL[place]
+        x, xd = (ref_angle + q[a], ref_speed + v[a]) if b is None else (q[a] - q[b], v[a] - v[b])
+    else:
+        node, _, axis = place.partition("_")
+        i = (_X0 if axis == "x" else _Y0) + model.NODES.index(node)
+        x, xd = q[i], v[i]
+    return effects.Kinematics(t, x, xd, ref_angle + q[0], ref_angle + q[4], ref_speed + v[0], ref_speed + v[4],
+                              joint_torque if place == "slip_joint" else 0.0)
 
 
-def rhs(t: float, y: np.ndarray, rig: Rig | Mapping[str, float], slip: int = 0, region: int = 1,
+def _mode_of(p: Rig, effect, modes: Sequence[float]) -> float:
+    switching = [e for e, _ in p.switching]
+    return float(modes[switching.index(effect)]) if effect in switching else 0.0
+
+
+def element_torques(t: float, y: np.ndarray, p: Rig, modes: Sequence[float] = (), rotating: bool = False):
+    """(τ1, τ2, τ3, T_f, f_joint, joint open, torque on disk 1, torque on disk 4, lateral forces (16,)):
+    the element torques (motor shaft 1 → 2a, coupling 2b → 3, load shaft 3 → 4, spring + damper),
+    the torque the slip joint carries while locked, every present effect's force added at its place."""
+    ref_angle, ref_speed = (p.Omega * t, p.Omega) if rotating else (0.0, 0.0)
+    q, v = y[:N_DOF], y[N_DOF:]
+    tau = {"motor_shaft": p.kT1 * ((q[0] - q[1]) + p.beta * (v[0] - v[1])),
+           "coupling": p.kT2 * ((q[2] - q[3]) + p.beta * (v[2] - v[3])),
+           "load_shaft": p.kT3 * ((q[3] - q[4]) + p.beta * (v[3] - v[4])),
+           "motor": 0.0, "load": 0.0}
+    F = -(p.K_lat @ q[_X0:] + p.C_lat @ v[_X0:])
+    joint = [(e, params) for e, params in p.effects if e.acts_on == "slip_joint"]
+    for effect, params in p.effects:
+        if effect.acts_on == "slip_joint":
+            continue
+        force = effect.force(_kinematics(effect.acts_on, t, y, ref_angle, ref_speed, 0.0), params, p.rig_values,
+                             _mode_of(p, effect, modes))
+        if effect.acts_on in tau:
+            tau[effect.acts_on] += force
+        else:
+            node, _, axis = effect.acts_on.partition("_")
+            F[(0 if axis == "x" else 8) + model.NODES.index(node)] += force
+    tau1, tau2 = tau["motor_shaft"], tau["coupling"]
+    T_f = (tau1 * p.J2b + tau2 * p.J2a) / p.J2  # Karnopp's (F_2a/J2a - F_2b/J2b)·J2a·J2b/J2, F_2a = τ1, F_2b = -τ2
+    f_joint, joint_open = 0.0, False
+    for effect, params in joint:
+        mode = _mode_of(p, effect, modes)
+        if not (effect.locks_joint and mode == 0.0):
+            joint_open = True
+            f_joint += effect.force(_kinematics("slip_joint", t, y, ref_angle, ref_speed, T_f), params, p.rig_values, mode)
+    torque1 = p.T0 - p.c_m * (v[0] + ref_speed - p.Omega) - tau1 + tau["motor"]
+    torque4 = tau["load_shaft"] - load_torque(t, p) + tau["load"]
+    return tau1, tau2, tau["load_shaft"], T_f, f_joint, joint_open, torque1, torque4, F
+
+
+def rhs(t: float, y: np.ndarray, rig: Rig | Mapping[str, float], modes: Sequence[float] = (),
         rotating: bool = False) -> np.ndarray:
-    """dy/dt of the rig of rig.md for state ``y`` (42, layout of the module docstring) in mode (slip, region).
+    """dy/dt of the rig of rig.md for state ``y`` (42, layout of the module docstring) in ``modes``
+    (one per present switching effect, :attr:`Rig.switching`).
 
     ``rig``: a :class:`Rig` (fast) or a parameter mapping (prepared on every call).  With
     ``rotating=True`` the angles and angular speeds in ``y`` are φ = θ - Ωt and φ̇ = θ̇ - Ω; the result
-    is then the derivative of that state (dφ/dt = φ̇, dφ̇/dt = θ̈).  While sticking (``slip == 0``)
+    is then the derivative of that state (dφ/dt = φ̇, dφ̇/dt = θ̈).  While the slip joint is locked,
     2a and 2b get the same acceleration, so the caller must start them with θ̇2a = θ̇2b.
     """
     p = rig if isinstance(rig, Rig) else prepare(rig)
     ref_angle, ref_speed = (p.Omega * t, p.Omega) if rotating else (0.0, 0.0)
     q, v = y[:N_DOF], y[N_DOF:]
     acc = np.empty(N_DOF)
-
-    # Torsional elements (each spring k with its damper β·k).
-    tau1, tau2 = shaft_torques(y, p)
-    kT3 = p.kT3 * (1.0 - p.crack_alpha * (1.0 - math.cos(ref_angle + q[4])) / 2.0)  # breathing crack
-    tau3 = kT3 * ((q[3] - q[4]) + p.beta * (v[3] - v[4]))
-    T1 = p.T0 - p.c_m * (v[0] + ref_speed - p.Omega) - tau1  # motor torque T_m minus shaft 1
-    T4 = tau3 - load_torque(t, p)
+    tau1, tau2, tau3, _, f_joint, joint_open, T1, T4, F = element_torques(t, y, p, modes, rotating)
     acc[3] = (tau2 - tau3) / p.J3
-
-    # Lateral spring + damper forces; b1's dead-zone ground element when there is a clearance.
-    F = -(p.K_lat @ q[_X0:] + p.C_lat @ v[_X0:])
-    g = p.bearing_gap
-    if g > 0 and region != 0:
-        F[0] -= p.k_bx * ((q[_X0] - g * region) + p.beta * v[_X0])
     a_lat = F / p.lateral_mass
 
     # Imbalanced disks: the 3×3 Lagrange system of rig.md, solved in closed form.  The θ̇² terms
@@ -165,69 +203,71 @@ def rhs(t: float, y: np.ndarray, rig: Rig | Mapping[str, float], slip: int = 0, 
         a_lat[node] = (Fx + u * (theta_d * theta_d * c + s * theta_dd)) / M
         a_lat[8 + node] = (Fy + u * (theta_d * theta_d * s - c * theta_dd)) / M
 
-    # Stick-slip interface: F_2a = τ1 on 2a, F_2b = -τ2 on 2b.
-    if slip == 0:
-        acc[1] = acc[2] = (tau1 - tau2) / p.J2
+    # The slip joint: F_2a = τ1 on 2a, F_2b = -τ2 on 2b, and the joint's torque between them when open.
+    if joint_open:
+        acc[1] = (tau1 - f_joint) / p.J2a
+        acc[2] = (-tau2 + f_joint) / p.J2b
     else:
-        T_f = p.r_k * p.T_max * slip
-        acc[1] = (tau1 - T_f) / p.J2a
-        acc[2] = (-tau2 + T_f) / p.J2b
+        acc[1] = acc[2] = (tau1 - tau2) / p.J2
     acc[_X0:] = a_lat
     return np.concatenate((v, acc))
 
 
-def _event(fun, direction: int):
-    fun.terminal, fun.direction = True, direction
-    return fun
+def _event_value(j: int, t: float, y: np.ndarray, p: Rig, modes: Sequence[float]) -> float:
+    """Event function of present switching effect j in ``modes`` (rotating frame)."""
+    effect, params = p.switching[j]
+    T_f = element_torques(t, y, p, modes, True)[3] if effect.acts_on == "slip_joint" else 0.0
+    s = _kinematics(effect.acts_on, t, y, p.Omega * t, p.Omega, T_f)
+    return effect.event(s, params, p.rig_values, modes[j])
 
 
-def _events(p: Rig, slip: int, region: int) -> list:
-    """Terminal events of mode (slip, region) as (function, tag); `direction` makes a restart on a root safe."""
+def _events(p: Rig, modes: tuple) -> list:
+    """A terminal event per present switching effect: where its event function rises through zero."""
     out = []
-    if slip == 0 and math.isfinite(p.T_max):  # sticking: slip onset when |T_f| rises through T_max
-        out.append((_event(lambda t, y, *a: stuck_interface_torque(y, p) - p.T_max, +1), ("slip", +1)))
-        out.append((_event(lambda t, y, *a: stuck_interface_torque(y, p) + p.T_max, -1), ("slip", -1)))
-    elif slip != 0:  # slipping: re-stick when (θ̇2a - θ̇2b)·d falls to 0
-        out.append((_event(lambda t, y, *a: (y[N_DOF + 1] - y[N_DOF + 2]) * slip, -1), ("stick", 0)))
-    g = p.bearing_gap
-    if g > 0:
-        if region >= 0:  # x_b1 - g: up-crossing from inside, down-crossing from beyond +g
-            out.append((_event(lambda t, y, *a: y[_X0] - g, +1 if region == 0 else -1), ("gap", +1)))
-        if region <= 0:
-            out.append((_event(lambda t, y, *a: y[_X0] + g, -1 if region == 0 else +1), ("gap", -1)))
+    for j in range(len(p.switching)):
+        def event(t, y, *args, j=j):
+            return _event_value(j, t, y, p, modes)
+        event.terminal, event.direction = True, +1
+        out.append(event)
     return out
 
 
-def _stick_or_slip(y: np.ndarray, p: Rig) -> int:
-    """Mode of a sticking interface at rest relative to itself: slip in the direction of T_f if it exceeds T_max."""
-    T_f = stuck_interface_torque(y, p)
-    return int(np.sign(T_f)) if abs(T_f) > p.T_max else 0
-
-
-def _switch(tag, y: np.ndarray, p: Rig, slip: int, region: int):
-    """New (slip, region) after event ``tag`` at state ``y``; a re-stick also updates ``y`` in place."""
-    kind, side = tag
-    if kind == "slip":
-        slip = side
-    elif kind == "stick":  # momentum-weighted common speed; the offset θ2a - θ2b is kept
+def _switch(j: int, t: float, y: np.ndarray, p: Rig, modes: tuple) -> tuple:
+    """Modes after effect j's event at state ``y`` (rotating frame); locking the slip joint also sets
+    2a and 2b to their momentum-weighted common speed in ``y``."""
+    effect, params = p.switching[j]
+    T_f = element_torques(t, y, p, modes, True)[3] if effect.acts_on == "slip_joint" else 0.0
+    s = _kinematics(effect.acts_on, t, y, p.Omega * t, p.Omega, T_f)
+    new = float(effect.switch(s, params, p.rig_values, modes[j]))
+    if effect.locks_joint and new == 0.0 and modes[j] != 0.0:  # the offset θ2a - θ2b is kept
         y[N_DOF + 1] = y[N_DOF + 2] = (p.J2a * y[N_DOF + 1] + p.J2b * y[N_DOF + 2]) / p.J2
-        slip = _stick_or_slip(y, p)
-    else:  # crossing x_b1 = side·g: the velocity's sign says which side we enter (robust at a root)
-        region = side if y[N_DOF + _X0] * side > 0 else 0
-    return slip, region
+    return modes[:j] + (new,) + modes[j + 1:]
 
 
-def _channel(name: str, states: np.ndarray, p: Rig) -> np.ndarray:
+def _channel(name: str, times: np.ndarray, states: np.ndarray, modes: np.ndarray, p: Rig) -> np.ndarray:
     if name == "w1":
         return states[N_DOF] + p.Omega
     if name == "w4":
         return states[N_DOF + 4] + p.Omega
-    if name == "torque_c":
-        return shaft_torques(states, p)[1]
+    if name == "torque_c":  # the coupling's torque, with its effects
+        return np.array([element_torques(t, y, p, tuple(m), True)[1] for t, y, m in zip(times, states.T, modes.T)])
     node, _, axis = name.partition("_")
     if node in model.NODES and axis in ("x", "y"):  # any lateral node, not only the bearings
         return states[(_X0 if axis == "x" else _Y0) + model.NODES.index(node)]
     raise KeyError(f"unknown channel {name!r}")
+
+
+def _settle(t: float, z: np.ndarray, p: Rig, modes: tuple, switches: list) -> tuple:
+    """Switch for as long as some event function of the current modes stands clearly above zero at
+    (t, z): at the start, and right after a switch (a joint that re-sticks and cannot hold its torque)."""
+    for _ in range(8):
+        values = [_event_value(j, t, z, p, modes) for j in range(len(modes))]
+        if not values or max(values) <= IMMEDIATE_SWITCH:
+            return modes
+        j = int(np.argmax(values))
+        modes = _switch(j, t, z, p, modes)
+        switches.append((t, p.switching[j][0].name, modes))
+    raise RuntimeError(f"switching without end at t = {t}")
 
 
 def simulate_reference(values: Mapping[str, float], sampling: model.Sampling,
@@ -237,15 +277,15 @@ def simulate_reference(values: Mapping[str, float], sampling: model.Sampling,
     """Channels (len(channels), sampling.n_samples) of the rig of rig.md, started at t = 0 from
     :func:`model.initial_state` and sampled at ``sampling.times``.
 
-    Integrated with ``scipy.integrate.solve_ivp`` piecewise between switches (slip onset, re-stick,
-    bearing-clearance crossings), each located as a terminal event and restarted in the new mode.
-    ``atol=None``: rtol times a physical scale per state component (see ``_SCALE``).
-    With ``return_switches=True`` also returns the list of (t, tag, slip, region) of every switch.
+    Integrated with ``scipy.integrate.solve_ivp`` piecewise between switches, each located as a
+    terminal event and restarted in the new modes.  ``atol=None``: rtol times a physical scale per
+    state component (see ``_SCALE``).  With ``return_switches=True`` also returns the list of
+    (t, effect, modes after it) of every switch.
     """
     p = prepare(values)
     times = sampling.times
     for name in channels:  # fail before integrating
-        _channel(name, np.zeros((2 * N_DOF, 1)), p)
+        _channel(name, times[:0], np.zeros((2 * N_DOF, 0)), np.zeros((len(p.switching), 0)), p)
     atol = rtol * _SCALE if atol is None else atol
     # At most one radian of the fastest (stuck, linearized) mode per step.  Without a cap DOP853
     # lets the step grow to its stability limit whenever the rig is quiet (e.g. at equilibrium),
@@ -255,20 +295,21 @@ def simulate_reference(values: Mapping[str, float], sampling: model.Sampling,
 
     z = model.initial_state(p.values)  # at t = 0, φ = θ; φ̇ = θ̇ - Ω
     z[N_DOF:N_DOF + 5] -= p.Omega
-    slip = _stick_or_slip(z, p)
-    region = 0 if p.bearing_gap > 0 else 1  # b1 starts centred in its clearance
+    switches: list = []
+    modes = _settle(0.0, z, p, (0.0,) * len(p.switching), switches)
     states = np.empty((2 * N_DOF, times.size))
-    switches = [(0.0, ("slip", slip), slip, region)] if slip else []  # T_max < T0: slips from the start
+    sample_modes = np.empty((len(modes), times.size))
     t, done, stalls = 0.0, 0, 0
     while done < times.size:
-        events = _events(p, slip, region)
+        events = _events(p, modes)
         sol = solve_ivp(rhs, (t, times[-1]), z, method=method, t_eval=times[done:], rtol=rtol, atol=atol,
-                        max_step=max_step, events=[e for e, _ in events] or None, args=(p, slip, region, True))
+                        max_step=max_step, events=events or None, args=(p, modes, True))
         if sol.status < 0:
             raise RuntimeError(f"integration failed after t = {t}: {sol.message}")
         n_new = len(sol.t)  # a plain [] when the segment ended before the next sample
         if n_new:
             states[:, done:done + n_new] = sol.y
+            sample_modes[:, done:done + n_new] = np.array(modes)[:, None]
         done += n_new
         if sol.status != 1:
             break
@@ -278,9 +319,10 @@ def simulate_reference(values: Mapping[str, float], sampling: model.Sampling,
         if stalls > 50:
             raise RuntimeError(f"switching without progress at t = {t_switch}")
         t = t_switch
-        slip, region = _switch(events[which][1], z, p, slip, region)
-        switches.append((t, events[which][1], slip, region))
+        modes = _switch(which, t, z, p, modes)
+        switches.append((t, p.switching[which][0].name, modes))
+        modes = _settle(t, z, p, modes, switches)
     if done < times.size:
         raise RuntimeError("integration stopped before the last sample")
-    out = np.stack([_channel(name, states, p) for name in channels])
+    out = np.stack([_channel(name, times, states, sample_modes, p) for name in channels])
     return (out, switches) if return_switches else out

@@ -1,7 +1,7 @@
 """Simulate the rig: named outputs over the compiled kernel, single runs and batches.
 
 Outputs are the measurement channels (``model.CHANNELS``), the switching diagnostics
-(``DIAGNOSTICS``) and the raw state components (``STATE_NAMES``, for physics checks).
+(:func:`newdyn.kernels.diagnostics`) and the raw state components (``STATE_NAMES``, for physics checks).
 """
 
 from __future__ import annotations
@@ -18,33 +18,32 @@ from . import kernels, model
 # relative RMS, inside rig.md's 1e-6 and 1e-4; see tests/test_physics.py.
 DEFAULT_MAX_STEP = 1.0e-4
 
-DIAGNOSTICS = {
-    "slip_onsets": kernels.OUT_SLIP_ONSETS,
-    "slipping": kernels.OUT_SLIPPING,
-    "interface_torque": kernels.OUT_INTERFACE_TORQUE,
-    "bearing_contact": kernels.OUT_BEARING_CONTACT,
-}
 _POSITIONS = ("theta1", "theta2a", "theta2b", "theta3", "theta4") + tuple(
     f"{d}_{node}" for d in "xy" for node in model.NODES
 )
 STATE_NAMES = _POSITIONS + tuple("d" + name for name in _POSITIONS)
-OUTPUT_CODES = {
-    **{name: code for code, name in enumerate(model.CHANNELS)},
-    **DIAGNOSTICS,
-    **{name: kernels.OUT_STATE + i for i, name in enumerate(STATE_NAMES)},
-}
+
+
+def output_codes(outputs: Sequence[str]) -> np.ndarray:
+    """Kernel codes of named outputs: channels, diagnostics (``joint_torque``, ``<kind>.<mode_name>``,
+    ``<kind>.onsets`` of each switching effect) and state components (``STATE_NAMES``)."""
+    codes = []
+    for name in outputs:
+        if name in model.CHANNELS:
+            codes.append(model.CHANNELS.index(name))
+        elif name in STATE_NAMES:
+            codes.append(kernels.OUT_STATE + STATE_NAMES.index(name))
+        elif (code := kernels.output_code(name)) is not None:
+            codes.append(code)
+        else:
+            raise KeyError(f"unknown output {name}; channels are {', '.join(model.CHANNELS)}, "
+                           f"diagnostics {', '.join(kernels.diagnostics())}")
+    return np.array(codes, dtype=np.int64)
 
 
 def substeps(fs: float, max_step: float) -> int:
     """RK4 steps per sample interval: the fewest that keep the step within ``max_step``."""
     return max(1, math.ceil(1.0 / (fs * max_step) - 1e-9))
-
-
-def output_codes(outputs: Sequence[str]) -> np.ndarray:
-    unknown = [name for name in outputs if name not in OUTPUT_CODES]
-    if unknown:
-        raise KeyError(f"unknown output(s) {', '.join(unknown)}; channels are {', '.join(model.CHANNELS)}")
-    return np.array([OUTPUT_CODES[name] for name in outputs], dtype=np.int64)
 
 
 def simulate_batch(
@@ -56,15 +55,15 @@ def simulate_batch(
     """Simulate many parameter sets at once: (n_sets, len(outputs), n_samples).
 
     ``values`` is a sequence of parameter mappings or an array of parameter vectors
-    (rows laid out as ``model.PARAMETER_NAMES``).  Each sample interval is split into the fewest
+    (rows laid out as ``model.slot_names()``).  Each sample interval is split into the fewest
     equal RK4 steps no longer than ``max_step``.
     """
     if isinstance(values, np.ndarray):
         params = np.ascontiguousarray(values, dtype=np.float64)
     else:
-        params = np.stack([model.parameter_vector(v) for v in values]) if len(values) else np.empty((0, len(model.PARAMETER_NAMES)))
-    if params.ndim != 2 or params.shape[1] != len(model.PARAMETER_NAMES):
-        raise ValueError(f"parameter array must be (n, {len(model.PARAMETER_NAMES)}), got {params.shape}")
+        params = np.stack([model.parameter_vector(v) for v in values]) if len(values) else np.empty((0, len(model.slot_names())))
+    if params.ndim != 2 or params.shape[1] != len(model.slot_names()):
+        raise ValueError(f"parameter array must be (n, {len(model.slot_names())}), got {params.shape}")
     return kernels.simulate_batch(
         params, float(sampling.t_first), float(sampling.fs), int(sampling.n_samples), substeps(sampling.fs, max_step), output_codes(outputs)
     )

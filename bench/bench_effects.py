@@ -1,0 +1,137 @@
+"""Speed of the kernel with effects as files, side by side with the kernel before (a git revision).
+
+Run: python bench/bench_effects.py [--before b893f81] [--batch 64] [--repeat 5]
+
+Prints, for the healthy rig and each built-in effect, the time per simulation batched on one core
+and alone, now and at ``--before`` (the last revision whose effects were written into the kernel by
+hand, run from a temporary git worktree); then what a user's effect costs against the built-in of
+the same arithmetic (a copy of cubic_coupling's force in a file of its own), and how long compiling
+the kernel takes for a new effect and loading it from the cache afterwards.  README quotes them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import textwrap
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+# Runs in a subprocess against either revision (both read a scenario through faults.scenario_values):
+# prints {case: [batched ms per simulation, lone ms]}.
+MEASURE = textwrap.dedent("""
+    import json, sys, time
+    import numba
+    from newdyn import faults, model
+    from newdyn.simulation import simulate, simulate_batch
+    cases, batch, repeat = json.loads(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3])
+    def best(run):
+        times = []
+        for _ in range(repeat):
+            start = time.perf_counter(); run(); times.append(time.perf_counter() - start)
+        return min(times)
+    simulate({})
+    numba.set_num_threads(1)
+    out = {}
+    for name, scenario in cases.items():
+        values = faults.scenario_values(scenario, model.DEFAULTS)
+        simulate(values)  # compile or load outside the timing
+        out[name] = [1e3 * best(lambda: simulate_batch([values] * batch)) / batch, 1e3 * best(lambda: simulate(values))]
+    print(json.dumps(out))
+""")
+
+USER_EFFECT = textwrap.dedent('''
+    """A user's effect with the arithmetic of the built-in cubic_coupling, to compare their costs."""
+    from newdyn.effects import Effect, Parameter
+
+
+    class UserCubic(Effect):
+        """The same force as cubic_coupling, written as a user would."""
+
+        name = "user_cubic"
+        description = "cubic hardening of the coupling element, as a user's effect"
+        acts_on = "coupling"
+        parameters = (Parameter("gamma", "-", "hardening coefficient", default=None, lower=0.0, lower_inclusive=True,
+                                prior=(0.0, 3.0)),)
+
+        @staticmethod
+        def force(s, p, rig, mode):
+            ratio = s.x * rig.kT2 / rig.T0
+            return rig.kT2 * p.gamma * s.x * (ratio * ratio)
+''')
+
+# Runs in a subprocess with a fresh cache: compile time of a kernel with a new effect, then its cost.
+USER = textwrap.dedent("""
+    import json, sys, time
+    import numba
+    from newdyn import effects, faults, model
+    from newdyn.simulation import simulate, simulate_batch
+    folder, batch, repeat = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
+    effects.use(["user_cubic"], folder)
+    start = time.perf_counter(); simulate({}); first = time.perf_counter() - start
+    numba.set_num_threads(1)
+    out = {"first_simulation_s": first}
+    for kind in ("cubic_coupling", "user_cubic"):
+        values = faults.scenario_values({"fault": {"kind": kind, "parameters": {"gamma": 0.5}}}, model.DEFAULTS)
+        times = []
+        for _ in range(repeat):
+            start = time.perf_counter(); simulate_batch([values] * batch); times.append(time.perf_counter() - start)
+        out[kind] = 1e3 * min(times) / batch
+    print(json.dumps(out))
+""")
+
+CASES = {  # the default study's scenarios: healthy, and each built-in effect at its study severity
+    "healthy": {},
+    "stick_slip": {"fault": {"kind": "stick_slip", "parameters": {"T_max": 1854.95}}},
+    "breathing_crack": {"fault": {"kind": "breathing_crack", "parameters": {"alpha": 0.3}}},
+    "cubic_coupling": {"fault": {"kind": "cubic_coupling", "parameters": {"gamma": 0.5}}},
+    "loose_bearing": {"fault": {"kind": "loose_bearing", "parameters": {"gap": 2e-8}}},
+}
+
+
+def run(code: str, *args: str, src: Path, env: dict | None = None) -> dict:
+    environment = {**os.environ, "PYTHONPATH": str(src), **(env or {})}
+    done = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, env=environment, check=True)
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--before", default="b893f81", help="git revision to compare with (effects written into the kernel)")
+    parser.add_argument("--batch", type=int, default=64)
+    parser.add_argument("--repeat", type=int, default=5)
+    args = parser.parse_args()
+    common = (json.dumps(CASES), str(args.batch), str(args.repeat))
+
+    now = run(MEASURE, *common, src=ROOT / "src")
+    with tempfile.TemporaryDirectory() as tree:
+        subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", tree, args.before], check=True, capture_output=True)
+        try:
+            before = run(MEASURE, *common, src=Path(tree) / "src", env={"NUMBA_CACHE_DIR": str(Path(tree) / ".numba")})
+        finally:
+            subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", tree], check=True, capture_output=True)
+
+    with tempfile.TemporaryDirectory() as folder:
+        (Path(folder) / "user_cubic.py").write_text(USER_EFFECT)
+        fresh = {"NEWDYN_CACHE": str(Path(folder) / "cache")}
+        user = run(USER, folder, str(args.batch), str(args.repeat), src=ROOT / "src", env=fresh)
+        cached = run(USER, folder, str(args.batch), str(args.repeat), src=ROOT / "src", env=fresh)
+
+    print(f"1.5-s simulation, 11 channels, one core; batch of {args.batch}; best of {args.repeat}; before = {args.before}")
+    print(f"{'':18s} {'batched now':>12s} {'before':>9s} {'ratio':>6s}   {'alone now':>10s} {'before':>9s} {'ratio':>6s}")
+    for name in CASES:
+        (b_now, l_now), (b_old, l_old) = now[name], before[name]
+        print(f"{name:18s} {b_now:9.2f} ms {b_old:6.2f} ms {b_now / b_old:6.2f}   {l_now:7.2f} ms {l_old:6.2f} ms {l_now / l_old:6.2f}")
+    print(f"a user's effect against the built-in of the same arithmetic, batched: user_cubic {user['user_cubic']:.2f} ms, "
+          f"cubic_coupling {user['cubic_coupling']:.2f} ms (ratio {user['user_cubic'] / user['cubic_coupling']:.2f})")
+    print(f"kernel with a new effect: compiled in {user['first_simulation_s']:.0f} s on first use, "
+          f"loaded from the cache in {cached['first_simulation_s']:.1f} s afterwards")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,629 @@
+"""Compiled simulation kernel of the reference rig (rig.md), batched over parameter sets.
+
+This file is a template: :mod:`newdyn.kernels` renders it, with a header that lays out the parameter
+slots of the active effects and binds their functions, and the generated effect code
+(``_forces``, ``_event_value``, ``_switch_effect``) appended, into one module per set of effects.
+
+Fixed-step classical Runge-Kutta (RK4) with exact event location: a switching effect (stick-slip
+onset and re-stick, loose-bearing contact) changes the force law only at a located event, so each
+step integrates a smooth right-hand side and keeps fourth-order accuracy.
+
+Design for speed: up to ``LANES`` parameter sets are integrated together as the lanes of a block.
+Every per-lane quantity (parameters, modes, state, stage values) is a row of one flat work array
+indexed ``row * LANES + lane``, and the hot loops run over lanes with bodies that have no calls and
+no data-dependent branches (mode switches are selects, sin/cos is the inline :func:`sincos`), so
+LLVM turns them into AVX lanes.  After each step the event functions of all lanes are checked
+together; a lane whose step crosses an event is redone by the event-locating path, which runs the
+same RK4 and RHS code on a one-lane scratch block.  The arithmetic is that of the scalar original,
+operation for operation (no fast-math), so results do not depend on how simulations are grouped
+into lanes; only sin/cos of the disk angles may differ from libm's by an ulp.  Blocks run in
+parallel threads (``NUMBA_NUM_THREADS``).
+
+State layout (42): positions θ1 θ2a θ2b θ3 θ4, x[8], y[8] (nodes b1 m1 b2 m2 m3 b3 m4 b4), then
+the same velocities.  θ2a/θ2b move as one body J2a + J2b while stuck.
+"""
+
+# ruff: noqa: F821 - the layout (_I, N_PAR, N_SWITCHING, SWITCHING_ON) and the effect code (_forces,
+# _event_value, _switch_effect) are generated into the rendered module by newdyn.kernels.
+import math
+from collections import namedtuple  # noqa: F401 - the generated effect parameters
+
+import numpy as np
+from numba import njit, prange
+
+from newdyn.effects import load_file  # noqa: F401 - the generated effect bindings
+from newdyn.effects.base import Kinematics, RigValues, sincos  # noqa: F401 - used by the generated code
+
+# Options of every kernel function: 'numpy' error model so that x / 0 gives inf instead of a branch
+# to a ZeroDivisionError (such a branch blocks vectorization); no fast-math, so every operation is
+# the IEEE operation of the scalar original and vector and scalar lanes agree bit for bit.
+_JIT = dict(cache=True, error_model="numpy")
+_EFFECT_JIT = dict(error_model="numpy", inline="always")
+
+# @layout@
+
+# Parameter slots (compile-time constants for numba); parameter k of a lane lives in work row k.
+J1, J2A, J2B, J3, J4 = _I["J1"], _I["J2a"], _I["J2b"], _I["J3"], _I["J4"]
+M1, M2, M3, M4, MB = _I["m1"], _I["m2"], _I["m3"], _I["m4"], _I["m_b"]
+KT1, KT2, KT3 = _I["kT1"], _I["kT2"], _I["kT3"]
+KS, KH, KC, KBX, KBY = _I["k_s"], _I["k_h"], _I["k_c"], _I["k_bx"], _I["k_by"]
+BETA, SLIP, U1, U4 = _I["beta"], _I["slip"], _I["u1"], _I["u4"]
+SPEED, T0, LOAD_AMP, LOAD_FREQ, LOAD_HARM = _I["speed_rpm"], _I["T0"], _I["load_amp"], _I["load_freq"], _I["load_harm"]
+
+NQ = 21  # positions
+NY = 42  # state
+
+# Output codes: 0..10 are model.CHANNELS in order; then the slip joint's locked torque; then per
+# switching effect j its mode (OUT_MODES + j) and its number of onsets (switches out of mode 0,
+# OUT_MODES + N_SWITCHING + j); STATE + i is state component i.
+OUT_TORQUE_C = 10
+OUT_JOINT_TORQUE = 11  # the torque the slip joint carries while locked (the T_f of Eq. 3b)
+OUT_MODES = 12
+OUT_STATE = 100
+
+# Lanes per block: four AVX2 vectors of doubles.  Fewer lanes share the per-step scalar work (the
+# load torque) among fewer simulations; 32 lanes no longer fit the work array in L1 (measured slower).
+LANES = 16
+# LLVM vectorizes the lane loops VECTOR lanes at a time (two AVX2 vectors) and runs the remainder
+# scalar: a block of 4 lanes took 19 ms, one of 8 lanes 12 ms (healthy, 1.5 s).  Blocks of more
+# than SCALAR_MAX lanes are therefore padded to a multiple of VECTOR lanes.
+VECTOR = 8
+SCALAR_MAX = 2
+
+# Rows of the work array.  Per-lane constants come first (parameters, then derived quantities),
+# then the modes, so that the event path sets up its scratch lane by copying two ranges of rows.
+R_OMEGA = N_PAR  # synchronous speed Ω
+R_CM = R_OMEGA + 1  # motor torque slope c_m
+R_INVJ2 = R_CM + 1  # 1 / (J2a + J2b)
+R_MU2 = R_INVJ2 + 1  # J2a J2b / (J2a + J2b)
+R_DELTA0 = R_MU2 + 1  # coupling reference twist T0 / kT2
+R_INVM = R_DELTA0 + 1  # 8 inverse node masses
+R_KLAT = R_INVM + 8  # 7 lateral spring stiffnesses
+R_JRED1 = R_KLAT + 7  # J1 - u1² / m1: the disk-1 inertia left by the imbalance coupling
+R_JRED4 = R_JRED1 + 1  # J4 - u4² / m4
+R_SAME_LOAD = R_JRED4 + 1  # 1 if the load parameters equal those of the lane to the left, else 0
+R_OPEN_STEPS = R_SAME_LOAD + 1  # steps per step while the slip joint is open (see OPEN_OMEGA_H)
+N_CONST = R_OPEN_STEPS + 1
+R_MODES = N_CONST  # mode of each switching effect (0 at t = 0)
+R_ONSETS = R_MODES + N_SWITCHING  # number of its switches out of mode 0 so far
+N_MODES = 2 * N_SWITCHING
+R_TL = R_MODES + N_MODES  # load torque T_l at the stage time
+R_TL_TIME = R_TL + 1  # lane 0 only: the time of the values in row R_TL (NaN: none)
+R_G = R_TL_TIME + 1  # event function value (> 0: an event lies inside the step)
+R_WHICH = R_G + 1  # whose event: 0 none, j + 1 switching effect j
+R_Y = R_WHICH + 1  # state at the step start
+R_TRIAL = R_Y + NY  # state at the step end while events are checked
+R_STAGE = R_TRIAL + NY  # RK4 stage state
+R_ACC = R_STAGE + NY  # RHS output: the 21 accelerations (dq/dt is the stage velocity itself)
+R_K1V = R_ACC + NQ  # k1, velocity part (its position part is the velocity in R_Y)
+R_K23 = R_K1V + NQ  # k2 + k3
+R_DENSE = R_K23 + NY  # the state inside a step, interpolated from its stages (rows DENSE_ROWS and their velocities)
+N_ROWS = R_DENSE + NY
+
+@njit(**_JIT, inline="always")
+def _at(row, lane):
+    """Flat index of (row, lane).  Unsigned, so numba emits no negative-index wraparound select,
+    which would hide the unit lane stride from LLVM's vectorizer."""
+    return np.uint64(row * LANES + lane)
+
+
+# --- the physics: one lane at state rows ``src`` ---------------------------------------------------
+# The healthy elements are here; the active effects' forces are added to them by the generated
+# ``_forces``, which returns everything the right-hand side needs.
+@njit(**_JIT, inline="always")
+def _shaft_torques(w, lane, src):
+    """(t_s1, t_c): torque of shaft 1 on disk 1 (+) and of the coupling element on disk 3 (+)."""
+    beta = w[_at(BETA, lane)]
+    t_s1 = w[_at(KT1, lane)] * (
+        (w[_at(src + 1, lane)] - w[_at(src, lane)]) + beta * (w[_at(src + NQ + 1, lane)] - w[_at(src + NQ, lane)])
+    )
+    delta = w[_at(src + 2, lane)] - w[_at(src + 3, lane)]
+    t_c = w[_at(KT2, lane)] * (delta + beta * (w[_at(src + NQ + 2, lane)] - w[_at(src + NQ + 3, lane)]))
+    return t_s1, t_c
+
+
+@njit(**_JIT, inline="always")
+def _load_shaft_torque(w, lane, src):
+    """Torque of shaft 3 on disk 4 (+)."""
+    beta = w[_at(BETA, lane)]
+    return w[_at(KT3, lane)] * ((w[_at(src + 3, lane)] - w[_at(src + 4, lane)]) + beta * (w[_at(src + NQ + 3, lane)] - w[_at(src + NQ + 4, lane)]))
+
+
+@njit(**_JIT, inline="always")
+def _stick_torque(w, lane, t_s1, t_c):
+    """Torque T_f the slip joint carries while locked (paper Eq. 3b): F_2a = -t_s1 on 2a, F_2b = -t_c on 2b."""
+    return (-t_s1 / w[_at(J2A, lane)] + t_c / w[_at(J2B, lane)]) * w[_at(R_MU2, lane)]
+
+
+@njit(**_JIT, inline="always")
+def _spring(w, lane, pos, s, beta):
+    """Force of lateral spring s (with its damper) between nodes s and s+1: + on s, - on s+1."""
+    vel = pos + NQ
+    return w[_at(R_KLAT + s, lane)] * (
+        (w[_at(pos + s + 1, lane)] - w[_at(pos + s, lane)]) + beta * (w[_at(vel + s + 1, lane)] - w[_at(vel + s, lane)])
+    )
+
+
+@njit(**_JIT, inline="always")
+def _ground(w, lane, pos, node, beta, k_ground):
+    """Force of the ground spring (with its damper) at bearing ``node``, negated."""
+    return k_ground * (w[_at(pos + node, lane)] + beta * w[_at(pos + NQ + node, lane)])
+
+
+@njit(**_JIT, inline="always")
+def _lateral(w, lane, pos, k_ground):
+    """Spring + damper forces (f0, ..., f7) on the 8 nodes of one direction (position rows pos..,
+    velocities NQ further), each bearing with its ground spring.  Returned as values, not stored, so
+    that they can stay in registers."""
+    beta = w[_at(BETA, lane)]
+    s0, s1, s2, s3 = _spring(w, lane, pos, 0, beta), _spring(w, lane, pos, 1, beta), _spring(w, lane, pos, 2, beta), _spring(w, lane, pos, 3, beta)
+    s4, s5, s6 = _spring(w, lane, pos, 4, beta), _spring(w, lane, pos, 5, beta), _spring(w, lane, pos, 6, beta)
+    f0 = s0 - _ground(w, lane, pos, 0, beta, k_ground)
+    f2 = (-s1 + s2) - _ground(w, lane, pos, 2, beta, k_ground)
+    f5 = (-s4 + s5) - _ground(w, lane, pos, 5, beta, k_ground)
+    f7 = -s6 - _ground(w, lane, pos, 7, beta, k_ground)
+    return f0, -s0 + s1, f2, -s2 + s3, -s3 + s4, f5, -s5 + s6, f7
+
+
+@njit(**_JIT, inline="always")
+def _disk(w, lane, src, theta, node, u, jred, torque, s, c, fx, fy):
+    """Imbalance disk with angle θ_theta at ``node``: exact 3×3 Lagrange solve (rig.md).  Returns
+    its angular acceleration and the node forces (fx, fy) with the imbalance reaction added."""
+    inv_m = w[_at(R_INVM + node, lane)]
+    speed = w[_at(src + NQ + theta, lane)]
+    acc = (torque + u * (s * fx - c * fy) * inv_m) / jred
+    return acc, fx + u * (speed * speed * c + s * acc), fy + u * (speed * speed * s - c * acc)
+
+
+@njit(**_JIT, inline="always")
+def _node_accelerations(w, lane, out, node, fx, fy):
+    inv_m = w[_at(R_INVM + node, lane)]
+    w[_at(out + 5 + node, lane)] = fx * inv_m
+    w[_at(out + 13 + node, lane)] = fy * inv_m
+
+
+@njit(**_JIT, inline="always")
+def _rhs(w, lane, src, out, t):
+    """The right-hand side: the 21 accelerations of one lane at state rows src.. and time t, into
+    rows out.. (the other half of dy/dt, dq/dt, is the velocity itself).  The load torque is row R_TL.
+
+    Straight-line code: both sides of a mode switch are computed and one is selected, so that lane
+    loops vectorize.
+    """
+    f = _forces(w, lane, src, t)
+    torque1, t_s1, t_c, t_s3, torque4, f_joint, joint_open = f[0], f[1], f[2], f[3], f[4], f[5], f[6]
+    fx, fy = f[8:16], f[16:24]
+    s1, c1, s4, c4 = f[24], f[25], f[26], f[27]
+    acc1, fx1, fy1 = _disk(w, lane, src, 0, 1, w[_at(U1, lane)], w[_at(R_JRED1, lane)], torque1, s1, c1, fx[1], fy[1])
+    acc4, fx6, fy6 = _disk(w, lane, src, 4, 6, w[_at(U4, lane)], w[_at(R_JRED4, lane)], torque4, s4, c4, fx[6], fy[6])
+
+    # The slip joint: locked, 2a and 2b move as one body; open, each feels the joint's torque.
+    common = (-t_s1 - t_c) * w[_at(R_INVJ2, lane)]
+    acc_2a = (-t_s1 - f_joint) / w[_at(J2A, lane)]
+    acc_2b = (-t_c + f_joint) / w[_at(J2B, lane)]
+    w[_at(out, lane)] = acc1
+    w[_at(out + 1, lane)] = common if joint_open == 0.0 else acc_2a
+    w[_at(out + 2, lane)] = common if joint_open == 0.0 else acc_2b
+    w[_at(out + 3, lane)] = (t_c - t_s3) / w[_at(J3, lane)]
+    w[_at(out + 4, lane)] = acc4
+    _node_accelerations(w, lane, out, 0, fx[0], fy[0])
+    _node_accelerations(w, lane, out, 1, fx1, fy1)
+    _node_accelerations(w, lane, out, 2, fx[2], fy[2])
+    _node_accelerations(w, lane, out, 3, fx[3], fy[3])
+    _node_accelerations(w, lane, out, 4, fx[4], fy[4])
+    _node_accelerations(w, lane, out, 5, fx[5], fy[5])
+    _node_accelerations(w, lane, out, 6, fx6, fy6)
+    _node_accelerations(w, lane, out, 7, fx[7], fy[7])
+
+
+@njit(**_JIT)
+def _load_torque(t, w, lane):
+    """T_l(t) = T0 [1 + a Σ_h sin(2π h f_l t)/h]; sin(hx) by the Chebyshev recurrence (one sin/cos)."""
+    x = 2.0 * math.pi * w[_at(LOAD_FREQ, lane)] * t
+    s1, c1 = math.sin(x), math.cos(x)
+    s_prev, s_h, total = 0.0, s1, 0.0
+    for h in range(1, int(w[_at(LOAD_HARM, lane)]) + 1):
+        total += s_h / h
+        s_prev, s_h = s_h, 2.0 * c1 * s_h - s_prev
+    return w[_at(T0, lane)] * (1.0 + w[_at(LOAD_AMP, lane)] * total)
+
+
+# --- RK4 over the lanes of a block ------------------------------------------------------------------
+@njit(**_JIT)
+def _accelerations_at_stage(w, n_lanes, t):
+    """Rows R_ACC ← the RHS at the stage state rows R_STAGE, for lanes 0..n_lanes-1 (vectorized).
+
+    Stages 2-4 share this one compiled loop: a copy per stage would no longer fit the CPU's
+    micro-op cache (measured slower).
+    """
+    for lane in range(n_lanes):
+        _rhs(w, lane, R_STAGE, R_ACC, t)
+
+
+@njit(**_JIT)
+def _accelerations_at_start(w, n_lanes, t):
+    """Rows R_ACC ← the RHS at the step start (rows R_Y); saves stage 1 a copy of the state."""
+    for lane in range(n_lanes):
+        _rhs(w, lane, R_Y, R_ACC, t)
+
+
+@njit(**_JIT)
+def _set_load_torques(w, t, n_lanes):
+    """Row R_TL ← T_l(t) per lane.
+
+    T_l costs a libm sin and cos (kept for exact agreement with the scalar code), so it is skipped
+    when the row already holds time t (stage 4 of a step and stage 1 of the next share their time),
+    and a lane with the same load parameters as its left neighbour (R_SAME_LOAD) copies its value.
+    """
+    if w[_at(R_TL_TIME, 0)] == t:
+        return
+    w[_at(R_TL_TIME, 0)] = t
+    for lane in range(n_lanes):
+        if lane > 0 and w[_at(R_SAME_LOAD, lane)] != 0.0:
+            w[_at(R_TL, lane)] = w[_at(R_TL, lane - 1)]
+        else:
+            w[_at(R_TL, lane)] = _load_torque(t, w, lane)
+
+
+@njit(**_JIT)
+def _rk4(w, t, h, n_lanes, in_place):
+    """One RK4 step of size h from (t, rows R_Y) into rows R_TRIAL, or into R_Y if ``in_place``,
+    for lanes 0..n_lanes-1.
+
+    A stage derivative is k = (stage velocity, accelerations), so only accelerations are stored, and
+    k2's position part is recomputed rather than stored (these loops are bound by stores).  Each
+    combination loop handles position row i with its velocity row NQ+i; the operations are the
+    scalar original's (stage = y + c k, then y + h/6 (k1 + 2 (k2 + k3) + k4)), so the rounding is the
+    same.
+    """
+    half = 0.5 * h
+    _set_load_torques(w, t, n_lanes)
+    _accelerations_at_start(w, n_lanes, t)
+    for i in range(NQ):  # k1 = (y', a1); stage 2 at y + h/2 k1
+        for lane in range(n_lanes):
+            a = w[_at(R_ACC + i, lane)]
+            w[_at(R_K1V + i, lane)] = a
+            w[_at(R_STAGE + i, lane)] = w[_at(R_Y + i, lane)] + half * w[_at(R_Y + NQ + i, lane)]
+            w[_at(R_STAGE + NQ + i, lane)] = w[_at(R_Y + NQ + i, lane)] + half * a
+    _set_load_torques(w, t + 0.5 * h, n_lanes)
+    _accelerations_at_stage(w, n_lanes, t + 0.5 * h)
+    for i in range(NQ):  # k2 = (stage-2 velocity, a2); stage 3 at y + h/2 k2
+        for lane in range(n_lanes):
+            v = w[_at(R_STAGE + NQ + i, lane)]
+            a = w[_at(R_ACC + i, lane)]
+            w[_at(R_K23 + NQ + i, lane)] = a
+            w[_at(R_STAGE + i, lane)] = w[_at(R_Y + i, lane)] + half * v
+            w[_at(R_STAGE + NQ + i, lane)] = w[_at(R_Y + NQ + i, lane)] + half * a
+    _accelerations_at_stage(w, n_lanes, t + 0.5 * h)
+    for i in range(NQ):  # k2 + k3, the stage-2 velocity recomputed; stage 4 at y + h k3
+        for lane in range(n_lanes):
+            v = w[_at(R_STAGE + NQ + i, lane)]
+            a = w[_at(R_ACC + i, lane)]
+            v2 = w[_at(R_Y + NQ + i, lane)] + half * w[_at(R_K1V + i, lane)]
+            w[_at(R_K23 + i, lane)] = v2 + v
+            w[_at(R_K23 + NQ + i, lane)] += a
+            w[_at(R_STAGE + i, lane)] = w[_at(R_Y + i, lane)] + h * v
+            w[_at(R_STAGE + NQ + i, lane)] = w[_at(R_Y + NQ + i, lane)] + h * a
+    _set_load_torques(w, t + h, n_lanes)
+    _accelerations_at_stage(w, n_lanes, t + h)
+    if in_place:  # two inlined copies, so that each loop has constant rows
+        _finish_step(w, h, n_lanes, R_Y)
+    else:
+        _finish_step(w, h, n_lanes, R_TRIAL)
+
+
+@njit(**_JIT, inline="always")
+def _finish_step(w, h, n_lanes, out):
+    """Rows out ← y + h/6 (k1 + 2 (k2 + k3) + k4), with k4 = (stage velocity, R_ACC); out may be R_Y."""
+    sixth = h / 6.0
+    for i in range(NQ):
+        for lane in range(n_lanes):
+            q = w[_at(R_Y + i, lane)]
+            v = w[_at(R_Y + NQ + i, lane)]
+            q_new = q + sixth * (v + 2.0 * w[_at(R_K23 + i, lane)] + w[_at(R_STAGE + NQ + i, lane)])
+            v_new = v + sixth * (w[_at(R_K1V + i, lane)] + 2.0 * w[_at(R_K23 + NQ + i, lane)] + w[_at(R_ACC + i, lane)])
+            w[_at(out + i, lane)] = q_new
+            w[_at(out + NQ + i, lane)] = v_new
+
+
+# --- events -------------------------------------------------------------------------------------------
+# An open slip joint frees the light bodies 2a and 2b: J2a alone on the motor shaft vibrates at
+# ~1.2 kHz, where an RK4 step of 1e-4 s (ωh ≈ 0.8) is too coarse to tell whether a slip ends (the
+# relative speed grazes zero).  While the joint is open a lane takes steps of at most OPEN_OMEGA_H / ω,
+# ω the faster of the two freed bodies' frequencies (on the event path, lane by lane).
+OPEN_OMEGA_H = 0.3
+
+
+# A step's event functions are checked at its end and at INTERIOR_CHECKS - 1 points inside it, on the
+# third-order continuous extension of RK4, so that a slip that starts and ends inside one step is
+# found too.  Only the state rows the event functions read are interpolated (DENSE_ROWS).
+INTERIOR_CHECKS = 4
+
+
+@njit(**_JIT, inline="always")
+def _dense(w, lane, theta, h):
+    """Rows R_DENSE ← the state at t + θh of the step just taken from rows R_Y (its stages intact):
+    y0 + h (b1 k1 + b23 (k2 + k3) + b4 k4), the stages' third-order interpolant."""
+    theta2 = theta * theta
+    theta3 = theta2 * theta
+    b1 = h * (theta - 1.5 * theta2 + (2.0 / 3.0) * theta3)
+    b23 = h * (theta2 - (2.0 / 3.0) * theta3)
+    b4 = h * ((2.0 / 3.0) * theta3 - 0.5 * theta2)
+    for i in DENSE_ROWS:
+        w[_at(R_DENSE + i, lane)] = w[_at(R_Y + i, lane)] + (
+            b1 * w[_at(R_Y + NQ + i, lane)] + b23 * w[_at(R_K23 + i, lane)] + b4 * w[_at(R_STAGE + NQ + i, lane)])
+        w[_at(R_DENSE + NQ + i, lane)] = w[_at(R_Y + NQ + i, lane)] + (
+            b1 * w[_at(R_K1V + i, lane)] + b23 * w[_at(R_K23 + NQ + i, lane)] + b4 * w[_at(R_ACC + i, lane)])
+
+
+@njit(**_JIT)
+def _interior_events(w, n_lanes, t, h):
+    """For every lane whose step just taken ends without an event, rows R_G and R_WHICH ← the first
+    positive event function at the interior check points, if any (straight-line code over the lanes)."""
+    for k in range(1, INTERIOR_CHECKS):
+        theta = k / INTERIOR_CHECKS
+        for lane in range(n_lanes):
+            _dense(w, lane, theta, h)
+            g, which = _event_value(w, lane, R_DENSE, t + theta * h)
+            g_end = w[_at(R_G, lane)]
+            found = (g > 0.0) & (g_end <= 0.0)
+            w[_at(R_G, lane)] = g if found else g_end
+            w[_at(R_WHICH, lane)] = which if found else w[_at(R_WHICH, lane)]
+
+
+@njit(**_JIT)
+def _first_interior_event(w, lane, t, h):
+    """The first interior check point θ of the step just taken where an event function is positive
+    (its value in row R_G, whose in R_WHICH), or 1.0 if there is none."""
+    for k in range(1, INTERIOR_CHECKS):
+        theta = k / INTERIOR_CHECKS
+        _dense(w, lane, theta, h)
+        g, which = _event_value(w, lane, R_DENSE, t + theta * h)
+        if g > 0.0:
+            w[_at(R_G, lane)] = g
+            w[_at(R_WHICH, lane)] = which
+            return theta
+    return 1.0
+
+
+# Right after a switch, the new mode's event functions are checked again at once: a joint that re-sticks
+# and cannot hold its torque slips again.  This many immediate switches at most, so that a declaration
+# whose switch does not lead into its new mode cannot hang the simulation.
+MAX_IMMEDIATE_SWITCHES = 8
+
+
+@njit(**_JIT)
+def _events(w, src, n_lanes, t):
+    """Event function of the current modes at state rows src and time t, per lane, into rows R_G and R_WHICH.
+
+    An event lies where the function turns positive: the largest of the enabled switching effects'
+    is stored with its number j + 1, or -inf and 0 when none is enabled.  Straight-line code, so
+    that it vectorizes.
+    """
+    for lane in range(n_lanes):
+        g, which = _event_value(w, lane, src, t)
+        w[_at(R_G, lane)] = g
+        w[_at(R_WHICH, lane)] = which
+
+
+@njit(**_JIT)
+def _switch(w, lane, which, t):
+    """Apply the mode change of event ``which`` at the located state (rows R_Y) of ``lane``, then any
+    that the new modes call for at once."""
+    for _ in range(MAX_IMMEDIATE_SWITCHES):
+        _switch_effect(w, lane, which, t)
+        g, which = _event_value(w, lane, R_Y, t)
+        if not g > 0.0:
+            return
+
+
+@njit(**_JIT)
+def _advance_alone(w, t, h):
+    """Advance lane 0 of block ``w`` from (t, rows R_Y) by h, locating and applying every event.
+
+    The event path, for a lane whose plain step crosses an event or whose slip joint is open: Illinois
+    regula falsi on the step fraction, a stop just past the event, the mode switch, and on with the
+    rest of the step (in pieces of h / R_OPEN_STEPS while the joint is open).
+    """
+    t_end = t + h
+    while True:
+        step = t_end - t
+        if step <= 0.0:
+            return
+        piece = h / w[_at(R_OPEN_STEPS, 0)]
+        if _joint_open(w, 0) and step > 1.000001 * piece:
+            step = piece
+        t_next = t + step if step < t_end - t else t_end
+        _rk4(w, t, step, 1, False)
+        _events(w, R_TRIAL, 1, t_next)
+        hi = 1.0
+        if w[_at(R_G, 0)] <= 0.0 and w[_at(R_G, 0)] > -math.inf:
+            hi = _first_interior_event(w, 0, t, step)
+            if hi < 1.0:  # bracket the event on the RK4 step that ends there
+                _rk4(w, t, hi * step, 1, False)
+                _events(w, R_TRIAL, 1, t + hi * step)
+        g_end, which = w[_at(R_G, 0)], w[_at(R_WHICH, 0)]
+        if g_end <= 0.0:
+            if hi < 1.0:  # the interpolant saw an event that the step to there does not reach
+                _rk4(w, t, step, 1, False)
+            _copy_lane_rows(w, 0, w, 0, R_TRIAL, R_Y, NY)
+            t = t_next
+            continue
+        # g(0) < 0 because we start inside the mode.
+        _events(w, R_Y, 1, t)
+        g0 = min(w[_at(R_G, 0)], 0.0)
+        lo, g_lo, g_hi, side = 0.0, g0, g_end, 0
+        for _ in range(60):
+            frac = (lo * g_hi - hi * g_lo) / (g_hi - g_lo) if g_hi != g_lo else 0.5 * (lo + hi)
+            if not lo < frac < hi:
+                frac = 0.5 * (lo + hi)
+            _rk4(w, t, frac * step, 1, False)
+            _events(w, R_TRIAL, 1, t + frac * step)
+            g = w[_at(R_G, 0)]
+            if g > 0.0:
+                hi, g_hi = frac, g
+                which = w[_at(R_WHICH, 0)]
+                if side == 1:
+                    g_lo *= 0.5
+                side = 1
+            else:
+                lo, g_lo = frac, g
+                if side == -1:
+                    g_hi *= 0.5
+                side = -1
+            # The switch is applied at hi, so converge there: just past the boundary, or pinned in time.
+            if g_hi < 1e-13 or (hi - lo) * step < 1e-13:
+                break
+        # Stop just on the far side of the event so the new mode starts at its own boundary.
+        _rk4(w, t, hi * step, 1, False)
+        _copy_lane_rows(w, 0, w, 0, R_TRIAL, R_Y, NY)
+        t = t + hi * step
+        _switch(w, 0, which, t)
+
+
+@njit(**_JIT)
+def _copy_lane_rows(a, lane_a, b, lane_b, first_a, first_b, count):
+    """Rows first_b.. of lane_b in block b ← rows first_a.. of lane_a in block a."""
+    for i in range(count):
+        b[_at(first_b + i, lane_b)] = a[_at(first_a + i, lane_a)]
+
+
+# --- driver ---------------------------------------------------------------------------------------
+@njit(**_JIT)
+def _step(w, alone, t, h, n_lanes, events_possible):
+    """Advance all lanes of block ``w`` from t by h; a lane whose step crosses an event, or whose slip
+    joint is open, is redone by the event path on the one-lane scratch block ``alone`` (each lane on
+    its own, so that results do not depend on how simulations are grouped).  Returns the new time."""
+    t_end = t + h
+    step = t_end - t
+    if step <= 0.0:
+        return t_end
+    if not events_possible:
+        _rk4(w, t, step, n_lanes, True)
+        return t_end
+    _rk4(w, t, step, n_lanes, False)
+    _events(w, R_TRIAL, n_lanes, t_end)
+    _interior_events(w, n_lanes, t, step)
+    for lane in range(n_lanes):
+        if not w[_at(R_G, lane)] <= 0.0 or (w[_at(R_OPEN_STEPS, lane)] > 1.0 and _joint_open(w, lane)):
+            _copy_lane_rows(w, lane, alone, 0, 0, 0, N_CONST + N_MODES)
+            _copy_lane_rows(w, lane, alone, 0, R_Y, R_Y, NY)
+            alone[_at(R_TL_TIME, 0)] = math.nan  # another lane's load torque
+            _advance_alone(alone, t, h)
+            _copy_lane_rows(alone, 0, w, lane, R_MODES, R_MODES, N_MODES)
+            _copy_lane_rows(alone, 0, w, lane, R_Y, R_TRIAL, NY)
+    for j in range(NY * LANES):
+        w[_at(R_Y, j)] = w[_at(R_TRIAL, j)]
+    return t_end
+
+
+@njit(**_JIT)
+def _setup_lane(w, lane, p, h):
+    """Parameters, derived quantities, modes and the rig.md initial state of one lane (steps of h)."""
+    for k in range(N_PAR):
+        w[_at(k, lane)] = p[k]
+    omega = 2.0 * math.pi * p[SPEED] / 60.0
+    w[_at(R_OMEGA, lane)] = omega
+    w[_at(R_CM, lane)] = p[T0] / (p[SLIP] * omega)
+    w[_at(R_INVJ2, lane)] = 1.0 / (p[J2A] + p[J2B])
+    w[_at(R_MU2, lane)] = p[J2A] * p[J2B] / (p[J2A] + p[J2B])
+    w[_at(R_DELTA0, lane)] = p[T0] / p[KT2]
+    masses = (p[MB], p[M1], p[MB], p[M2], p[M3], p[MB], p[M4], p[MB])
+    for i in range(8):
+        w[_at(R_INVM + i, lane)] = 1.0 / masses[i]
+    springs = (p[KS], p[KS], p[KH], p[KC], p[KH], p[KS], p[KS])
+    for i in range(7):
+        w[_at(R_KLAT + i, lane)] = springs[i]
+    w[_at(R_JRED1, lane)] = p[J1] - p[U1] * p[U1] * w[_at(R_INVM + 1, lane)]
+    w[_at(R_JRED4, lane)] = p[J4] - p[U4] * p[U4] * w[_at(R_INVM + 6, lane)]
+    same = lane > 0
+    for k in (T0, LOAD_AMP, LOAD_FREQ, LOAD_HARM):
+        same = same and p[k] == w[_at(k, lane - 1)]
+    w[_at(R_SAME_LOAD, lane)] = 1.0 if same else 0.0
+    omega_open = max(math.sqrt(p[KT1] * (1.0 / p[J1] + 1.0 / p[J2A])), math.sqrt(p[KT2] * (1.0 / p[J2B] + 1.0 / p[J3])))
+    w[_at(R_OPEN_STEPS, lane)] = max(1.0, math.ceil(h * omega_open / OPEN_OMEGA_H))
+    for k in range(N_MODES):
+        w[_at(R_MODES + k, lane)] = 0.0
+    for i in range(NY):
+        w[_at(R_Y + i, lane)] = 0.0
+    theta3 = p[T0] / p[KT3]
+    theta2 = theta3 + p[T0] / p[KT2]
+    for i, theta in enumerate((theta2 + p[T0] / p[KT1], theta2, theta2, theta3, 0.0)):
+        w[_at(R_Y + i, lane)] = theta
+        w[_at(R_Y + NQ + i, lane)] = omega
+
+
+@njit(**_JIT)
+def _record(w, codes, out, first, k, n_lanes, t):
+    """Sample k (time t) of every output code for the block's lanes (simulations first, first + 1, ...)."""
+    for c in range(codes.shape[0]):
+        code = codes[c]
+        if code == OUT_TORQUE_C or code == OUT_JOINT_TORQUE:
+            for lane in range(n_lanes):
+                torques = _joint_torques(w, lane, R_Y, t)
+                out[first + lane, c, k] = torques[1] if code == OUT_TORQUE_C else torques[2]
+            continue
+        if code < 8:  # bearing displacement: (node b1,b2,b3,b4) × (x,y)
+            row = R_Y + 5 + 8 * (code % 2) + (0, 2, 5, 7)[code // 2]
+        elif code == 8:
+            row = R_Y + NQ
+        elif code == 9:
+            row = R_Y + NQ + 4
+        elif code < OUT_STATE:
+            row = R_MODES + code - OUT_MODES
+        else:
+            row = R_Y + code - OUT_STATE
+        for lane in range(n_lanes):
+            out[first + lane, c, k] = w[_at(row, lane)]
+
+
+@njit(**_JIT)
+def _simulate_block(params, first, n_lanes, t_first, fs, n_samples, substeps, codes, out):
+    """Simulate rows first .. first+n_lanes-1 of ``params`` together, one per lane."""
+    h_target = 1.0 / (fs * substeps)
+    w = np.zeros(N_ROWS * LANES)  # unused lanes stay finite: the flat copy in _step reads them
+    alone = np.zeros(N_ROWS * LANES)  # scratch block of the event path (lane 0 only)
+    w[_at(R_TL_TIME, 0)] = math.nan
+    events_possible = False
+    for lane in range(n_lanes):
+        _setup_lane(w, lane, params[first + lane], h_target)
+        for slot in SWITCHING_ON:
+            events_possible = events_possible or params[first + lane, slot] != 0.0
+    # Padding lanes (never recorded): the last lane's rig without its switching effects, so they
+    # never take the event path; lanes are independent, so they change no other lane's result.
+    n_run = n_lanes if n_lanes <= SCALAR_MAX else min(LANES, (n_lanes + VECTOR - 1) // VECTOR * VECTOR)
+    for lane in range(n_lanes, n_run):
+        _setup_lane(w, lane, params[first + n_lanes - 1], h_target)
+        for slot in SWITCHING_ON:
+            w[_at(slot, lane)] = 0.0
+    for lane in range(n_lanes):  # an effect whose event function is already positive at t = 0 switches there
+        g, which = _event_value(w, lane, R_Y, 0.0)
+        if g > 0.0:
+            _switch(w, lane, which, 0.0)
+    t = 0.0
+    n_warm = int(math.ceil(t_first / h_target - 1e-9))
+    for k in range(n_warm):
+        t = _step(w, alone, t, (k + 1) * t_first / n_warm - t, n_run, events_possible)
+    t = t_first
+    for k in range(n_samples):
+        if k > 0:
+            t_sample = t_first + k / fs
+            for s in range(substeps):
+                t_next = t_first + (k - 1 + (s + 1) / substeps) / fs
+                t = _step(w, alone, t, t_next - t, n_run, events_possible)
+            t = t_sample
+        _record(w, codes, out, first, k, n_lanes, t)
+
+
+@njit(cache=True, error_model="numpy", parallel=True)
+def _simulate_batch(params, t_first, fs, n_samples, substeps, codes, n_threads):
+    n = params.shape[0]
+    out = np.empty((n, codes.shape[0], n_samples))
+    # Blocks of at most LANES simulations, at least as many as threads while each keeps VECTOR lanes
+    # (a narrower block costs as much as one of VECTOR lanes), of equal width rounded up to VECTOR.
+    n_blocks = max((n + LANES - 1) // LANES, min(n_threads, (n + VECTOR - 1) // VECTOR))
+    width = min(LANES, ((n + n_blocks - 1) // n_blocks + VECTOR - 1) // VECTOR * VECTOR) if n > 0 else 1
+    for b in prange((n + width - 1) // width):
+        first = b * width
+        _simulate_block(params, first, min(width, n - first), t_first, fs, n_samples, substeps, codes, out)
+    return out
