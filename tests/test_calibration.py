@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from newdyn import calibration, comparison, mcmc_calibration, model, noise
+from newdyn import calibration, comparison, faults, mcmc_calibration, model, noise
 from newdyn.sampling import MCMCSettings
 from newdyn.simulation import simulate
 
@@ -11,6 +11,7 @@ SAMPLING = model.Sampling(fs=5000.0, t_first=0.5, n_samples=2500)  # half the de
 CHANNELS = ["b1_x", "w1"]
 GRIDS = {"kT1": calibration.GridSpec("kT1", 1.5e6, 4.5e6, 151), "kT3": calibration.GridSpec("kT3", 1.3e6, 3.7e6, 121)}
 PRIORS = {"kT1": calibration.NormalPrior(3.0e6, 0.5e6), "kT3": calibration.NormalPrior(2.5e6, 0.4e6)}
+STICK_SLIP = faults.scenario_values({"fault": {"kind": "stick_slip", "parameters": {"T_max": 1.15 * 1613.0}}}, model.DEFAULTS)
 
 
 @pytest.fixture(scope="module")
@@ -46,7 +47,7 @@ def test_parameter_change_is_explained_by_its_parameter(coarse_models, truth, pa
 @pytest.mark.parametrize("parameter", ["kT1", "kT3"])
 def test_stick_slip_is_not_explained_by_a_stiffness(coarse_models, parameter):
     """The paper's Fig. 4: calibrating kT1 or kT3 cannot absorb the stick-slip's new dynamics."""
-    result = calibrate(coarse_models, {"T_max": 1.15 * 1613.0}, parameter)
+    result = calibrate(coarse_models, STICK_SLIP, parameter)
     assert result.chi2_red > 10
     assert result.verdict == "not explained"
 
@@ -96,7 +97,7 @@ def test_mcmc_on_the_simulator_agrees_with_the_grid(coarse_models):
 def test_posterior_cut_by_the_grid_bound_is_resolved_there(coarse_models):
     """Stick-slip pushes kT1 against the grid's upper bound: the posterior is the exponential tail the
     bound cuts, and the refinement must still put many points within its decay length."""
-    post = calibrate(coarse_models, {"T_max": 1.15 * 1613.0}, "kT1").posterior
+    post = calibrate(coarse_models, STICK_SLIP, "kT1").posterior
     assert post.map == GRIDS["kT1"].high
     assert np.sum(post.grid > post.map - post.sd) >= 5
 
@@ -105,7 +106,7 @@ def test_mcmc_of_a_posterior_cut_by_the_grid_bound_folds_back_into_the_range(coa
     """Stick-slip piles kT1 against the grid's upper bound (an exponential tail of ~50 N·m/rad): the
     mirrored sampler keeps every draw in the range, centres on the grid posterior, and a run that
     calls itself converged also has its spread."""
-    clean = simulate({"T_max": 1.15 * 1613.0}, SAMPLING, CHANNELS)
+    clean = simulate(STICK_SLIP, SAMPLING, CHANNELS)
     data, sigma = noise.add_noise(clean, CHANNELS, 40.0, 1)
     spec = GRIDS["kT1"]
     grid = calibration.calibrate(data, sigma, spec, PRIORS["kT1"], coarse_models["kT1"], {}, SAMPLING, CHANNELS, 41, 1.1)

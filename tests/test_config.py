@@ -12,7 +12,7 @@ import pytest
 import yaml
 
 from newdyn import config as cfg
-from newdyn import faults, model
+from newdyn import effects, faults, model
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT = ROOT / "config" / "config.yaml"
@@ -25,6 +25,14 @@ SOURCE = "config/config.yaml"
 @pytest.fixture(scope="module")
 def default_config() -> dict:
     return cfg.load(DEFAULT, SCHEMA)
+
+
+@pytest.fixture(autouse=True)
+def builtin_effects():
+    """Every test starts and ends with the built-in effects only (a test may add its own)."""
+    effects.use([])
+    yield
+    effects.use([])
 
 
 def error_of(config: object, source: str = SOURCE) -> cfg.ConfigError:
@@ -53,7 +61,14 @@ def test_shipped_configs_pass(path):
         "rig", "operating", "sampling", "simulation", "noise", "scenarios", "calibration", "diagnosis", "hidden"}
     for name in config["scenarios"]:
         values = cfg.scenario_values(config, name)
-        assert set(values) == set(model.PARAMETER_NAMES)
+        assert set(values) == set(model.slot_names())
+
+
+@pytest.mark.parametrize("path", [DEFAULT, CI], ids=["default", "ci"])
+def test_scenario_values_are_exactly_the_model_slots(path):
+    config = cfg.load(path, SCHEMA)
+    for name in config["scenarios"]:
+        assert tuple(cfg.scenario_values(config, name)) == model.slot_names(), name
 
 
 def test_default_schema_path_is_the_repository_schema(default_config):
@@ -87,6 +102,8 @@ def test_ci_config(default_config):
     assert ci["simulation"] == {"channels": ["b1_x", "w1", "torque_c"], "max_step": 1.0e-4}
     assert ci["noise"] == {"snr_db": [40], "seeds": [1]}
     assert list(ci["scenarios"]) == ["healthy", "kT1_up", "stick_slip"]
+    assert "faults" not in ci["diagnosis"] and "faults" not in ci["hidden"]  # the effect files' ranges
+    assert cfg.hidden_classes(ci) == ["stick_slip"]
 
 
 # --------------------------------------------------------------------------------------------------
@@ -133,28 +150,43 @@ def _fault(scenario: str, kind: str, **parameters):
 
 
 BAD = {
-    # diagnosis and hidden sets
+    # the study's own effects (files are tested below, with a folder of effects)
+    "effects not a list": (_set("effects", "torque_ripple"), "effects", "must be a list"),
+    "effect name not a name": (_set("effects", ["torque ripple"]), "effects[0]", "must match"),
+    "effect listed twice": (_set("effects", ["a", "a"]), "effects[1]", "duplicate of effects[0]"),
+    "effect named like a built-in": (_set("effects", ["stick_slip"]), "effects[0]", "stick_slip.py", "built-in effect"),
+    "effect named like a class": (_set("effects", ["healthy"]), "effects[0]", "class of its own"),
+    # diagnosis and hidden sets: optional overrides of the effect files' ranges
     "unknown diagnosis fault parameter": (
         _set("diagnosis.faults.breathing_crack", {"alpha": [0.0, 0.8], "beta": [0.0, 1.0]}),
         "diagnosis.faults.breathing_crack.beta", "unknown parameter of breathing_crack",
     ),
+    "unknown diagnosis fault kind": (_set("diagnosis.faults.rust", {"depth": [0.0, 1.0]}), "diagnosis.faults.rust",
+                                     "must be one of", "stick_slip"),
     "reversed diagnosis range": (_set("diagnosis.faults.cubic_coupling.gamma", [3.0, 0.0]),
                                  "diagnosis.faults.cubic_coupling.gamma", "reversed"),
-    "diagnosis range missing a parameter": (_set("diagnosis.faults.stick_slip", {"T_max": [1650.0, 2500.0]}),
-                                            "diagnosis.faults.stick_slip", "r_k is missing"),
+    "unphysical diagnosis range": (_set("diagnosis.faults.breathing_crack.alpha", [0.0, 1.0]),
+                                   "diagnosis.faults.breathing_crack.alpha", "[0, 1)"),
+    "diagnosis range below an exclusive bound": (_set("diagnosis.faults.stick_slip.T_max", [-1.0, 2000.0]),
+                                                 "diagnosis.faults.stick_slip.T_max", "(0, inf) N·m"),
+    "empty diagnosis override": (_set("diagnosis.faults.stick_slip", {}), "diagnosis.faults.stick_slip", "at least 1"),
+    "not a range": (_set("diagnosis.faults.cubic_coupling.gamma", [0.0, 1.0, 2.0]), "diagnosis.faults.cubic_coupling.gamma"),
     "drift not calibrated": (_set("diagnosis.drift", ["k_s"]), "diagnosis.drift[0]", "not one of calibration.parameters"),
-    "too few diagnosis walkers": (_set("diagnosis.mcmc.walkers", 8), "diagnosis.mcmc.walkers", "at least 10"),
+    # stick_slip, the largest effect, has 3 parameters; with the drift kT1 4: the KDE move needs 2·4 + 2
+    "too few diagnosis walkers": (_set("diagnosis.mcmc.walkers", 8), "diagnosis.mcmc.walkers", "at least 10",
+                                  "the 4 parameters"),
     "unphysical hidden share": (_set("hidden.faults.stick_slip.J2a_share", [0.2, 1.5]), "hidden.faults.stick_slip.J2a_share", "must lie"),
     "hidden set named like a variant": (_set("hidden.sets.paper", {"cases": 2, "seed": 1}), "hidden.sets.paper", "share results/paper/"),
     "unknown hidden fault parameter": (_set("hidden.faults.stick_slip.T_maks", [1800.0, 1900.0]),
-                                       "hidden.faults.stick_slip.T_maks", "unknown parameter of stick_slip"),
-    "hidden class without ranges": (_del("hidden.faults.loose_bearing"), "hidden.classes[5]", "hidden.faults.loose_bearing"),
-    "hidden set's class without ranges": (
-        lambda c: (_del("hidden.faults.loose_bearing")(c), _set("hidden.classes", ["healthy"])(c),
-                   _set("hidden.sets.demo.classes", ["healthy", "loose_bearing"])(c)),
-        "hidden.sets.demo.classes[1]", "hidden.faults.loose_bearing",
-    ),
+                                       "hidden.faults.stick_slip.T_maks", "unknown parameter of stick_slip", "T_max"),
+    "unknown hidden fault kind": (_set("hidden.faults.wobble", {"x": [0.0, 1.0]}), "hidden.faults.wobble", "must be one of"),
+    "unknown hidden class": (_set("hidden.classes", ["healthy", "wobble"]), "hidden.classes[1]", "must be one of"),
+    "empty hidden classes": (_set("hidden.classes", []), "hidden.classes", "at least 1"),
     "unknown class of a hidden set": (_set("hidden.sets.demo.classes", ["healthy", "wobble"]), "hidden.sets.demo.classes[1]"),
+    "hidden parameter change of a non-rig parameter": (_set("hidden.parameter_change.parameters", ["kT1", "T0"]),
+                                                       "hidden.parameter_change.parameters[1]", "unknown rig parameter"),
+    "hidden relative change of 100 %": (_set("hidden.parameter_change.relative", [0.5, 1.0]),
+                                        "hidden.parameter_change.relative", "0 <= low < high < 1"),
     # structure (schema)
     "missing sampling.fs": (_del("sampling.fs"), "sampling.fs", "missing required key"),
     "missing section": (_del("noise"), "noise", "missing required key"),
@@ -259,10 +291,22 @@ BAD = {
         "scenarios.healthy.overrides.kT9",
         "unknown rig or operating",
     ),
-    "fault parameter as override": (
+    "effect parameter as override": (
         _set("scenarios.healthy.overrides", {"T_max": 100.0}),
         "scenarios.healthy.overrides.T_max",
-        "stick_slip fault",
+        "unknown rig or operating parameter",
+        "of the stick_slip effect: set it under fault.parameters",
+    ),
+    "effect model value as override": (
+        _set("scenarios.healthy.overrides", {"breathing_crack.alpha": 0.2}),
+        "scenarios.healthy.overrides.breathing_crack.alpha",
+        "unknown rig or operating parameter",
+        "breathing_crack effect",
+    ),
+    "effect presence as override": (
+        _set("scenarios.healthy.overrides", {"stick_slip": 1.0}),
+        "scenarios.healthy.overrides.stick_slip",
+        "unknown rig or operating parameter",
     ),
     "override load cycle longer than the record": (
         _set("scenarios.healthy.overrides", {"load_freq": 0.5}),
@@ -327,6 +371,11 @@ BAD = {
     "zero r_k": (
         _fault("stick_slip", "stick_slip", r_k=0.0),
         "scenarios.stick_slip.fault.parameters.r_k",
+        "must lie in",
+    ),
+    "J2a share of one": (
+        _fault("stick_slip", "stick_slip", J2a_share=1.0),
+        "scenarios.stick_slip.fault.parameters.J2a_share",
         "must lie in",
     ),
     "crack alpha of one": (
@@ -400,12 +449,36 @@ def test_bad_config_gives_one_line_naming_file_and_field(default_config, case):
 
 def test_resulting_values_are_checked(default_config, monkeypatch):
     """A value derived from the base (here a broken stick-slip default) is checked after combining."""
-    kind = faults.FAULT_KINDS["stick_slip"]
-    broken = dataclasses.replace(kind, defaults={**kind.defaults, "r_k": lambda base: 2.0})
-    monkeypatch.setitem(faults.FAULT_KINDS, "stick_slip", broken)
+    effect = effects.active()["stick_slip"]
+    broken = tuple(dataclasses.replace(p, default=lambda rig: 2.0) if p.name == "r_k" else p for p in effect.parameters)
+    monkeypatch.setattr(effect, "parameters", broken)
     config = copy.deepcopy(default_config)
     del config["scenarios"]["stick_slip"]["fault"]["parameters"]["r_k"]
     assert_one_line(error_of(config), SOURCE, "scenarios.stick_slip.fault", "resulting r_k", "(got 2)")
+
+
+def test_resulting_rig_values_of_an_effect_are_checked(default_config, monkeypatch):
+    """Rig values an effect sets are checked against the rig's bounds, reported at the parameter that sets them."""
+    config = copy.deepcopy(default_config)
+    config["scenarios"]["stick_slip"]["fault"]["parameters"]["J2a_share"] = 0.3
+    cfg.check(config, SOURCE, SCHEMA)
+    values = cfg.scenario_values(config, "stick_slip")
+    assert values["J2a"] == pytest.approx(0.3 * 0.15) and values["J2a"] + values["J2b"] == pytest.approx(0.15)
+    effect = effects.active()["stick_slip"]
+    monkeypatch.setattr(effect, "rig_values", classmethod(lambda cls, values, rig: {"J2a": -values["J2a_share"]}))
+    assert_one_line(error_of(config), SOURCE, "scenarios.stick_slip.fault.parameters.J2a_share", "resulting J2a", "(0, inf)")
+    del config["scenarios"]["stick_slip"]["fault"]["parameters"]["J2a_share"]  # set from its default: the fault as a whole
+    assert_one_line(error_of(config), SOURCE, "scenarios.stick_slip.fault", "resulting J2a")
+
+
+def test_resulting_values_after_overrides_and_fault(default_config):
+    """A parameter_change to a value that is physical, of a parameter an override also sets, wins; the
+    stick-slip default T_max = 1.15·T0 follows an overridden T0 and must still carry it."""
+    config = copy.deepcopy(default_config)
+    config["scenarios"]["low_T0"] = {"overrides": {"T0": 1000.0}, "fault": {"kind": "stick_slip", "parameters": {"r_k": 0.8}}}
+    assert_one_line(error_of(config), SOURCE, "scenarios.low_T0.fault.parameters.T_max", "must exceed T0 = 1000")
+    config["scenarios"]["low_T0"]["fault"]["parameters"]["r_k"] = 0.9
+    cfg.check(config, SOURCE, SCHEMA)
 
 
 def test_config_error_is_a_value_error():
@@ -481,15 +554,19 @@ def test_scenario_values(default_config):
     c = copy.deepcopy(default_config)
     assert cfg.scenario_values(c, "kT1_up")["kT1"] == 3.25e6
     assert cfg.scenario_values(c, "healthy") == model.complete(cfg.base_values(c))
-    assert cfg.scenario_values(c, "breathing_crack")["crack_alpha"] == 0.3
-    assert cfg.scenario_values(c, "loose_bearing")["bearing_gap"] == 2e-8
+    crack = cfg.scenario_values(c, "breathing_crack")
+    assert (crack["breathing_crack"], crack["breathing_crack.alpha"]) == (1.0, 0.3)
+    assert cfg.scenario_values(c, "loose_bearing")["loose_bearing.gap"] == 2e-8
+    healthy = cfg.scenario_values(c, "healthy")
+    assert all(healthy[kind] == 0.0 for kind in effects.active())  # no effect present
     # overrides come before the fault; the stick-slip default T_max = 1.15 T0 uses the overridden T0
     c["scenarios"]["slow"] = {"overrides": {"T0": 1000.0, "speed_rpm": 990.0}, "fault": {"kind": "stick_slip"}}
     cfg.check(c, SOURCE, SCHEMA)
     values = cfg.scenario_values(c, "slow")
-    assert (values["T0"], values["speed_rpm"], values["T_max"], values["r_k"]) == (
+    assert (values["T0"], values["speed_rpm"], values["stick_slip"], values["stick_slip.T_max"], values["stick_slip.r_k"]) == (
         1000.0,
         990.0,
+        1.0,
         pytest.approx(1150.0),
         1.0,
     )
@@ -587,7 +664,36 @@ def test_schema_matches_model():
     assert list(props["operating"]["properties"]) == list(model.OPERATING_PARAMETERS)
     assert props["operating"]["required"] == list(model.OPERATING_PARAMETERS)
     assert props["simulation"]["properties"]["channels"]["items"]["enum"] == list(model.CHANNELS)
-    assert schema["$defs"]["fault"]["properties"]["kind"]["enum"] == list(faults.FAULT_KINDS)
+
+
+def _lists(node):
+    if isinstance(node, dict):
+        for value in node.values():
+            yield from _lists(value)
+    elif isinstance(node, list):
+        yield node
+        for value in node:
+            yield from _lists(value)
+
+
+def test_schema_holds_no_kinds_and_gets_the_registry_injected():
+    schema = _schema()
+    classes = {cfg.HEALTHY, *faults.kinds()}
+    for path, node in _subschemas(schema):  # no enum of the YAML names a kind or class
+        assert not classes & {str(item) for item in node.get("enum", [])}, path
+    for listed in _lists(schema):  # nor does any other list name an effect (hidden.parameter_change is a key)
+        assert not set(effects.active()) & {str(item) for item in listed}, listed
+    markers = [path for path, node in _subschemas(schema) if "x-kinds" in node]
+    assert len(markers) == 5, markers
+    injected = cfg.load_schema(SCHEMA)
+    assert injected["$defs"]["fault"]["properties"]["kind"]["enum"] == list(faults.kinds())
+    assert list(faults.kinds()) == [faults.PARAMETER_CHANGE, *effects.active()]
+    assert injected["$defs"]["hidden_classes"]["items"]["enum"] == [cfg.HEALTHY, faults.PARAMETER_CHANGE, *effects.active()]
+    for section in ("diagnosis", "hidden"):
+        assert injected["properties"][section]["properties"]["faults"]["propertyNames"]["enum"] == list(effects.active())
+    assert injected["properties"]["diagnosis"]["properties"]["effects"]["items"]["enum"] == list(effects.active())
+    assert not [path for path, node in _subschemas(injected) if "x-kinds" in node]
+    assert cfg.load_schema() == injected  # the default schema path
 
 
 def _subschemas(node, path="#"):
@@ -602,7 +708,7 @@ def _subschemas(node, path="#"):
 
 def test_schema_is_closed_and_described():
     for path, node in _subschemas(_schema()):
-        if path.endswith("/properties") or path.endswith("/$defs"):
+        if path.endswith(("/properties", "/$defs")):
             continue  # maps of names, not schemas
         if node.get("type") == "object":
             assert "additionalProperties" in node, path
@@ -631,19 +737,31 @@ def test_readme_documents_every_key(default_config):
         "fault",
         "kind",
         "parameters",
+        "effects",
+        "faults",
+        "classes",
     }
-    for kind in faults.FAULT_KINDS.values():
-        keys |= {kind.name} | set(kind.slots) if kind.name != "parameter_change" else {kind.name}
+    keys |= set(faults.kinds())
+    for effect in effects.active().values():
+        keys |= set(effect.parameter_names())
     missing = sorted(k for k in keys if not re.search(rf"`{re.escape(k)}`", readme))
     assert not missing, f"config/README.md does not document: {missing}"
     assert "--configfile" in readme
 
 
 @pytest.mark.parametrize(
+    "kind, parameter",
+    [(kind, p.name) for kind, effect in effects.active().items() for p in effect.parameters if p.default is None],
+)
+def test_effect_parameter_without_default_is_required(default_config, kind, parameter):
+    config = copy.deepcopy(default_config)
+    config["scenarios"]["x"] = {"fault": {"kind": kind, "parameters": {}}}
+    assert_one_line(error_of(config), SOURCE, f"scenarios.x.fault.parameters.{parameter}", f"needs its parameter {parameter}")
+
+
+@pytest.mark.parametrize(
     "kind, parameters, field, problem",
     [
-        ("breathing_crack", {}, "parameters.alpha", "needs its parameter alpha"),
-        ("loose_bearing", {}, "parameters.gap", "needs its parameter gap"),
         ("stick_slip", {"T_max": 1500.0}, "parameters.T_max", "must exceed T0"),
         ("stick_slip", {"T_max": 2000.0, "r_k": 0.5}, "parameters.T_max", "stalls"),
         ("stick_slip", {"r_k": 1.5}, "parameters.r_k", "(0, 1]"),
@@ -654,3 +772,172 @@ def test_fault_without_severity_or_unable_to_carry_the_load_is_rejected(default_
     config["scenarios"]["x"] = {"fault": {"kind": kind, "parameters": parameters}}
     assert_one_line(error_of(config), SOURCE, f"scenarios.x.fault.{field}", problem)
 
+
+
+# --------------------------------------------------------------------------------------------------
+# effect ranges and hidden classes: the effect files' defaults, the config's optional overrides
+
+
+def test_ranges_default_to_the_effect_files(default_config):
+    assert "faults" not in default_config["diagnosis"] and "faults" not in default_config["hidden"]
+    diagnosis, hidden = cfg.diagnosis_ranges(default_config), cfg.hidden_ranges(default_config)
+    assert list(diagnosis) == list(hidden) == list(effects.active())
+    for kind, effect in effects.active().items():
+        assert list(diagnosis[kind]) == list(hidden[kind]) == list(effect.parameter_names())  # declaration order
+        for p in effect.parameters:
+            assert diagnosis[kind][p.name] == tuple(p.prior)
+            assert hidden[kind][p.name] == tuple(p.draw_range)
+
+
+def test_range_overrides_replace_only_what_they_name(default_config):
+    config = copy.deepcopy(default_config)
+    config["diagnosis"]["faults"] = {"stick_slip": {"T_max": [1700, 2400]}}
+    config["hidden"]["faults"] = {"breathing_crack": {"alpha": [0.2, 0.4]}}
+    cfg.check(config, SOURCE, SCHEMA)
+    diagnosis, hidden = cfg.diagnosis_ranges(config), cfg.hidden_ranges(config)
+    assert diagnosis["stick_slip"]["T_max"] == (1700.0, 2400.0)
+    assert hidden["breathing_crack"]["alpha"] == (0.2, 0.4)
+    expected = cfg.diagnosis_ranges(default_config)
+    expected["stick_slip"]["T_max"] = (1700.0, 2400.0)
+    assert diagnosis == expected
+    # a range may start at an exclusive lower bound (T_max > 0), as the effect files' may
+    config["diagnosis"]["faults"]["stick_slip"]["T_max"] = [0.0, 2400.0]
+    cfg.check(config, SOURCE, SCHEMA)
+    # a spec holding just the section works too; a kind that is not active is an error
+    assert cfg.hidden_ranges({"hidden": config["hidden"]}) == hidden
+    with pytest.raises(KeyError, match="not an active effect"):
+        cfg.diagnosis_ranges({"diagnosis": {"faults": {"torque_ripple": {"amplitude": [0, 1]}}}})
+
+
+def test_a_diagnosis_offers_the_effects_it_names(default_config):
+    config = copy.deepcopy(default_config)
+    config["diagnosis"]["effects"] = ["loose_bearing", "stick_slip"]
+    cfg.check(config, SOURCE, SCHEMA)
+    assert list(cfg.diagnosis_ranges(config)) == ["loose_bearing", "stick_slip"]
+    assert list(cfg.hidden_ranges(config)) == list(effects.active())  # the blind draw is not narrowed
+    config["diagnosis"]["effects"] = ["stick_slip", "rust"]
+    assert_one_line(error_of(config), SOURCE, "diagnosis.effects[1]", "must be one of", "stick_slip")
+
+
+def test_hidden_classes(default_config):
+    assert "classes" not in default_config["hidden"]
+    assert cfg.hidden_classes(default_config) == [cfg.HEALTHY, *faults.kinds()]
+    config = copy.deepcopy(default_config)
+    config["hidden"]["classes"] = ["healthy", "loose_bearing"]
+    cfg.check(config, SOURCE, SCHEMA)
+    assert cfg.hidden_classes(config) == ["healthy", "loose_bearing"]
+    assert set(default_config["hidden"]["sets"]["demo"]["classes"]) <= set(effects.active())  # the demo keeps its own list
+
+
+# --------------------------------------------------------------------------------------------------
+# the study's own effects: files effects/<name>.py beside config/
+
+RIPPLE = (Path(__file__).parent / "effects" / "torque_ripple.py").read_text(encoding="utf-8")  # a test effect
+
+
+@pytest.fixture
+def effect_folder(tmp_path, monkeypatch, request):
+    """Run in a fresh folder with an ``effects/`` beside where the config would be; write(name, text)
+    writes ``effects/<name>.py``.  Afterwards the built-in effects only are active again."""
+    request.addfinalizer(lambda: effects.use([]))
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "effects").mkdir()
+
+    def write(text: str, name: str = "torque_ripple") -> Path:
+        path = tmp_path / "effects" / f"{name}.py"
+        path.write_text(text, encoding="utf-8")
+        return path
+
+    return write
+
+
+def _with_ripple(default_config) -> dict:
+    config = copy.deepcopy(default_config)
+    config["effects"] = ["torque_ripple"]
+    config["scenarios"]["ripple"] = {"fault": {"kind": "torque_ripple", "parameters": {"amplitude": 10.0}}}
+    return config
+
+
+def test_user_effect_is_a_kind_like_the_builtins(default_config, effect_folder):
+    effect_folder(RIPPLE)
+    config = _with_ripple(default_config)
+    cfg.check(config, SOURCE, SCHEMA)
+    assert list(effects.active())[-1] == "torque_ripple" and "torque_ripple" in faults.kinds()
+    schema = cfg.load_schema(SCHEMA)
+    assert "torque_ripple" in schema["$defs"]["fault"]["properties"]["kind"]["enum"]
+    assert "torque_ripple" in schema["$defs"]["hidden_classes"]["items"]["enum"]
+    assert "torque_ripple" in schema["properties"]["diagnosis"]["properties"]["faults"]["propertyNames"]["enum"]
+    assert cfg.diagnosis_ranges(config)["torque_ripple"] == {"amplitude": (0.0, 50.0), "order": (1.0, 12.0)}
+    assert cfg.hidden_ranges(config)["torque_ripple"] == {"amplitude": (5.0, 20.0), "order": (1.0, 12.0)}
+    assert cfg.hidden_classes(config)[-1] == "torque_ripple"  # drawn in the blind test with no other edit
+    values = cfg.scenario_values(config, "ripple")
+    assert tuple(values) == model.slot_names()
+    assert (values["torque_ripple"], values["torque_ripple.amplitude"], values["torque_ripple.order"]) == (1.0, 10.0, 6.0)
+    assert cfg.scenario_values(config, "healthy")["torque_ripple"] == 0.0
+    # its ranges can be overridden and checked like a built-in's
+    config["diagnosis"]["faults"] = {"torque_ripple": {"amplitude": [0.0, 20.0]}}
+    cfg.check(config, SOURCE, SCHEMA)
+    assert cfg.diagnosis_ranges(config)["torque_ripple"]["amplitude"] == (0.0, 20.0)
+    config["hidden"]["faults"] = {"torque_ripple": {"order": [-1.0, 3.0]}}
+    assert_one_line(error_of(config), SOURCE, "hidden.faults.torque_ripple.order", "(0, inf)")
+    del config["hidden"]["faults"]
+    config["scenarios"]["ripple"]["fault"]["parameters"] = {}
+    assert_one_line(error_of(config), SOURCE, "scenarios.ripple.fault.parameters.amplitude", "needs its parameter amplitude")
+    # checking a config without effects resets to the built-ins: the kind is unknown again
+    without = _with_ripple(default_config)
+    del without["effects"]
+    assert_one_line(error_of(without), SOURCE, "scenarios.ripple.fault.kind", "must be one of")
+    assert "torque_ripple" not in effects.active()
+    # `effects: []` is the built-ins only, as omitting it is
+    cfg.check({**copy.deepcopy(default_config), "effects": []}, SOURCE, SCHEMA)
+    assert list(effects.active()) == list(effects.builtin())
+
+
+def test_user_effect_through_load(default_config, effect_folder, tmp_path):
+    effect_folder(RIPPLE)
+    path = tmp_path / "config.yaml"
+    path.write_text(yaml.safe_dump(_with_ripple(default_config), sort_keys=False, allow_unicode=True), encoding="utf-8")
+    loaded = cfg.load(path, SCHEMA)
+    assert loaded["effects"] == ["torque_ripple"] and "torque_ripple" in cfg.hidden_ranges(loaded)
+    cfg.use_effects({})  # as a job would, for a config without effects
+    assert "torque_ripple" not in effects.active()
+    cfg.use_effects(loaded)
+    assert "torque_ripple" in effects.active()
+
+
+@pytest.mark.parametrize(
+    "old, new, words",
+    [
+        ("    def force(s, p, rig, mode):", "    def force(s, p, rig, mode)", ["syntax error on line"]),
+        ('Parameter("order", "-",', 'Parameter("order", "",', ["parameter 'order' has no unit"]),
+        ("return p.amplitude * math.sin(p.order * s.theta1)", "return p.amplitude * math.sin(p.order * s.theta1) + math.nan",
+         ["force() returned nan"]),
+        ('name = "torque_ripple"', 'name = "ripple"', ["name the file after the effect"]),
+        ("import math\n", "import math\nimport no_such_module_here\n", ["cannot be imported", "ModuleNotFoundError"]),
+    ],
+    ids=["syntax error", "missing unit", "NaN force", "misnamed", "import error"],
+)
+def test_bad_user_effect_gives_one_line_naming_config_field_and_file(default_config, effect_folder, old, new, words):
+    assert RIPPLE.count(old) == 1, old
+    effect_folder(RIPPLE.replace(old, new))
+    err = error_of(_with_ripple(default_config))
+    assert_one_line(err, SOURCE, "effects[0]", str(Path("effects") / "torque_ripple.py"), *words)
+    assert "torque_ripple" not in effects.active()  # the active set stays as it was
+
+
+def test_missing_user_effect_file(default_config, effect_folder):
+    effect_folder(RIPPLE)
+    config = copy.deepcopy(default_config)
+    config["effects"] = ["torque_ripple", "wobble"]
+    assert_one_line(error_of(config), SOURCE, "effects[1]", str(Path("effects") / "wobble.py"), "no such file")
+
+
+def test_user_effect_counts_in_the_diagnosis_walkers(default_config, effect_folder):
+    """The walkers must cover the largest effect's parameters plus the drift, a study's own effect too."""
+    order = '        Parameter("order", "-", "ripple periods per revolution", default=6.0, prior=(1.0, 12.0)),\n'
+    extra = "".join(f'        Parameter("c{i}", "-", "an unused coefficient", default=1.0, prior=(0.5, 1.5)),\n' for i in range(5))
+    effect_folder(RIPPLE.replace(order, order + extra))
+    config = _with_ripple(default_config)  # 7 parameters and the drift kT1: the KDE move needs 2·8 + 2 walkers
+    assert_one_line(error_of(config), SOURCE, "diagnosis.mcmc.walkers", "at least 18", "the 8 parameters")
+    config["diagnosis"]["mcmc"]["walkers"] = 18
+    cfg.check(config, SOURCE, SCHEMA)

@@ -7,14 +7,22 @@ import numpy as np
 import pytest
 import yaml
 
-from newdyn import calibration, diagnosis, hypotheses, io, likelihood, model, noise, sampling, simulation
+from newdyn import calibration, diagnosis, effects, faults, hypotheses, io, likelihood, model, noise, sampling, simulation
+from newdyn.effects.library import stick_slip
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = yaml.safe_load((ROOT / ".test" / "config.yaml").read_text())
 SETTINGS = diagnosis.Settings.from_config(CONFIG)
 SAMPLING = model.Sampling(fs=5000.0, t_first=0.5, n_samples=500)
 CHANNELS = ("b1_x", "w1", "torque_c")
-STICK_SLIP = {"T_max": 1854.95, "r_k": 1.0}
+
+
+def fault(kind, **parameters):
+    """All model values of the default rig with the fault ``kind`` at ``parameters`` (the others at their defaults)."""
+    return faults.scenario_values({"fault": {"kind": kind, "parameters": parameters}}, model.DEFAULTS)
+
+
+STICK_SLIP = fault("stick_slip", T_max=1854.95, r_k=1.0)
 
 
 def measurement(name, truth, seed=1, snr_db=40.0, known_sigma=True):
@@ -61,7 +69,7 @@ def test_stick_slip_is_new_dynamics_and_adding_it_brings_chi2_to_the_noise(diagn
     assert v["chi2_before"] > 10 and v["chi2_after"] <= 1.1
     assert v["where_it_fails"] and all(f["channel"] in SETTINGS.channels for f in v["where_it_fails"])
     assert v["statement"].startswith("new dynamics: stick_slip added to the model, with T_max = ")
-    assert set(v["parameters"]) == {"T_max", "r_k", "J2a_share", "kT1"}
+    assert set(v["parameters"]) == {*effects.active()["stick_slip"].parameter_names(), *SETTINGS.drift}
     assert all(p["hdi_low"] <= p["mean"] <= p["hdi_high"] for p in v["parameters"].values())
     assert v["parameters"]["T_max"]["mean"] == pytest.approx(1854.95, rel=0.05)
     # the drift is sampled as 1/kT1 (where it trades off with a fault along a straight ridge), but
@@ -106,6 +114,27 @@ def test_a_measurement_whose_noise_level_cannot_be_read_is_refused_before_any_wo
     diagnosis.check_measurement(stated, SETTINGS.channels, SETTINGS.noise_band_hz)
 
 
+def test_signatures_vary_each_effects_severity_across_its_range_the_rest_at_defaults():
+    """Each effect's first fitted parameter is its severity; its other parameters sit at their
+    defaults (mid-range without one), the drift parameters at the rig's values."""
+    values = model.complete({})
+    hyps = {h.name: h for h in SETTINGS.hypotheses()}
+    entries = diagnosis._signature_entries(SETTINGS, hyps, values)
+    assert {name for name, _ in entries} == set(hyps)
+    for kind, ranges in SETTINGS.fault_ranges.items():
+        effect = effects.active()[kind]
+        mine = [v for name, v in entries if name == kind]
+        severity = next(name for name in effect.parameter_names() if name in ranges)
+        low, high = ranges[severity]
+        assert len(mine) == SETTINGS.severities and len({v[severity] for v in mine}) == len(mine)
+        for v in mine:
+            assert set(v) == set(hyps[kind].parameters) and low < v[severity] < high
+            for p in effect.parameters:
+                if p.name != severity and p.name in v:
+                    assert v[p.name] == pytest.approx(p.default_value(values) if p.default is not None else sum(ranges[p.name]) / 2)
+            assert all(v[name] == values[name] for name in SETTINGS.drift)
+
+
 def test_laplace_evidence_of_a_drift_agrees_with_exact_quadrature():
     """One Normal-prior parameter, posterior well inside the prior: Laplace is nearly exact."""
     m = measurement("kT1", {"kT1": 3.1e6}, seed=4)
@@ -125,8 +154,7 @@ def test_laplace_evidence_of_a_drift_agrees_with_exact_quadrature():
 
 
 def test_a_fault_fit_recovers_the_truth_and_reports_the_values_the_model_ran_with():
-    truth = {"T_max": 1950.0, "r_k": 0.95}
-    m = measurement("stick", truth, seed=2)
+    m = measurement("stick", fault("stick_slip", T_max=1950.0, r_k=0.95), seed=2)
     stick = next(h for h in SETTINGS.hypotheses() if h.name == "stick_slip")
     fit = hypotheses.fit(stick, m.y[:2], m.sigma[:2], model.complete({}), SAMPLING, CHANNELS[:2])
     at_truth = hypotheses.fit(stick, m.y[:2], m.sigma[:2], model.complete({}), SAMPLING, CHANNELS[:2],
@@ -137,10 +165,17 @@ def test_a_fault_fit_recovers_the_truth_and_reports_the_values_the_model_ran_wit
     assert fit.values["T_max"] * fit.values["r_k"] == pytest.approx(1950.0 * 0.95, rel=0.01)  # the slipping torque
     assert fit.values["J2a_share"] == pytest.approx(1 / 3, abs=0.1)
     rows = stick.parameter_rows(fit.theta[None], model.complete({}))
-    assert rows[0, model.PARAMETER_INDEX["J2a"]] + rows[0, model.PARAMETER_INDEX["J2b"]] == pytest.approx(0.15)
-    # below the stall limit r_k·T_max = T0 the model runs with r_k raised to it
-    stalled = stick.parameter_rows(np.array([[1700.0, 0.6, 0.3, 3e6]]), model.complete({}))[0]
-    assert stalled[model.PARAMETER_INDEX["r_k"]] * 1700.0 == pytest.approx(model.DEFAULTS["T0"] * (1 + hypotheses.STALL_MARGIN))
+    index = model.slot_index()
+    assert rows[0, index["stick_slip"]] == 1.0 and rows[0, index["stick_slip.T_max"]] == fit.values["T_max"]
+    assert rows[0, index["J2a"]] + rows[0, index["J2b"]] == pytest.approx(0.15)
+    assert rows[0, index["J2a"]] / 0.15 == pytest.approx(fit.values["J2a_share"])
+    # below the stall limit r_k·T_max = T0 the model runs with r_k raised to it, and says so
+    below = np.array([[1700.0, 0.6, 0.3, 3e6]])
+    stalled = stick.parameter_rows(below, model.complete({}))[0]
+    assert stalled[index["stick_slip.r_k"]] * 1700.0 == pytest.approx(model.DEFAULTS["T0"] * (1 + stick_slip.STALL_MARGIN))
+    assert stalled[index["kT1"]] == 3e6
+    ran = stick.effective_values(below[0], model.complete({}))
+    assert ran == pytest.approx({"T_max": 1700.0, "r_k": stalled[index["stick_slip.r_k"]], "J2a_share": 0.3, "kT1": 3e6})
 
 
 def test_a_parameter_the_data_ignore_costs_at_most_a_nat_of_evidence():
@@ -148,7 +183,8 @@ def test_a_parameter_the_data_ignore_costs_at_most_a_nat_of_evidence():
     m = measurement("healthy", {}, seed=3)
     data, sigma, values = m.y[:2], m.sigma[:2], model.complete({})
     drift = next(h for h in SETTINGS.hypotheses() if h.name == "parameter_change:kT1")
-    ignored = hypotheses.Hypothesis("ignored", "parameter_change", drift.priors + (hypotheses.Prior("crack_alpha", 0.0, 1e-12),))
+    absent = next(name for name in model.slot_names() if "." in name)  # a parameter of an effect that is not present
+    ignored = hypotheses.Hypothesis("ignored", "parameter_change", drift.priors + (hypotheses.Prior(absent, 0.0, 1e-12),))
     base = hypotheses.fit(drift, data, sigma, values, SAMPLING, CHANNELS[:2])
     extra = hypotheses.fit(ignored, data, sigma, values, SAMPLING, CHANNELS[:2])
     assert extra.log_likelihood == pytest.approx(base.log_likelihood, abs=0.05)

@@ -11,23 +11,29 @@ import xarray as xr
 import yaml
 from matplotlib.figure import Figure
 
-from newdyn import faults, hidden, io, model, plots
+from newdyn import config, diagnosis, effects, faults, hidden, io, model, plots
 
 BASE = model.complete()
-HIDDEN = yaml.safe_load((Path(__file__).resolve().parents[1] / "config" / "config.yaml").read_text())["hidden"]
+CONFIG = yaml.safe_load((Path(__file__).resolve().parents[1] / "config" / "config.yaml").read_text())
+HIDDEN = CONFIG["hidden"]
 HIDDEN["sets"]["other"] = {"cases": 24, "seed": 2027}
 HIDDEN["sets"]["six"] = {"cases": 6, "seed": 5}
-FAULT_KINDS = ("stick_slip", "breathing_crack", "cubic_coupling", "loose_bearing")
+RANGES = config.hidden_ranges(CONFIG)
+CLASSES = list(config.hidden_classes(CONFIG))
+
+
+def draw(set_name, hidden_section=HIDDEN, ranges=RANGES, classes=CLASSES):
+    return hidden.draw_cases(hidden_section, set_name, BASE, ranges, classes)
 
 
 @pytest.fixture(scope="module")
 def blind():
-    return hidden.draw_cases(HIDDEN, "blind", BASE)
+    return draw("blind")
 
 
 def test_same_seed_same_cases_other_seed_others(blind):
-    assert hidden.draw_cases(HIDDEN, "blind", BASE) == blind
-    other = hidden.draw_cases(HIDDEN, "other", BASE)
+    assert draw("blind") == blind
+    other = draw("other")
     assert [c["truth"] for c in other] != [c["truth"] for c in blind]
     assert [c["noise_seed"] for c in other] != [c["noise_seed"] for c in blind]
     assert [c["name"] for c in blind] == [f"blind_{i:02d}" for i in range(1, 25)]
@@ -36,41 +42,44 @@ def test_same_seed_same_cases_other_seed_others(blind):
 
 def test_classes_balanced_and_shuffled(blind):
     labels = [c["class"] for c in blind]
-    assert {c: labels.count(c) for c in hidden.CLASSES} == {c: 4 for c in hidden.CLASSES}
-    assert labels != sorted(labels, key=hidden.CLASSES.index)
-    demo = hidden.draw_cases(HIDDEN, "demo", BASE)
+    assert set(CLASSES) == set(hidden.CLASSES)  # the config draws every class: healthy, a drift, each effect
+    share = len(blind) // len(CLASSES)
+    assert {c: labels.count(c) for c in CLASSES} == {c: share for c in CLASSES}
+    assert labels != sorted(labels, key=CLASSES.index)
+    demo = draw("demo")
     assert len(demo) == 1 and demo[0]["name"] == "demo_01"
-    assert HIDDEN["sets"]["demo"]["classes"] == list(FAULT_KINDS)  # the demo set's own classes: a hidden effect
-    assert demo[0]["class"] in FAULT_KINDS
+    assert set(HIDDEN["sets"]["demo"]["classes"]) == set(hidden.FAULT_CLASSES)  # the demo set's own classes: a hidden effect
+    assert demo[0]["class"] in hidden.FAULT_CLASSES
 
 
 def test_every_case_admissible_and_within_ranges(blind):
-    for case in blind + hidden.draw_cases(HIDDEN, "other", BASE):
+    for case in blind + draw("other"):
         kind, truth, scenario = case["class"], case["truth"], case["scenario"]
         values = faults.scenario_values(scenario, BASE)
-        assert set(values) == set(model.PARAMETER_NAMES)
+        assert set(values) == set(model.slot_names())
         if kind == "healthy":
             assert truth == {} and values == BASE
         elif kind == "parameter_change":
             continue  # its own test
         else:
-            assert scenario["fault"]["kind"] == kind
-            overrides = {**BASE, **scenario["overrides"]}
-            assert faults.fault_problems(kind, scenario["fault"]["parameters"], overrides) == []
-            ranges = HIDDEN["faults"][kind]
+            assert scenario == {"overrides": {}, "fault": {"kind": kind, "parameters": truth}}
+            assert faults.fault_problems(kind, truth, BASE) == []
+            ranges = RANGES[kind]
             assert set(truth) == set(ranges)
             for name, value in truth.items():
                 assert ranges[name][0] <= value <= ranges[name][1]
-            for name, value in scenario["fault"]["parameters"].items():
-                assert truth[name] == value
-            if kind == "stick_slip":
-                assert values["r_k"] * values["T_max"] > BASE["T0"]
-                assert values["J2a"] + values["J2b"] == pytest.approx(BASE["J2a"] + BASE["J2b"], rel=1e-14)
-                assert values["J2a"] / (values["J2a"] + values["J2b"]) == pytest.approx(truth["J2a_share"])
+            # the model runs with the effect present, at the drawn values and the rig values they set
+            effect = effects.active()[kind]
+            full = faults.effect_values(kind, truth, BASE)
+            assert values[kind] == 1.0 and effect.problems(full, BASE) == []
+            assert all(values[f"{kind}.{p.name}"] == full[p.name] for p in effect.kernel_parameters())
+            for name, value in effect.rig_values(full, BASE).items():
+                assert values[name] == value and model.PARAMETER_BY_NAME[name].problem(value) is None
+            assert all(values[other] == 0.0 for other in effects.active() if other != kind)
 
 
 def test_parameter_change_changes_exactly_one_parameter(blind):
-    drifts = [c for c in blind + hidden.draw_cases(HIDDEN, "other", BASE) if c["class"] == "parameter_change"]
+    drifts = [c for c in blind + draw("other") if c["class"] == "parameter_change"]
     low, high = HIDDEN["parameter_change"]["relative"]
     for case in drifts:
         values = faults.scenario_values(case["scenario"], BASE)
@@ -86,19 +95,20 @@ def test_parameter_change_changes_exactly_one_parameter(blind):
 
 def test_inadmissible_draws_are_redrawn_deterministically():
     """A T_max range straddling T0 / r_k: every drawn stick-slip case still carries the mean load."""
-    config = copy.deepcopy(HIDDEN)
-    config["classes"] = ["stick_slip"]
-    config["sets"]["one"] = {"cases": 1, "seed": 7}
-    config["faults"]["stick_slip"] = {"T_max": [1500.0, 1900.0], "r_k": [0.8, 1.0]}
-    cases = hidden.draw_cases(config, "blind", BASE)
-    assert cases == hidden.draw_cases(config, "blind", BASE)
+    section = copy.deepcopy(HIDDEN)
+    section["sets"]["one"] = {"cases": 1, "seed": 7}
+    ranges = {**RANGES, "stick_slip": {"T_max": [1500.0, 1900.0], "r_k": [0.8, 1.0]}}
+    cases = draw("blind", section, ranges, ["stick_slip"])
+    assert cases == draw("blind", section, ranges, ["stick_slip"])
     assert all(c["truth"]["r_k"] * c["truth"]["T_max"] > BASE["T0"] for c in cases)
-    config["faults"]["stick_slip"] = {"T_max": [1000.0, 1500.0]}
+    ranges["stick_slip"] = {"T_max": [1000.0, 1500.0]}
     with pytest.raises(ValueError, match="no admissible draw"):
-        hidden.draw_cases(config, "one", BASE)
-    config["faults"]["stick_slip"] = {"T_maks": [1800.0, 1900.0]}
+        draw("one", section, ranges, ["stick_slip"])
+    ranges["stick_slip"] = {"T_maks": [1800.0, 1900.0]}
     with pytest.raises(ValueError, match="T_maks.*unknown parameter of stick_slip"):
-        hidden.draw_cases(config, "one", BASE)
+        draw("one", section, ranges, ["stick_slip"])
+    with pytest.raises(ValueError, match="no draw ranges"):
+        draw("one", section, {}, ["stick_slip"])
 
 
 def _texts(value):
@@ -107,13 +117,14 @@ def _texts(value):
 
 
 def test_measurement_file_carries_no_truth(tmp_path):
-    cases = hidden.draw_cases(HIDDEN, "six", BASE)
-    assert {c["class"] for c in cases} == set(hidden.CLASSES)
+    cases = draw("six")
+    assert {c["class"] for c in cases} == set(CLASSES)
     sampling = model.Sampling(fs=2500.0, t_first=0.5, n_samples=1500)
     forbidden_keys = {"scenario", "fault", "class", "truth", "description", "sigma", "snr_db", "seed", "noise_seed",
-                      "parameters", "overrides", "kind", "J2a_share", *hidden.CLASSES, *model.RIG_PARAMETERS,
-                      *(p for kind in FAULT_KINDS for p in faults.FAULT_KINDS[kind].allowed()),
-                      "T_max", "r_k", "crack_alpha", "cubic_gamma", "bearing_gap", "crack", "cubic", "loose", "stick"}
+                      "parameters", "overrides", "kind", *hidden.CLASSES, *model.RIG_PARAMETERS,
+                      *(slot for slot in model.slot_names() if slot not in model.PARAMETER_NAMES),
+                      *(p for effect in effects.active().values() for p in effect.parameter_names()),
+                      *(part for kind in hidden.FAULT_CLASSES for part in kind.split("_"))}
     for case in cases:
         path = tmp_path / f"{case['name']}.nc"
         hidden.write_case_measurement(case, BASE, sampling, 40.0, path, code_hash="abc123")
@@ -220,17 +231,16 @@ def test_score_by_hand():
     assert result["per_class"]["parameter_change"]["accuracy"] == pytest.approx(2 / 3)
     assert result["per_class"]["breathing_crack"]["accuracy"] == 0.0
     confusion = result["confusion"]
-    assert confusion["truth"] == ["healthy", "parameter_change", *FAULT_KINDS]
-    assert confusion["predicted"] == ["healthy", "parameter_change", *FAULT_KINDS, "unexplained"]
-    assert confusion["counts"] == [
-        # healthy, parameter_change, stick_slip, breathing_crack, cubic_coupling, loose_bearing, unexplained
-        [1, 1, 0, 0, 0, 0, 0],  # healthy
-        [0, 3, 0, 0, 0, 0, 0],  # parameter_change (t_04 names the wrong parameter: counted, not correct)
-        [0, 0, 1, 0, 0, 0, 0],  # stick_slip
-        [0, 0, 0, 0, 1, 0, 0],  # breathing_crack
-        [0, 0, 0, 0, 1, 0, 0],  # cubic_coupling
-        [0, 0, 0, 0, 0, 0, 1],  # loose_bearing
-    ]
+    assert confusion["truth"] == list(hidden.CLASSES)  # every class has a case here, in the classes' order
+    assert confusion["predicted"] == [*hidden.CLASSES, "unexplained"]
+    counts = {(truth, predicted): n for truth, row in zip(confusion["truth"], confusion["counts"])
+              for predicted, n in zip(confusion["predicted"], row) if n}
+    assert counts == {
+        ("healthy", "healthy"): 1, ("healthy", "parameter_change"): 1,
+        ("parameter_change", "parameter_change"): 3,  # t_04 names the wrong parameter: counted, not correct
+        ("stick_slip", "stick_slip"): 1, ("breathing_crack", "cubic_coupling"): 1,
+        ("cubic_coupling", "cubic_coupling"): 1, ("loose_bearing", "unexplained"): 1,
+    }
     row = next(r for r in result["rows"] if r["name"] == "t_07")
     assert (row["predicted"], row["effect"], row["chi2_before"], row["chi2_after"]) == ("cubic_coupling", "cubic_coupling", 3.0, 1.4)
 
@@ -298,3 +308,50 @@ def test_figure_without_fitted_parameters(tmp_path):
     fig = plots.blind_test_figure(hidden.score(cases, verdicts), tmp_path / "b.png", "demo")
     assert "top-1 accuracy 100% (1/1)" in fig._suptitle.get_text()
     assert (tmp_path / "b.pdf").exists()
+
+
+# ----------------------------------------------------------------------------------------- a user's effect
+
+
+
+@pytest.fixture
+def torque_ripple(request):
+    """A user's effect (tests/effects/torque_ripple.py: amplitude·sin(order·θ1) on the motor) made active."""
+    request.addfinalizer(lambda: effects.use([]))
+    effects.use(["torque_ripple"], folder=Path(__file__).parent / "effects")
+    return effects.active()["torque_ripple"]
+
+
+def test_a_users_effect_is_a_hypothesis_of_the_diagnosis_and_a_class_of_the_blind_test(torque_ripple):
+    # the diagnosis fits it, with its prior range and the drift parameters, like any built-in effect
+    settings = diagnosis.Settings.from_config(CONFIG)
+    assert settings.fault_ranges["torque_ripple"] == {"amplitude": (0.0, 50.0), "order": (1.0, 12.0)}
+    hypothesis = next(h for h in settings.hypotheses() if h.name == "torque_ripple")
+    assert (hypothesis.kind, hypothesis.effect) == ("torque_ripple", "torque_ripple")
+    assert hypothesis.parameters == ["amplitude", "order", *settings.drift]
+    row = hypothesis.parameter_rows(np.array([[20.0, 3.0, *(1.1 * BASE[name] for name in settings.drift)]]), BASE)[0]
+    index = model.slot_index()
+    assert row[index["torque_ripple"]] == 1.0 and row[index["torque_ripple.amplitude"]] == 20.0
+    assert row[index["torque_ripple.order"]] == 3.0
+    assert all(row[index[name]] == pytest.approx(1.1 * BASE[name]) for name in settings.drift)
+    assert all(row[index[kind]] == 0.0 for kind in effects.active() if kind != "torque_ripple")
+    entries = diagnosis._signature_entries(settings, {h.name: h for h in settings.hypotheses()}, model.complete())
+    assert [v["amplitude"] for name, v in entries if name == "torque_ripple"] == pytest.approx(
+        [50.0 * (i + 0.5) / settings.severities for i in range(settings.severities)])
+
+    # the blind test draws it (from its file's hidden range by default) and scores a verdict naming it
+    assert "torque_ripple" in hidden.CLASSES and "torque_ripple" in hidden.FAULT_CLASSES
+    section = {**HIDDEN, "sets": {"ripple": {"cases": 4, "seed": 3}}}
+    cases = hidden.draw_cases(section, "ripple", BASE, classes=["torque_ripple", "healthy"])
+    ripples = [c for c in cases if c["class"] == "torque_ripple"]
+    assert len(ripples) == 2
+    for case in ripples:
+        assert set(case["truth"]) == {"amplitude", "order"} and 5.0 <= case["truth"]["amplitude"] <= 20.0
+        values = hidden.case_values(case, BASE)
+        assert values["torque_ripple"] == 1.0 and values["torque_ripple.amplitude"] == case["truth"]["amplitude"]
+    assert {c["class"] for c in hidden.draw_cases(section, "ripple", BASE)} <= set(hidden.CLASSES)
+    verdict = {"verdict": "new_dynamics", "effect": "torque_ripple", "equivalent": [], "chi2_before": 9.0, "chi2_after": 1.0,
+               "parameters": {"amplitude": {"mean": ripples[0]["truth"]["amplitude"], "sd": 1.0, "hdi_low": 0.0, "hdi_high": 200.0}}}
+    result = hidden.score(ripples[:1], {ripples[0]["name"]: verdict})
+    assert result["accuracy"] == 1.0 and result["confusion"]["truth"] == ["torque_ripple"]
+    assert [e["parameter"] for e in result["parameter_errors"]] == ["amplitude"]

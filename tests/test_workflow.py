@@ -205,6 +205,55 @@ def test_editing_science_code_reruns_exactly_the_jobs_that_use_it(study, tmp_pat
         assert {p.split("/")[3] for p in planned if p.startswith("results/default/simulations/")} == scenarios
 
 
+@pytest.mark.parametrize(
+    "effect, scenarios",
+    [("stick_slip", {"stick_slip"}), ("breathing_crack", set())],  # one the CI study simulates, one it does not
+)
+def test_editing_an_effect_file_reruns_exactly_the_jobs_that_use_it(study, tmp_path, effect, scenarios):
+    """An effect's file counts for the scenarios that have it, every diagnosis (it is a hypothesis there)
+    and the hidden draw, never for the other simulations, grids or calibrations."""
+    package = tmp_path / "newdyn"
+    shutil.copytree(ROOT / "src" / "newdyn", package, ignore=shutil.ignore_patterns("__pycache__"))
+    with open(package / "effects" / "library" / f"{effect}.py", "a") as source:
+        source.write("\n# an edit\n")
+    planned = planned_outputs(study, pythonpath=tmp_path)
+    simulated = {p.split("/")[3] for p in planned if "/simulations/" in p}
+    calibrated = {p.split("/")[3] for p in planned if "/calibration/" in p}
+    assert simulated == calibrated == scenarios
+    assert not any("/grids/" in p for p in planned)
+    expected = DIAGNOSED | DRAWN | ((SIMULATED | CALIBRATED | COMPARED) if scenarios else set())
+    assert {p.split("/")[-1] for p in planned if "/figures/" not in p} == expected
+
+
+def test_a_users_effect_is_one_file_and_one_config_line(tmp_path):
+    """effects/<name>.py and its name in the config: simulated like a built-in; a broken copy of the
+    file stops the run in one line before any job."""
+    workdir = tmp_path / "work"
+    (workdir / "effects").mkdir(parents=True)
+    shutil.copy(ROOT / "effects" / "coupling_backlash.py", workdir / "effects")
+
+    def with_backlash(c):
+        c["effects"] = ["coupling_backlash"]
+        c["scenarios"]["backlash"] = {"overrides": {"load_amp": 1.0},
+                                      "fault": {"kind": "coupling_backlash", "parameters": {"b": 2.0e-4}}}
+
+    path = changed_config(tmp_path, with_backlash)
+    run = snakemake(workdir, "results/default/simulations/backlash/clean.nc", config=path)
+    assert run.returncode == 0, run.stderr[-3000:]
+    clean = read_measurement(workdir / "results" / "default" / "simulations" / "backlash" / "clean.nc")
+    values = json.loads(clean.attrs["parameters"])
+    assert (values["coupling_backlash"], values["coupling_backlash.b"], clean.attrs["fault"]) == (1.0, 2.0e-4, "coupling_backlash")
+    assert np.all(np.isfinite(clean.y))
+
+    (workdir / "effects" / "coupling_backlash.py").write_text("class Broken(:\n")
+    shutil.rmtree(workdir / "results")
+    run = snakemake(workdir, config=path)
+    lines = [line for line in run.stderr.splitlines() if "bad config" in line]
+    assert run.returncode != 0 and lines == [
+        f"newdyn: bad config: {path}: effects[0]: effects/coupling_backlash.py: syntax error on line 1: invalid syntax"]
+    assert not (workdir / "results").exists()
+
+
 def test_bad_config_fails_in_one_line_before_any_job(tmp_path):
     path = changed_config(tmp_path, lambda c: c["scenarios"]["stick_slip"]["fault"]["parameters"].update(T_max=-5.0))
     run = snakemake(tmp_path / "work", config=path)

@@ -331,10 +331,13 @@ def plot_diagnosis(verdict: str, netcdf: str, mcmc: str, outputs: dict, code_has
 
 
 def draw_hidden(spec: dict, output: str, code_hash: str) -> None:
-    """Draw a hidden set's cases and write their truth (the one file that holds it)."""
-    from . import hidden
+    """Draw a hidden set's cases and write their truth (the one file that holds it).  The spec holds
+    the config's ``hidden`` section (its draw ranges and classes resolved by
+    :func:`newdyn.config.hidden_ranges` and :func:`newdyn.config.hidden_classes`)."""
+    from . import config, hidden
 
-    cases = hidden.draw_cases(spec["hidden"], spec["set"], spec["values"])
+    cases = hidden.draw_cases(spec["hidden"], spec["set"], spec["values"], config.hidden_ranges(spec),
+                              config.hidden_classes(spec))
     hidden.write_truth(cases, output, code_hash)
     log.info("drew %d hidden cases of set %s", len(cases), spec["set"])
 
@@ -431,12 +434,18 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--table", required=True, help="one CSV row per case")
     p.add_argument("--figure", required=True, help="confusion matrix and parameter errors (PNG, PDF beside it)")
     p.add_argument("--chi2-max", type=float, required=True, help="a fit explains the data at this reduced χ² or less")
+    p.add_argument("--effect", action="append", default=[], dest="effects",
+                   help="one of the study's own effects (the config's effects; repeat for each), so that a verdict naming it is scored")
     p.add_argument("verdicts", nargs="+", help="the set's verdict.json files")
     p = command("summarize", "the summary table of all calibrations")
     p.add_argument("inputs", nargs="+", help="calibration files")
 
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s", stream=sys.stderr)
+    # Every job works with the same effects: the built-ins and the study's own (files in effects/).
+    from . import config
+
+    config.use_effects(json.loads(args.spec) if getattr(args, "spec", None) else {"effects": getattr(args, "effects", [])})
     if args.command == "simulate":
         simulate_scenario(json.loads(args.spec), args.output, args.code_hash)
     elif args.command == "add-noise":

@@ -3,21 +3,30 @@
 A study config (``config/config.yaml``; every key is documented in ``config/README.md``) has the
 sections ``rig`` and ``operating`` (model parameter values, :mod:`newdyn.model` names), ``sampling``,
 ``simulation``, ``noise``, ``scenarios`` (name -> optional ``description``, ``overrides`` of rig or
-operating parameters and a ``fault`` from :mod:`newdyn.faults`), ``calibration`` and, optionally,
+operating parameters and a ``fault`` from :mod:`newdyn.faults`), ``calibration``, ``diagnosis``,
+``hidden`` and, optionally, ``effects`` (the study's own effects, files ``effects/<name>.py``) and
 ``variants`` (the study rerun with other rig values or channels: :func:`variant_config`).
 
-:func:`check` validates in two stages and raises :class:`ConfigError` for the first problem, as one line
+Fault kinds are never listed by hand: they are the effect registry's (:func:`newdyn.effects.active`,
+the built-ins plus the config's ``effects``), injected into the schema by :func:`load_schema`.
+
+:func:`check` validates in three stages and raises :class:`ConfigError` for the first problem, as one line
 ``<file>: <dotted.field>: <problem>``:
 
-1. structure, against the JSON schema ``workflow/schemas/config.schema.yaml`` (the single source of the
-   keys, types and enums);
-2. physics: every rig and operating value, every override and every fault against the bounds in
-   :mod:`newdyn.model` / :mod:`newdyn.faults`; the sampling window; finite SNRs; the resulting model
-   values of every scenario (after overrides and fault); the calibration; then each variant's study.
+1. the config's ``effects``: each file is loaded and checked (:func:`newdyn.effects.use`), which makes
+   them the active effects of this process;
+2. structure, against the JSON schema ``workflow/schemas/config.schema.yaml`` (the single source of the
+   keys and types) with the active kinds injected;
+3. physics: every rig and operating value, every override and every fault against the bounds in
+   :mod:`newdyn.model` and the effect files; the sampling window; finite SNRs; the resulting model
+   values of every scenario (after overrides and fault); the calibration; the diagnosis and hidden-set
+   ranges; then each variant's study.
 
 The helpers (:func:`base_values`, :func:`sampling`, :func:`scenario_values`, :func:`canonical_json`)
 turn a checked config into model values and a canonical text, so that the order of keys in the YAML
-or the spelling of a number (``3.25e+6`` or ``3250000``) changes nothing downstream.
+or the spelling of a number (``3.25e+6`` or ``3250000``) changes nothing downstream;
+:func:`diagnosis_ranges`, :func:`hidden_ranges` and :func:`hidden_classes` resolve the optional
+``diagnosis.faults``, ``hidden.faults`` and ``hidden.classes`` against the active effects.
 
 Note on YAML numbers: YAML 1.1 (PyYAML, and so Snakemake) reads ``3.25e6`` as *text*; write exponents
 with a sign, ``3.25e+6``.  The check says so when it meets such a string.
@@ -37,22 +46,17 @@ from typing import Any
 
 import yaml
 
-from . import faults, model
+from . import effects, faults, model
 
 #: The schema of the source tree this module lives in (src/newdyn/config.py -> workflow/schemas/...).
 #: From an installed (non-editable) package, pass ``schema_path`` explicitly.
 SCHEMA_PATH = Path(__file__).resolve().parents[2] / "workflow" / "schemas" / "config.schema.yaml"
 
-#: Parameters a scenario may override (fault parameters are set through ``fault:`` only).
+#: Parameters a scenario may override (an effect's parameters are set through ``fault:`` only).
 OVERRIDABLE: tuple[str, ...] = model.RIG_PARAMETERS + model.OPERATING_PARAMETERS
 
-#: Model parameters owned by a (new-dynamics) fault kind -> that kind's name.
-_FAULT_PARAMETER_OWNER = {
-    slot: kind.name
-    for kind in faults.FAULT_KINDS.values()
-    if kind.name != "parameter_change"
-    for slot in kind.slots.values()
-}
+#: The hidden-set class of a rig without any fault.
+HEALTHY = "healthy"
 
 #: ``calibration.joint`` of a config that has none.
 NO_JOINT = {"parameters": [], "infer_sigma": False, "walkers": 0, "steps": 0}
@@ -110,23 +114,93 @@ def check(config: Any, source: str, schema_path: str | Path | None = None) -> No
 
     ``schema_path`` defaults to :data:`SCHEMA_PATH`.  Structure is checked first (JSON schema), then
     physics, so the physical checks can rely on every key being present with the right type.
+
+    Checking makes the config's ``effects`` (and the built-ins) the active effects of this process
+    (:func:`newdyn.effects.use`); a config without ``effects`` resets them to the built-ins.
     """
     for parts, key in _non_text_keys(config, []):
         raise ConfigError(source, _field(parts), f"key {key!r} must be text, not {type(key).__name__} (quote it)")
-    error = _schema_error(config, schema_path)
+    raw = _read_schema(schema_path)
+    if isinstance(config, Mapping) and "effects" in config:  # the list's structure first: it is loaded before the rest
+        only_effects = {"type": "object", "properties": {"effects": raw["properties"]["effects"]}}
+        error = _schema_error({"effects": config["effects"]}, only_effects)
+        if error is not None:
+            raise ConfigError(source, *error)
+    _use_effects(config, source)
+    error = _schema_error(config, _inject_kinds(raw))
     if error is not None:
         raise ConfigError(source, *error)
     for field, problem in _physical_problems(config):
         raise ConfigError(source, field, problem)
 
 
-def _schema_error(config: Any, schema_path: str | Path | None) -> tuple[str, str] | None:
-    """(field, problem) of the most relevant schema violation, or None."""
+def effect_names(config: Mapping) -> list[str]:
+    """The study's own effects (``effects``; none when omitted), in config order."""
+    return list(config.get("effects") or [])
+
+
+def use_effects(config: Mapping) -> Mapping[str, type[effects.Effect]]:
+    """Make the built-ins and the config's ``effects`` the active effects of this process (as
+    :func:`check` does); a job that reads a checked config calls this before it needs the kinds.
+    Raises :class:`newdyn.effects.EffectError` for a bad effect file."""
+    return effects.use(effect_names(config))
+
+
+def _use_effects(config: Any, source: str) -> None:
+    """:func:`use_effects`, with a bad effect reported as ``<file>: effects[i]: <effect file>: <problem>``."""
+    names = effect_names(config) if isinstance(config, Mapping) else []
+    for i, name in enumerate(names):
+        if name in (HEALTHY, faults.PARAMETER_CHANGE):
+            raise ConfigError(source, f"effects[{i}]", f"'{name}' is a class of its own (healthy, parameter_change); "
+                                                       "give your effect another name")
+    try:
+        effects.use(names)
+    except effects.EffectError as error:
+        stem = Path(error.source).stem
+        field = next((f"effects[{i}]" for i, name in enumerate(names) if name == stem), "effects")
+        raise ConfigError(source, field, str(error)) from None
+
+
+#: What an ``x-kinds`` marker of the schema stands for: the list its node's ``enum`` becomes.
+_KIND_LISTS = {
+    "faults": lambda: list(faults.kinds()),
+    "effects": lambda: list(effects.active()),
+    "hidden_classes": lambda: [HEALTHY, faults.PARAMETER_CHANGE, *effects.active()],
+}
+
+
+def _read_schema(schema_path: str | Path | None) -> dict:
+    with open(schema_path or SCHEMA_PATH, encoding="utf-8") as f:
+        return yaml.safe_load(f)
+
+
+def _inject_kinds(node: Any) -> Any:
+    """A copy of the schema ``node`` in which every ``x-kinds: <list>`` marker is replaced by
+    ``enum: [...]``, that list of the active effect registry."""
+    if isinstance(node, list):
+        return [_inject_kinds(item) for item in node]
+    if not isinstance(node, Mapping):
+        return node
+    out = {key: _inject_kinds(value) for key, value in node.items() if key != "x-kinds"}
+    if "x-kinds" in node:
+        which = node["x-kinds"]
+        if which not in _KIND_LISTS:
+            raise ValueError(f"config schema: unknown x-kinds {which!r} (known: {', '.join(_KIND_LISTS)})")
+        out["enum"] = _KIND_LISTS[which]()
+    return out
+
+
+def load_schema(schema_path: str | Path | None = None) -> dict:
+    """The config schema (default :data:`SCHEMA_PATH`) with the active fault kinds injected: the
+    schema :func:`check` validates against (call :func:`use_effects` first for a study's own effects)."""
+    return _inject_kinds(_read_schema(schema_path))
+
+
+def _schema_error(config: Any, schema: Mapping) -> tuple[str, str] | None:
+    """(field, problem) of the most relevant violation of ``schema``, or None."""
     from jsonschema.exceptions import best_match, by_relevance
     from jsonschema.validators import validator_for
 
-    with open(schema_path or SCHEMA_PATH, encoding="utf-8") as f:
-        schema = yaml.safe_load(f)
     cls = validator_for(schema)
     cls.check_schema(schema)
     # Among errors on the same object prefer an unexpected (e.g. mistyped) key over the key it lacks.
@@ -161,11 +235,14 @@ def _describe(error) -> tuple[list, str]:
         expected = " or ".join(_TYPE_NAMES.get(t, t) for t in ([value] if isinstance(value, str) else value))
         return parts, f"must be {expected} (got {_show(instance)}){_number_text_hint(instance)}"
 
+    in_names = "propertyNames" in error.relative_schema_path or "propertyNames" in error.schema_path
     if kind == "enum":
         allowed = ", ".join(str(v) for v in value)
+        if in_names:  # a key that is not one of the allowed names: point at it
+            return parts + [instance], f"unknown name: must be one of {allowed}{_did_you_mean(instance, value)}"
         return parts, f"must be one of {allowed} (got {_show(instance)}){_did_you_mean(instance, value)}"
 
-    if "propertyNames" in error.relative_schema_path or "propertyNames" in error.schema_path:
+    if in_names:
         # The name itself is wrong: point at it.
         what = schema.get("description", "") if isinstance(schema, Mapping) else ""
         problem = f"invalid name: must match {schema.get('pattern', value)}"
@@ -179,6 +256,8 @@ def _describe(error) -> tuple[list, str]:
                 if _same(instance[i], item):
                     return parts + [j], f"duplicate of {_field(parts + [i])} ({_show(item)})"
 
+    if kind == "pattern":
+        return parts, f"must match {value} (got {_show(instance)})"
     if kind == "minItems":
         return parts, f"must list at least {value} item{'s' if value != 1 else ''}"
     if kind == "minProperties":
@@ -311,16 +390,17 @@ def _calibration_problems(config: Mapping) -> Iterator[tuple[str, str]]:
 
 
 def _range_problems(where: str, kind: str, ranges: Mapping[str, Sequence[float]]) -> Iterator[tuple[str, str]]:
-    """A fault kind's parameter ranges: its known parameters (and J2a_share for stick-slip), physical, low < high."""
-    allowed = faults.FAULT_KINDS[kind].allowed()
-    known = list(allowed) + ([faults.J2A_SHARE] if kind == "stick_slip" else [])
+    """Given ranges of an effect's parameters: known parameters, physical (a range may start at an
+    exclusive lower bound), low < high."""
+    effect = effects.active()[kind]
+    known = effect.parameter_names()
     for name, (low, high) in ranges.items():
         if name not in known:
-            yield f"{where}.{name}", f"unknown parameter of {kind} (known: {', '.join(known)})"
+            yield f"{where}.{name}", f"unknown parameter of {kind}{_did_you_mean(name, known)} (known: {', '.join(known)})"
             continue
-        bounds = allowed.get(name, model.Parameter(faults.J2A_SHARE, 0.5, "-", "J2a share", "fault", 0.0, 1.0))
+        parameter = effect.parameter(name)
         for value in (low, high):
-            if (problem := bounds.problem(value)) is not None and not (value == bounds.lower and value == low):
+            if (problem := parameter.problem(value)) is not None and not (value == parameter.lower and value == low):
                 yield f"{where}.{name}", f"{problem}"
         if not low < high:
             yield f"{where}.{name}", f"bounds reversed or equal (low {low:g} ≥ high {high:g})"
@@ -331,14 +411,11 @@ def _diagnosis_problems(config: Mapping) -> Iterator[tuple[str, str]]:
     for i, name in enumerate(diagnosis["drift"]):
         if name not in calibration["parameters"]:
             yield f"diagnosis.drift[{i}]", f"'{name}' is not one of calibration.parameters ({', '.join(calibration['parameters'])})"
-    largest = 0
-    for kind, ranges in diagnosis["faults"].items():
-        where = f"diagnosis.faults.{kind}"
-        yield from _range_problems(where, kind, ranges)
-        missing = [name for name in faults.FAULT_KINDS[kind].allowed() if name not in ranges]
-        if missing:
-            yield where, f"needs a range for every parameter of {kind}; {missing[0]} is missing"
-        largest = max(largest, len(ranges) + len(diagnosis["drift"]))
+    for kind, ranges in (diagnosis.get("faults") or {}).items():
+        yield from _range_problems(f"diagnosis.faults.{kind}", kind, ranges)
+    # every active effect is a hypothesis, all its parameters fitted jointly with the drift
+    offered = diagnosis.get("effects") or list(effects.active())
+    largest = max((len(effects.active()[kind].parameters) for kind in offered), default=0) + len(diagnosis["drift"])
     walkers, kde = diagnosis["mcmc"]["walkers"], 2 if calibration["mcmc"]["move"] == "kde" else 0
     if walkers < 2 * largest + kde or walkers % 2:
         yield "diagnosis.mcmc.walkers", (f"must be even and at least {2 * largest + kde}: twice the {largest} parameters of the "
@@ -353,14 +430,8 @@ def _hidden_problems(config: Mapping) -> Iterator[tuple[str, str]]:
     low, high = hidden["parameter_change"]["relative"]
     if not 0 <= low < high < 1:
         yield "hidden.parameter_change.relative", f"must be 0 <= low < high < 1 (got [{low:g}, {high:g}])"
-    for kind, ranges in hidden["faults"].items():
+    for kind, ranges in (hidden.get("faults") or {}).items():
         yield from _range_problems(f"hidden.faults.{kind}", kind, ranges)
-    listed = [("hidden.classes", hidden["classes"])]
-    listed += [(f"hidden.sets.{name}.classes", spec["classes"]) for name, spec in hidden["sets"].items() if "classes" in spec]
-    for where, classes in listed:
-        for i, kind in enumerate(classes):
-            if kind in faults.FAULT_KINDS and kind != "parameter_change" and kind not in hidden["faults"]:
-                yield f"{where}[{i}]", f"'{kind}' needs its severity ranges under hidden.faults.{kind}"
     for name in hidden["sets"]:
         if name in variant_names(config) or name in ("diagnosis", "figures", "logs", "benchmarks"):
             yield f"hidden.sets.{name}", f"'{name}' would share results/{name}/ with the study; choose another name"
@@ -381,26 +452,18 @@ def _scenario_problems(
         yield from spec
         return  # the resulting values cannot be computed from a broken spec
 
-    # The resulting model values (overrides and fault combined, fault defaults derived from the base).
+    # The resulting rig and operating values (overrides, then the fault's rig values, its defaults
+    # derived from them); an effect's own values were checked by faults.fault_problems.
     overrides = scenario.get("overrides", {})
     fault = scenario.get("fault")
-    fault_params: Mapping[str, float] = fault.get("parameters", {}) if fault else {}
     values = faults.scenario_values(scenario, base)
-    set_by_fault = {}
-    if fault:
-        kind = faults.FAULT_KINDS[fault["kind"]]
-        set_by_fault = {
-            slot: name for name, slot in kind.slots.items() if slot in kind.model_values(fault_params, values)
-        }
-    for name, value in values.items():
-        if value == model.DEFAULTS[name]:
-            continue  # a model default is physical by definition (T_max = inf: never slips)
-        problem = model.PARAMETER_BY_NAME[name].problem(value)
+    set_by_fault = _rig_values_set_by_fault(where, fault, model.complete({**base, **overrides})) if fault else {}
+    for name in model.PARAMETER_NAMES:
+        problem = model.PARAMETER_BY_NAME[name].problem(values[name])
         if problem is None:
             continue
         if name in set_by_fault:
-            fault_name = set_by_fault[name]
-            field = f"{where}.fault.parameters.{fault_name}" if fault_name in fault_params else f"{where}.fault"
+            field = set_by_fault[name]
         elif name in overrides:
             field = f"{where}.overrides.{name}"
         else:
@@ -411,15 +474,27 @@ def _scenario_problems(
         yield from _load_cycle_problem(f"{where}.overrides.load_freq", fs, t_rec, values["load_freq"])
 
 
+def _rig_values_set_by_fault(where: str, fault: Mapping, values: Mapping[str, float]) -> dict[str, str]:
+    """Rig or operating parameter the fault sets -> the field a problem of its value is reported at:
+    the fault parameter that sets it when one given parameter does, else the fault as a whole."""
+    kind, parameters = fault["kind"], fault.get("parameters", {})
+    set_values = faults.model_values(kind, parameters, values)
+    if kind == faults.PARAMETER_CHANGE:
+        return {name: f"{where}.fault.parameters.{name}" for name in set_values if name in model.PARAMETER_NAMES}
+    setters = [p.name for p in effects.active()[kind].parameters if p.sets_rig and p.name in parameters]
+    field = f"{where}.fault.parameters.{setters[0]}" if len(setters) == 1 else f"{where}.fault"
+    return {name: field for name in set_values if name in model.PARAMETER_NAMES}
+
+
 def _scenario_spec_problems(where: str, scenario: Mapping, base: Mapping[str, float]) -> Iterator[tuple[str, str]]:
     """Problems of a scenario's overrides and fault taken one by one."""
     overrides = scenario.get("overrides", {})
     for key, value in overrides.items():
         field = f"{where}.overrides.{key}"
-        if key in _FAULT_PARAMETER_OWNER:
-            yield field, f"is a parameter of the {_FAULT_PARAMETER_OWNER[key]} fault: set it under fault.parameters, not overrides"
-        elif key not in OVERRIDABLE:
-            yield field, f"unknown rig or operating parameter{_did_you_mean(key, OVERRIDABLE)} (known: {', '.join(OVERRIDABLE)})"
+        if key not in OVERRIDABLE:
+            owner = _effect_owning(key)
+            hint = f"; {key} is a parameter of the {owner} effect: set it under fault.parameters" if owner else ""
+            yield field, f"unknown rig or operating parameter{_did_you_mean(key, OVERRIDABLE)}{hint} (known: {', '.join(OVERRIDABLE)})"
         elif (problem := model.PARAMETER_BY_NAME[key].problem(value)) is not None:
             yield field, problem
 
@@ -427,7 +502,15 @@ def _scenario_spec_problems(where: str, scenario: Mapping, base: Mapping[str, fl
     if fault:
         with_overrides = {**base, **overrides}  # override problems, if any, were reported first
         for sub, problem in faults.fault_problems(fault["kind"], fault.get("parameters", {}), with_overrides):
-            yield f"{where}.fault.{sub}", problem
+            yield (f"{where}.fault.{sub}" if sub else f"{where}.fault"), problem
+
+
+def _effect_owning(name: str) -> str | None:
+    """The active effect that has a parameter ``name`` (or model value ``<kind>.<parameter>``), if any."""
+    for kind, effect in effects.active().items():
+        if name in effect.parameter_names() or name in (model.effect_slot(kind, p) for p in effect.parameter_names()):
+            return kind
+    return None
 
 
 def _load_cycle_problem(field: str, fs: float, t_rec: float, load_freq: float) -> Iterator[tuple[str, str]]:
@@ -510,6 +593,44 @@ def scenario_values(config: Mapping, name: str) -> dict[str, float]:
     if name not in scenarios:
         raise KeyError(f"unknown scenario {name!r} (known: {', '.join(scenarios)})")
     return faults.scenario_values(scenarios[name], base_values(config))
+
+
+def diagnosis_ranges(config: Mapping) -> dict[str, dict[str, tuple[float, float]]]:
+    """The parameter ranges a diagnosis fits over of every effect it offers (``diagnosis.effects``, else
+    every active one), by kind and parameter (declaration order): ``diagnosis.faults`` where it gives
+    one, else the effect file's ``prior``.  ``config`` is a
+    checked config or a spec holding its ``diagnosis`` section."""
+    ranges = _effect_ranges(config["diagnosis"].get("faults") or {}, "diagnosis.faults", lambda p: p.prior)
+    offered = config["diagnosis"].get("effects")
+    return ranges if offered is None else {kind: ranges[kind] for kind in offered}
+
+
+def hidden_ranges(config: Mapping) -> dict[str, dict[str, tuple[float, float]]]:
+    """Every active effect's parameter ranges a blind test draws from, by kind and parameter
+    (declaration order): ``hidden.faults`` where it gives one, else the effect file's ``hidden`` range
+    (:attr:`newdyn.effects.Parameter.draw_range`).  ``config`` is a checked config or a spec holding
+    its ``hidden`` section."""
+    return _effect_ranges(config["hidden"].get("faults") or {}, "hidden.faults", lambda p: p.draw_range)
+
+
+def hidden_classes(config: Mapping) -> list[str]:
+    """The classes a hidden set draws from unless the set names its own: ``hidden.classes``, or when
+    omitted healthy, parameter_change and every active effect."""
+    classes = config["hidden"].get("classes")
+    return list(classes) if classes else [HEALTHY, faults.PARAMETER_CHANGE, *effects.active()]
+
+
+def _effect_ranges(given: Mapping[str, Mapping[str, Sequence[float]]], where: str, default) -> dict[str, dict[str, tuple[float, float]]]:
+    active = effects.active()
+    unknown = [kind for kind in given if kind not in active]
+    if unknown:
+        raise KeyError(f"{where} names '{unknown[0]}', which is not an active effect (active: {', '.join(active)}); "
+                       "call newdyn.config.use_effects(config) first")
+    ranges = {}
+    for kind, effect in active.items():
+        overrides = given.get(kind, {})
+        ranges[kind] = {p.name: tuple(float(v) for v in overrides.get(p.name, default(p))) for p in effect.parameters}
+    return ranges
 
 
 def canonical_json(obj: Any) -> str:

@@ -7,7 +7,7 @@ missing, add it and show the error fall (the paper's Steps 1–3, automated, the
    parameter is the hypothesis ``parameter_change:<p>``, its log-evidence exact by quadrature.
 3. Signatures (Steps 1 and 3): the posteriors that each hypothesis at a range of severities would give,
    simulated noise-free, and their Hellinger distances to the measurement's posteriors.
-4. Fits: each library fault added to the model, its parameters and the drift parameters fitted
+4. Fits: each effect of :mod:`newdyn.effects` added to the model, its parameters and the drift parameters fitted
    (:func:`newdyn.hypotheses.fit`), scored by χ² and log-evidence; hypotheses ranked by evidence.
 5. Verdict: the best-evidence hypothesis if its fit brings χ² to the noise (≤ ``chi2_max``), else
    ``unexplained``; hypotheses of the same class within ``evidence_margin`` of it explain the data
@@ -29,7 +29,7 @@ import xarray as xr
 from scipy.integrate import trapezoid
 from scipy.special import erfinv, logsumexp
 
-from . import calibration, comparison, faults, hypotheses, io, likelihood, mcmc_calibration, model, noise, residuals, simulation
+from . import calibration, comparison, effects, hypotheses, io, likelihood, mcmc_calibration, model, noise, residuals, simulation
 from .hypotheses import HEALTHY, PARAMETER_CHANGE
 
 log = logging.getLogger("newdyn")
@@ -59,13 +59,18 @@ class Settings:
 
     @classmethod
     def from_config(cls, config: Mapping) -> "Settings":
+        """From a study config (or a diagnosis spec holding its rig, diagnosis, calibration and
+        simulation sections); the effects' ranges by :func:`newdyn.config.diagnosis_ranges`."""
+        from . import config as config_module
+
         d, c = config["diagnosis"], config["calibration"]
         return cls(
             rig=dict(config["rig"]),
             channels=tuple(d["channels"]),
             grids={p: calibration.GridSpec.from_config(p, s["grid"]) for p, s in c["parameters"].items()},
             priors={p: calibration.NormalPrior(**s["prior"]) for p, s in c["parameters"].items()},
-            fault_ranges={kind: {n: tuple(map(float, r)) for n, r in ranges.items()} for kind, ranges in d["faults"].items()},
+            fault_ranges={kind: {n: (float(low), float(high)) for n, (low, high) in ranges.items()}
+                          for kind, ranges in config_module.diagnosis_ranges(config).items()},
             drift=tuple(d["drift"]),
             severities=int(d["severities"]),
             drift_sizes=tuple(float(x) for x in d["drift_sizes"]),
@@ -121,26 +126,34 @@ def _grid_evidence(posterior: likelihood.GridPosterior) -> float:
 def _signature_entries(settings: Settings, hyps: Mapping[str, hypotheses.Hypothesis],
                        values: Mapping[str, float]) -> list[tuple[str, dict[str, float]]]:
     """(hypothesis name, all its fitted values) of every signature: the healthy rig, each calibration
-    parameter drifted by each of ``drift_sizes``, each fault at ``severities`` values of its severity
-    (its kind's first parameter: T_max, alpha, gamma, gap) across its range (cell centres), its other
-    parameters at their fault or rig defaults and the drift parameters at the rig's values."""
+    parameter drifted by each of ``drift_sizes``, and each effect at ``severities`` values of its
+    severity (its first fitted parameter, in the effect's declaration order) across its range (cell
+    centres), with its other parameters at their defaults (mid-range for one without a default) and
+    the drift parameters at the rig's values."""
     entries = [(HEALTHY, {})]
     for p in settings.grids:
         entries += [(f"{PARAMETER_CHANGE}:{p}", {p: values[p] * (1 + size)}) for size in settings.drift_sizes]
-    for kind, ranges in settings.fault_ranges.items():
-        first = next(iter(faults.FAULT_KINDS[kind].slots))
-        low, high = ranges[first]
-        fixed = {name: _default(kind, name, values) for name in hyps[kind].parameters if name != first}
-        entries += [(kind, {first: low + (i + 0.5) / settings.severities * (high - low), **fixed}) for i in range(settings.severities)]
+    for kind in settings.fault_ranges:
+        hypothesis = hyps[kind]
+        effect = effects.active()[kind]
+        severity = next((prior for prior in hypothesis.priors if prior.name in effect.parameter_names()), None)
+        fixed = {prior.name: _default(effect, prior, values) for prior in hypothesis.priors if prior is not severity}
+        if severity is None:  # nothing of the effect fitted: it has one signature, at its defaults
+            entries.append((kind, fixed))
+            continue
+        low, high = severity.low, severity.high
+        entries += [(kind, {severity.name: low + (i + 0.5) / settings.severities * (high - low), **fixed})
+                    for i in range(settings.severities)]
     return entries
 
 
-def _default(kind: str, name: str, values: Mapping[str, float]) -> float:
-    """A fitted parameter's value where a signature does not vary it: the fault's default, else the rig's."""
-    if name == faults.J2A_SHARE:
-        return values["J2a"] / (values["J2a"] + values["J2b"])
-    fault = faults.FAULT_KINDS[kind]
-    return fault.defaults[name](values) if name in fault.defaults else values[fault.slots.get(name, name)]
+def _default(effect: type[effects.Effect], prior: hypotheses.Prior, values: Mapping[str, float]) -> float:
+    """A fitted parameter's value where a signature does not vary it: the effect's default (the middle
+    of its range for a parameter without one), else the rig's value (a drift parameter)."""
+    if prior.name not in effect.parameter_names():
+        return float(values[prior.name])
+    parameter = effect.parameter(prior.name)
+    return parameter.default_value(values) if parameter.default is not None else 0.5 * (prior.low + prior.high)
 
 
 @dataclass

@@ -1,30 +1,16 @@
 """Blind test: hidden cases drawn from a seed, written without their truth, scored after diagnosis.
 
 A hidden set is ``cases`` measurements drawn from ``seed``: healthy rigs, pure parameter changes of a
-random rig parameter and size, and every library fault kind at a random severity, in equal shares.
-:func:`draw_cases` draws them, :func:`write_truth` puts the truth into the set's only file that holds
-it, :func:`write_case_measurement` writes each case as a measurement file with nothing but the signal,
+random rig parameter and size, and every active effect (:mod:`newdyn.effects`, or the configured
+classes) at random parameter values, in equal shares.  :func:`draw_cases` draws them,
+:func:`write_truth` puts the truth into the set's only file that holds it,
+:func:`write_case_measurement` writes each case as a measurement file with nothing but the signal,
 the operating condition and provenance (no scenario, fault, class, parameter value or noise level),
 and :func:`score` compares the diagnoses' verdicts with the truth.
 
-Default severity ranges (``hidden.faults`` in config/config.yaml), measured on the default rig at 40 dB over the
-default window (b1_x and w1, 5000 samples each); "residual" is the reduced-χ² excess (mean over the
-two channels) left by the best single-parameter drift (kT1, kT2, kT3 or k_bx, each fitted freely):
-
-* stick_slip T_max [1850, 2070] N·m, r_k [0.9, 1.0]: the healthy interface torque peaks at 2109 N·m
-  (1.307 T0), so every draw slips at each load peak.  Hardest corner T_max 2070, r_k 1: w1 differs
-  from healthy by 1.9-2.1 σ RMS, residual 1.8-2.2 (kT3 fits best); the effect collapses to 0.3-0.6
-  at 2090 N·m, so the range stops short of it.  Easiest corner (1850, 0.9): w1 off by ~170 σ.
-* breathing_crack alpha [0.15, 0.5]: w1 off by 1.8 σ, residual 0.69 (kT3 −8 % fits best) at 0.15;
-  residual 31 at 0.5.  Lower alphas are mostly a mean kT3 loss (0.27 at 0.1).
-* cubic_coupling gamma [0.05, 0.5]: w1 off by 4.5 σ but residual only 0.73 at 0.05 (any kT drift
-  stiffens alike); the residual saturates at 1.7 for gamma 0.1-0.5 (1.1 at 1.0, as the coupling
-  turns into a stiffer linear one): the hardest kind at every severity.
-* loose_bearing gap [2e-9, 2e-8] m: b1_x off by 2.2 σ, residual 0.66 (k_bx −2 %) at 2e-9; 35 at 2e-8.
-
-Two-parameter drifts (any pair of kT1, kT2, kT3, k_bx, k_s, beta) lower those residuals by < 10 %
-(stick-slip at its hardest: 1.8 -> 1.2 with kT2 + beta); no other fault kind fits a drawn fault better
-than its best drift.  The RK4 step error is < 1e-2 σ everywhere.
+An effect's draw ranges default to its parameters' ``hidden`` ranges (:attr:`Parameter.draw_range`,
+in its file, with how they were measured; ``hidden.faults`` in the config overrides them): each
+range's weak end still leaves a reduced-χ² excess the best drift of one rig parameter cannot remove.
 """
 
 from __future__ import annotations
@@ -36,54 +22,98 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from . import faults, io, model, noise, provenance, simulation
+from . import effects, faults, io, model, noise, provenance, simulation
 from .diagnosis import VERDICTS
 
-FAULT_CLASSES = tuple(kind for kind in faults.FAULT_KINDS if kind != "parameter_change")
-CLASSES = ("healthy", "parameter_change", *FAULT_CLASSES)
-PREDICTED_LABELS = (*CLASSES, "unexplained")
+HEALTHY, PARAMETER_CHANGE, UNEXPLAINED = "healthy", faults.PARAMETER_CHANGE, "unexplained"
 MAX_DRAWS = 1000  # tries per case before a range is declared to admit no valid draw
 CHI2_MAX = 1.1  # a fault's fit explains the data when its reduced χ² is at most this
+
+
+def fault_classes() -> tuple[str, ...]:
+    """The new-dynamics classes: every active effect (:func:`newdyn.effects.active`), at call time."""
+    return tuple(effects.active())
+
+
+def all_classes() -> tuple[str, ...]:
+    """Every class a hidden case can have: healthy, parameter_change, then each active effect."""
+    return (HEALTHY, PARAMETER_CHANGE, *fault_classes())
+
+
+def predicted_labels() -> tuple[str, ...]:
+    """Every label a verdict can give a case: its classes, and unexplained."""
+    return (*all_classes(), UNEXPLAINED)
+
+
+def default_ranges() -> dict[str, dict[str, tuple[float, float]]]:
+    """Each active effect's blind-draw ranges, by kind and parameter (:attr:`Parameter.draw_range`)."""
+    return {kind: {p.name: p.draw_range for p in effect.parameters} for kind, effect in effects.active().items()}
+
+
+def __getattr__(name: str):
+    """``FAULT_CLASSES``, ``CLASSES`` and ``PREDICTED_LABELS`` of the effects active now (a user's effect
+    may be added after import, :func:`newdyn.effects.use`)."""
+    derived = {"FAULT_CLASSES": fault_classes, "CLASSES": all_classes, "PREDICTED_LABELS": predicted_labels}
+    if name in derived:
+        return derived[name]()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 # ----------------------------------------------------------------------------------------- drawing
 
 
-def draw_cases(hidden: Mapping, set_name: str, base_values: Mapping[str, float]) -> list[dict]:
+def draw_cases(
+    hidden: Mapping,
+    set_name: str,
+    base_values: Mapping[str, float],
+    ranges: Mapping[str, Mapping[str, Sequence[float]]] | None = None,
+    classes: Sequence[str] | None = None,
+) -> list[dict]:
     """The cases of hidden set ``set_name``, deterministic from the set's seed.
+
+    ``hidden`` is the config's ``hidden`` section (its ``sets`` and ``parameter_change`` are read);
+    ``ranges`` (kind -> parameter -> [low, high]) the effects' draw ranges, :func:`newdyn.config.hidden_ranges`
+    (default: :func:`default_ranges`); ``classes`` the classes of a set that names none of its own,
+    :func:`newdyn.config.hidden_classes` (default: every class, :func:`all_classes`).
 
     Each case is ``{"name": "<set>_01", "class", "scenario": {"overrides", "fault"?}, "truth",
     "noise_seed"}``; ``scenario`` goes to :func:`faults.scenario_values`, ``truth`` holds the drifted
-    parameter and its value, or the fault's drawn parameters (stick_slip also ``J2a_share``).
-    Classes (the set's own ``classes``, else ``hidden["classes"]``) come in equal shares (the
-    remainder to classes picked by the seed), shuffled.
-    A draw that is not admissible on ``base_values`` is redrawn from the same stream.
+    parameter and its value, or the effect's drawn parameters (every parameter of its range).
+    Classes (the set's own ``classes``, else ``classes``) come in equal shares (the remainder to
+    classes picked by the seed), shuffled.  A draw that is not admissible on ``base_values`` is
+    redrawn from the same stream.
     """
     if set_name not in hidden["sets"]:
         raise KeyError(f"no hidden set '{set_name}' (known: {', '.join(hidden['sets'])})")
     spec = hidden["sets"][set_name]
     n, seed = int(spec["cases"]), int(spec["seed"])
-    classes = list(spec.get("classes", hidden["classes"]))
+    ranges = default_ranges() if ranges is None else ranges
+    chosen = list(spec.get("classes", all_classes() if classes is None else classes))
     base = model.complete(base_values)
     # One stream shuffles the classes, one per case draws it: a case's draw does not depend on how
     # often another case had to be redrawn.
     streams = [np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(n + 1)]
-    order = list(streams[0].permutation(classes))
-    labels = [str(c) for c in streams[0].permutation((order * (n // len(classes) + 1))[:n])]
+    order = list(streams[0].permutation(chosen))
+    labels = [str(c) for c in streams[0].permutation((order * (n // len(chosen) + 1))[:n])]
     width = max(2, len(str(n)))
     return [
-        {"name": f"{set_name}_{i + 1:0{width}d}", "class": label, **_draw(label, hidden, base, rng),
+        {"name": f"{set_name}_{i + 1:0{width}d}", "class": label, **_draw(label, hidden, ranges, base, rng),
          "noise_seed": int(rng.integers(0, 2**31 - 1))}
         for i, (label, rng) in enumerate(zip(labels, streams[1:]))
     ]
 
 
-def _draw(label: str, hidden: Mapping, base: Mapping[str, float], rng: np.random.Generator) -> dict:
+def _draw(label: str, hidden: Mapping, ranges: Mapping[str, Mapping[str, Sequence[float]]], base: Mapping[str, float],
+          rng: np.random.Generator) -> dict:
     """Scenario and truth of one case of class ``label``, redrawn until admissible."""
-    if label == "healthy":
+    if label == HEALTHY:
         return {"scenario": {"overrides": {}}, "truth": {}}
+    if label != PARAMETER_CHANGE and label not in ranges:
+        known = ", ".join(ranges)
+        raise ValueError(f"hidden {label}: no draw ranges for this class (ranges given for: {known or 'none'})")
     problems: list = []
     for _ in range(MAX_DRAWS):
-        if label == "parameter_change":
+        if label == PARAMETER_CHANGE:
             drift = hidden["parameter_change"]
             name = str(rng.choice(drift["parameters"]))
             relative = float(rng.uniform(*drift["relative"])) * (1.0 if rng.random() < 0.5 else -1.0)
@@ -91,23 +121,13 @@ def _draw(label: str, hidden: Mapping, base: Mapping[str, float], rng: np.random
             problem = model.PARAMETER_BY_NAME[name].problem(value)
             problems = [(name, problem)] if problem else []
             if not problems:
-                return {"scenario": {"overrides": {}, "fault": {"kind": "parameter_change", "parameters": {name: value}}},
+                return {"scenario": {"overrides": {}, "fault": {"kind": PARAMETER_CHANGE, "parameters": {name: value}}},
                         "truth": {name: value}}
         else:
-            ranges = hidden["faults"][label]
-            drawn = {name: float(rng.uniform(*ranges[name])) for name in sorted(ranges)}
-            parameters = {k: v for k, v in drawn.items() if k != faults.J2A_SHARE}
-            overrides = {}
-            if faults.J2A_SHARE in drawn:
-                total = base["J2a"] + base["J2b"]
-                overrides = {"J2a": drawn[faults.J2A_SHARE] * total, "J2b": total - drawn[faults.J2A_SHARE] * total}
-                problems = [(faults.J2A_SHARE, f"must lie in (0, 1) (got {drawn[faults.J2A_SHARE]:g})")] if not 0.0 < drawn[faults.J2A_SHARE] < 1.0 else []
-            else:
-                problems = []
-            problems += faults.fault_problems(label, parameters, {**base, **overrides})
+            drawn = {name: float(rng.uniform(*ranges[label][name])) for name in sorted(ranges[label])}
+            problems = faults.fault_problems(label, drawn, base)
             if not problems:
-                return {"scenario": {"overrides": overrides, "fault": {"kind": label, "parameters": parameters}},
-                        "truth": drawn}
+                return {"scenario": {"overrides": {}, "fault": {"kind": label, "parameters": drawn}}, "truth": drawn}
     raise ValueError(f"hidden {label}: no admissible draw in {MAX_DRAWS} tries, last problem: {problems[0]}")
 
 
@@ -157,10 +177,10 @@ def write_case_measurement(
 def predicted_label(verdict: Mapping) -> str:
     """The class a verdict names: healthy, parameter_change, a fault kind, or unexplained."""
     kind = verdict.get("verdict")
-    if kind in ("healthy", "parameter_change", "unexplained"):
+    if kind in (HEALTHY, PARAMETER_CHANGE, UNEXPLAINED):
         return kind
     if kind == "new_dynamics":
-        if verdict.get("effect") not in FAULT_CLASSES:
+        if verdict.get("effect") not in fault_classes():
             raise ValueError(f"verdict new_dynamics names no library fault kind (effect {verdict.get('effect')!r})")
         return verdict["effect"]
     raise ValueError(f"unknown verdict {kind!r} (known: {', '.join(VERDICTS)})")
@@ -170,10 +190,10 @@ def is_correct(case: Mapping, verdict: Mapping) -> bool:
     """Top-1 rule: the verdict names the case's class, and for a parameter change the drifted
     parameter or one the verdict declares equivalent (unidentifiable from the measured channels)."""
     label = predicted_label(verdict)
-    if case["class"] != "parameter_change":
+    if case["class"] != PARAMETER_CHANGE:
         return label == case["class"]
     named = {verdict.get("effect"), *(verdict.get("equivalent") or [])}
-    return label == "parameter_change" and _drifted(case) in named
+    return label == PARAMETER_CHANGE and _drifted(case) in named
 
 
 def _drifted(case: Mapping) -> str:
@@ -192,8 +212,9 @@ def score(cases: Sequence[Mapping], verdicts: Mapping[str, Mapping], chi2_max: f
     missing = [case["name"] for case in cases if case["name"] not in verdicts]
     if missing:
         raise ValueError(f"no verdict for hidden case(s) {', '.join(missing)}: not diagnosed")
-    truth_classes = [c for c in CLASSES if any(case["class"] == c for case in cases)]
-    counts = np.zeros((len(truth_classes), len(PREDICTED_LABELS)), dtype=int)
+    labels = predicted_labels()
+    truth_classes = [c for c in all_classes() if any(case["class"] == c for case in cases)]
+    counts = np.zeros((len(truth_classes), len(labels)), dtype=int)
     rows, errors = [], []
     for case in cases:
         verdict = verdicts[case["name"]]
@@ -202,7 +223,7 @@ def score(cases: Sequence[Mapping], verdicts: Mapping[str, Mapping], chi2_max: f
         except ValueError as exc:
             raise ValueError(f"hidden case {case['name']}: {exc}") from None
         correct = is_correct(case, verdict)
-        counts[truth_classes.index(case["class"]), PREDICTED_LABELS.index(label)] += 1
+        counts[truth_classes.index(case["class"]), labels.index(label)] += 1
         rows.append({
             "name": case["name"], "class": case["class"], "truth": dict(case["truth"]),
             "verdict": verdict["verdict"], "effect": verdict.get("effect"), "equivalent": list(verdict.get("equivalent") or []),
@@ -215,7 +236,7 @@ def score(cases: Sequence[Mapping], verdicts: Mapping[str, Mapping], chi2_max: f
     for c in truth_classes:
         hits = [row["correct"] for row in rows if row["class"] == c]
         per_class[c] = {"cases": len(hits), "correct": sum(hits), "accuracy": sum(hits) / len(hits)}
-    fault_rows = [row for row in rows if row["correct"] and row["class"] in FAULT_CLASSES]
+    fault_rows = [row for row in rows if row["correct"] and row["class"] in fault_classes()]
     explained = sum(1 for row in fault_rows if row["chi2_after"] is not None and row["chi2_after"] <= chi2_max)
     covered = [e["in_hdi"] for e in errors if e["in_hdi"] is not None]
     n_correct = sum(row["correct"] for row in rows)
@@ -224,7 +245,7 @@ def score(cases: Sequence[Mapping], verdicts: Mapping[str, Mapping], chi2_max: f
         "correct": n_correct,
         "accuracy": n_correct / len(rows) if rows else None,
         "per_class": per_class,
-        "confusion": {"truth": truth_classes, "predicted": list(PREDICTED_LABELS), "counts": counts.tolist()},
+        "confusion": {"truth": truth_classes, "predicted": list(labels), "counts": counts.tolist()},
         "rows": rows,
         "parameter_errors": errors,
         "hdi_coverage": sum(covered) / len(covered) if covered else None,
@@ -238,18 +259,15 @@ def _parameter_errors(case: Mapping, verdict: Mapping) -> list[dict]:
     its ranking entry of the true parameter) estimated; truth parameters it did not fit are left out."""
     if not case["truth"]:  # healthy
         return []
-    if case["class"] == "parameter_change":
+    if case["class"] == PARAMETER_CHANGE:
         name = _drifted(case)
-        entry = next((r for r in verdict.get("ranking") or [] if r.get("hypothesis") == f"parameter_change:{name}"), None)
-        fitted, source = (entry.get("parameters") or {}, f"ranking parameter_change:{name}") if entry else (verdict.get("parameters") or {}, "verdict")
-        aliases = {name: (name,)}
-    else:
+        entry = next((r for r in verdict.get("ranking") or [] if r.get("hypothesis") == f"{PARAMETER_CHANGE}:{name}"), None)
+        fitted, source = (entry.get("parameters") or {}, f"ranking {PARAMETER_CHANGE}:{name}") if entry else (verdict.get("parameters") or {}, "verdict")
+    else:  # the fit names the effect's parameters as the truth does
         fitted, source = verdict.get("parameters") or {}, "verdict"
-        slots = faults.FAULT_KINDS[case["class"]].slots
-        aliases = {name: (name, slots.get(name, name)) for name in case["truth"]}
     errors = []
     for name, truth in case["truth"].items():
-        summary = next((fitted[a] for a in aliases.get(name, ()) if a in fitted), None)
+        summary = fitted.get(name)
         if summary is None or _float(summary.get("mean")) is None:
             continue
         mean, low, high = _float(summary.get("mean")), _float(summary.get("hdi_low")), _float(summary.get("hdi_high"))

@@ -1,9 +1,9 @@
 """The hypotheses a diagnosis weighs, and how well each one, fitted, explains a measurement.
 
 A hypothesis is the healthy model plus named parameters with priors: ``healthy`` has none,
-``parameter_change:<p>`` one rig parameter with its calibration prior, and each library fault kind its
-own parameters (uniform priors over config ranges) plus the rig parameters that may have drifted at the
-same time (``diagnosis.drift``).  :func:`fit` finds the best fit by least squares on the simulator and
+``parameter_change:<p>`` one rig parameter with its calibration prior, and each effect of
+:mod:`newdyn.effects` its own parameters (uniform priors over its diagnosis ranges) plus the rig
+parameters that may have drifted at the same time (``diagnosis.drift``).  :func:`fit` finds the best fit by least squares on the simulator and
 scores it by reduced χ² and by a Laplace approximation of the log-evidence, so hypotheses with
 different numbers of parameters compare on one scale (the Occam factor is in the evidence).
 """
@@ -17,13 +17,11 @@ from typing import Mapping, Sequence
 import numpy as np
 from scipy import optimize
 
-from . import faults, likelihood, model, simulation
-from .faults import J2A_SHARE
+from . import effects, faults, likelihood, model, simulation
 
 HEALTHY = "healthy"
-PARAMETER_CHANGE = "parameter_change"
+PARAMETER_CHANGE = faults.PARAMETER_CHANGE
 UNIFORM_UNIT_VARIANCE = 1.0 / 12.0  # variance of a uniform prior in unit coordinates
-STALL_MARGIN = 1e-3  # r_k·T_max is kept this fraction above T0, below which the rig stalls
 FIT_MAX_EVALUATIONS = 60
 # Global search before least squares: differential evolution over the prior box, each generation one
 # batched simulation.  Measured on stick-slip (4 parameters, 0.1 s at 40 dB, three truths): 40
@@ -61,8 +59,8 @@ class Prior:
 
 @dataclass(frozen=True)
 class Hypothesis:
-    name: str  # "healthy", "parameter_change:kT1", or a fault kind
-    kind: str  # "healthy", "parameter_change", or a fault kind
+    name: str  # "healthy", "parameter_change:kT1", or an effect's kind
+    kind: str  # "healthy", "parameter_change", or an effect's kind
     priors: tuple[Prior, ...] = ()
 
     @property
@@ -71,35 +69,54 @@ class Hypothesis:
 
     @property
     def effect(self) -> str | None:
-        """What the hypothesis adds: the drifted parameter's name or the fault kind (None if healthy)."""
+        """What the hypothesis adds: the drifted parameter's name or the effect's kind (None if healthy)."""
         return None if self.kind == HEALTHY else self.name.split(":")[-1]
 
+    def _values(self, theta: np.ndarray, base: Mapping[str, float]):
+        """What rows of fitted values (n, k) set: the effect this hypothesis adds (None for healthy and
+        drifts), the other fitted values by name (columns: drifted rig parameters, or any model value),
+        the rig the effect acts on (``base`` with those drifts) and the effect's values (columns by
+        parameter name: the fitted ones, the others at their defaults on ``base``) made admissible."""
+        effect = effects.active().get(self.kind)
+        own = effect.parameter_names() if effect is not None else ()
+        columns = {name: theta[:, i] for i, name in enumerate(self.parameters)}
+        others = {name: column for name, column in columns.items() if name not in own}
+        rig = {**base, **others}
+        if effect is None:
+            return None, others, rig, {}
+        values = {name: np.full(len(theta), value) for name, value in faults.effect_values(self.kind, {}, base).items()}
+        values.update({name: column for name, column in columns.items() if name in own})
+        admissible = effect.admissible(values, rig)
+        return effect, others, rig, {name: np.broadcast_to(np.asarray(v, dtype=float), (len(theta),)) for name, v in admissible.items()}
+
     def parameter_rows(self, theta: np.ndarray, base: Mapping[str, float]) -> np.ndarray:
-        """Kernel parameter vectors (n, len(model.PARAMETER_NAMES)) for rows of fitted values (n, k)."""
+        """Kernel parameter vectors (n, len(model.slot_names())) for rows of fitted values (n, k).
+
+        A fitted rig parameter (a drift) sets its column.  An effect's parameters go through the
+        effect: its presence flag is set, its values are made admissible (:meth:`Effect.admissible`,
+        e.g. a friction joint kept able to carry the mean load) and set its kernel slots and the rig
+        values it sets (:meth:`Effect.rig_values`, on the drifted rig)."""
+        theta = np.atleast_2d(np.asarray(theta, dtype=float))
         base = model.complete(base)
+        index = model.slot_index()
         rows = np.tile(model.parameter_vector(base), (len(theta), 1))
-        slots = faults.FAULT_KINDS[self.kind].slots if self.kind in faults.FAULT_KINDS else {}
-        for i, name in enumerate(self.parameters):
-            if name == J2A_SHARE:
-                total = base["J2a"] + base["J2b"]
-                rows[:, model.PARAMETER_INDEX["J2a"]] = theta[:, i] * total
-                rows[:, model.PARAMETER_INDEX["J2b"]] = (1 - theta[:, i]) * total
-            else:
-                rows[:, model.PARAMETER_INDEX[slots.get(name, name)]] = theta[:, i]
-        if self.kind == "stick_slip":  # the slipping joint must carry the mean load, or the rig stalls
-            t_max, r_k = rows[:, model.PARAMETER_INDEX["T_max"]], rows[:, model.PARAMETER_INDEX["r_k"]]
-            rows[:, model.PARAMETER_INDEX["r_k"]] = np.minimum(1.0, np.maximum(r_k, (1 + STALL_MARGIN) * base["T0"] / t_max))
+        effect, others, rig, values = self._values(theta, base)
+        for name, column in others.items():
+            rows[:, index[name]] = column
+        if effect is not None:
+            rows[:, index[model.effect_slot(self.kind)]] = 1.0
+            for p in effect.kernel_parameters():
+                rows[:, index[model.effect_slot(self.kind, p.name)]] = values[p.name]
+            for name, column in effect.rig_values(values, rig).items():
+                rows[:, index[name]] = column
         return rows
 
     def effective_values(self, theta: np.ndarray, base: Mapping[str, float]) -> dict[str, float]:
-        """The values the model runs with at one row of fitted values (r_k as kept above the stall)."""
-        row = self.parameter_rows(np.atleast_2d(theta), base)[0]
-        slots = faults.FAULT_KINDS[self.kind].slots if self.kind in faults.FAULT_KINDS else {}
-        index = model.PARAMETER_INDEX
-        return {
-            name: float(row[index["J2a"]] / (row[index["J2a"]] + row[index["J2b"]]) if name == J2A_SHARE else row[index[slots.get(name, name)]])
-            for name in self.parameters
-        }
+        """The values the model runs with at one row of fitted values: the fitted ones, as the effect
+        makes them admissible (:meth:`Effect.admissible`)."""
+        theta = np.atleast_2d(np.asarray(theta, dtype=float))
+        _, others, _, values = self._values(theta, model.complete(base))
+        return {name: float(values[name][0] if name in values else others[name][0]) for name in self.parameters}
 
     def log_prior(self, theta: np.ndarray) -> np.ndarray:
         return np.sum([p.log_pdf(theta[:, i]) for i, p in enumerate(self.priors)], axis=0) if self.priors else np.zeros(len(theta))
@@ -107,11 +124,24 @@ class Hypothesis:
 
 def library(calibration_priors: Mapping[str, Prior], fault_ranges: Mapping[str, Mapping[str, Sequence[float]]],
             drift: Sequence[str]) -> list[Hypothesis]:
-    """Every hypothesis: healthy, a drift of each calibration parameter, each fault kind with ``drift``."""
+    """Every hypothesis: healthy, a drift of each calibration parameter, and each effect of
+    ``fault_ranges`` (kind -> its fitted parameters -> prior range) with the ``drift`` parameters.
+
+    An effect's fitted parameters are taken in its declaration order; one without a range is held at
+    its default (so every parameter without a default needs a range)."""
     hypotheses = [Hypothesis(HEALTHY, HEALTHY)]
     hypotheses += [Hypothesis(f"{PARAMETER_CHANGE}:{name}", PARAMETER_CHANGE, (prior,)) for name, prior in calibration_priors.items()]
     for kind, ranges in fault_ranges.items():
-        own = tuple(Prior(name, float(low), float(high)) for name, (low, high) in ranges.items())
+        if kind not in effects.active():
+            raise KeyError(f"no active effect '{kind}' to diagnose (active: {', '.join(effects.active())})")
+        effect = effects.active()[kind]
+        unknown = [name for name in ranges if name not in effect.parameter_names()]
+        if unknown:
+            raise KeyError(f"{kind} has no parameter {unknown[0]} (its parameters: {', '.join(effect.parameter_names())})")
+        missing = [p.name for p in effect.parameters if p.default is None and p.name not in ranges]
+        if missing:
+            raise KeyError(f"{kind} needs a range for {missing[0]}, which has no default")
+        own = tuple(Prior(p.name, float(ranges[p.name][0]), float(ranges[p.name][1])) for p in effect.parameters if p.name in ranges)
         hypotheses.append(Hypothesis(kind, kind, own + tuple(calibration_priors[name] for name in drift)))
     return hypotheses
 

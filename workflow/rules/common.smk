@@ -4,6 +4,7 @@ import sys
 from pathlib import Path
 
 import newdyn.config
+import newdyn.effects
 import newdyn.provenance
 from newdyn.cli import DIAGNOSIS_FIGURES
 
@@ -18,16 +19,33 @@ except newdyn.config.ConfigError as error:
 VARIANTS = {name: newdyn.config.variant_config(config, name) for name in newdyn.config.variant_names(config)}
 SEEDS = [str(seed) for seed in config["noise"]["seeds"]]
 
-# Rules pass these as params so that an edit of the science code reruns exactly its jobs.
-SIMULATION_CODE = newdyn.provenance.source_hash("model", "faults", "kernels", "simulation", "io")
+# Rules pass these as params so that an edit of the science code reruns exactly its jobs.  The
+# simulator is its modules and the effects' interface; an effect's own file counts only for the jobs
+# that simulate it (effect_files).
+SIMULATOR = ("model", "faults", "effects", "effects.base", "effects.check", "kernels", "kernel_template", "simulation")
+SIMULATION_CODE = newdyn.provenance.source_hash(*SIMULATOR, "io")
 NOISE_CODE = newdyn.provenance.source_hash("noise", "io")
-CALIBRATION_CODE = newdyn.provenance.source_hash("model", "kernels", "simulation", "io", "likelihood", "calibration")
+CALIBRATION_CODE = newdyn.provenance.source_hash(*SIMULATOR, "io", "likelihood", "calibration")
 MCMC_CODE = newdyn.provenance.source_hash(
-    "model", "kernels", "simulation", "io", "likelihood", "calibration", "mcmc_calibration", "sampling", "comparison"
+    *SIMULATOR, "io", "likelihood", "calibration", "mcmc_calibration", "sampling", "comparison"
 )
 SUMMARY_CODE = newdyn.provenance.source_hash("calibration", "comparison", "sampling")
 COMPARISON_CODE = newdyn.provenance.source_hash("comparison")
 PLOT_CODE = newdyn.provenance.source_hash("plots", "residuals")
+EFFECTS = list(config.get("effects", []))  # the study's own effects, beside the built-ins
+
+
+def effect_files(kinds=None):
+    """The files of effects ``kinds`` (default: every active one)."""
+    active = newdyn.effects.active()
+    return [active[kind].source for kind in (active if kinds is None else kinds)]
+
+
+def simulation_code(wildcards):
+    """The simulator's hash, with the file of the scenario's effect if it has one."""
+    fault = (study(wildcards)["scenarios"][wildcards.scenario] or {}).get("fault") or {}
+    kinds = [fault["kind"]] if fault.get("kind") in newdyn.effects.active() else []
+    return newdyn.provenance.source_hash(*SIMULATOR, "io", files=effect_files(kinds))
 
 
 def _names(key):
@@ -68,6 +86,7 @@ def simulation_spec(wildcards):
             "sampling": _sampling_spec(cfg),
             "channels": cfg["simulation"]["channels"],
             "max_step": cfg["simulation"]["max_step"],
+            "effects": EFFECTS,
         }
     )
 
@@ -100,6 +119,7 @@ def grid_models_spec(wildcards):
             "sampling": _sampling_spec(cfg),
             "channels": calibration["channels"],
             "max_step": cfg["simulation"]["max_step"],
+            "effects": EFFECTS,
         }
     )
 
@@ -113,6 +133,7 @@ def _calibration_settings(cfg):
         "refine_points": calibration["refine_points"],
         "chi2_max": calibration["chi2_max"],
         "max_step": cfg["simulation"]["max_step"],
+        "effects": EFFECTS,
     }
 
 
@@ -223,10 +244,7 @@ def figure_targets():
 
 # --- diagnosis of measurements: users' files in measurements/, and hidden-effect sets drawn from a seed
 DIAGNOSIS_CODE = newdyn.provenance.source_hash(
-    "model",
-    "faults",
-    "kernels",
-    "simulation",
+    *SIMULATOR,
     "io",
     "noise",
     "likelihood",
@@ -237,9 +255,10 @@ DIAGNOSIS_CODE = newdyn.provenance.source_hash(
     "residuals",
     "hypotheses",
     "diagnosis",
+    files=effect_files(),  # every effect is a hypothesis
 )
-HIDDEN_CODE = newdyn.provenance.source_hash("model", "faults", "kernels", "simulation", "noise", "io", "hidden")
-SCORE_CODE = newdyn.provenance.source_hash("hidden", "plots")
+HIDDEN_CODE = newdyn.provenance.source_hash(*SIMULATOR, "noise", "io", "hidden", files=effect_files())
+SCORE_CODE = newdyn.provenance.source_hash("hidden", "plots", files=effect_files())
 HIDDEN_SETS = config["hidden"]["sets"]
 
 
@@ -306,6 +325,7 @@ def diagnosis_spec(wildcards):
                 key: config["calibration"][key] for key in ("parameters", "chi2_max", "refine_points", "mcmc")
             },
             "simulation": {"max_step": config["simulation"]["max_step"]},
+            "effects": EFFECTS,
         }
     )
 
@@ -330,6 +350,7 @@ def hidden_spec(wildcards):
             "values": newdyn.config.base_values(config),
             "sampling": _sampling_spec(config),
             "max_step": config["simulation"]["max_step"],
+            "effects": EFFECTS,
         }
     )
 

@@ -65,6 +65,7 @@ rule hidden_score:
     params:
         chi2_max=config["calibration"]["chi2_max"],
         code=SCORE_CODE,
+        effects=" ".join(f"--effect {name}" for name in EFFECTS),
     shell:
-        "newdyn hidden-score --truth {input.truth} --chi2-max {params.chi2_max} --code-hash {params.code} "
+        "newdyn hidden-score --truth {input.truth} --chi2-max {params.chi2_max} --code-hash {params.code} {params.effects} "
         "--output {output.score} --table {output.table} --figure {output.png} {input.verdicts} > {log} 2>&1"

@@ -10,7 +10,7 @@ rule simulate:
     threads: 1
     params:
         spec=simulation_spec,
-        code=SIMULATION_CODE,
+        code=simulation_code,
     shell:
         "NUMBA_NUM_THREADS={threads} OPENBLAS_NUM_THREADS={threads} newdyn simulate --spec {params.spec:q} "
         "--code-hash {params.code} --output {output} > {log} 2>&1"
