@@ -49,17 +49,20 @@ def test_results_do_not_depend_on_how_simulations_are_grouped():
         numba.set_num_threads(threads)
 
 
-def test_an_edited_effect_gets_a_kernel_of_its_own(tmp_path):
-    """numba caches machine code by the rendered file, which only names the effects' files: an edit of
-    an effect must change the kernel's name, or the old effect's code would run."""
+def test_an_effect_file_is_compiled_once_wherever_it_lies_and_anew_when_edited(tmp_path):
+    """numba caches machine code by the rendered file: an edit of an effect must change the kernel's
+    name, or the old effect's code would run; the same file in another study's folder must not."""
     source = effects.LIBRARY / "cubic_coupling.py"
-    (tmp_path / "user_cubic.py").write_text(source.read_text().replace('"cubic_coupling"', '"user_cubic"'))
+    for folder in ("a", "b"):
+        (tmp_path / folder).mkdir()
+        (tmp_path / folder / "user_cubic.py").write_text(source.read_text().replace('"cubic_coupling"', '"user_cubic"'))
     try:
-        before = kernels.kernel_digest(dict(effects.use(["user_cubic"], tmp_path)))
-        with open(tmp_path / "user_cubic.py", "a") as f:
+        here, elsewhere = (kernels.kernel_digest(dict(effects.use(["user_cubic"], tmp_path / f))) for f in ("a", "b"))
+        with open(tmp_path / "a" / "user_cubic.py", "a") as f:
             f.write("# an edit\n")
-        after = kernels.kernel_digest(dict(effects.use(["user_cubic"], tmp_path)))
+        edited = kernels.kernel_digest(dict(effects.use(["user_cubic"], tmp_path / "a")))
     finally:
         effects.use([])
-    assert before != after
-    assert kernels.kernel_digest(dict(effects.active())) not in (before, after)
+    assert here == elsewhere
+    assert edited != here
+    assert kernels.kernel_digest(dict(effects.active())) not in (here, edited)

@@ -31,7 +31,7 @@ from collections import namedtuple  # noqa: F401 - the generated effect paramete
 import numpy as np
 from numba import njit, prange
 
-from newdyn.effects import load_file  # noqa: F401 - the generated effect bindings
+from newdyn.effects import loaded  # noqa: F401 - the generated effect bindings
 from newdyn.effects.base import Kinematics, RigValues, sincos  # noqa: F401 - used by the generated code
 
 # Options of every kernel function: 'numpy' error model so that x / 0 gives inf instead of a branch
@@ -82,8 +82,7 @@ R_KLAT = R_INVM + 8  # 7 lateral spring stiffnesses
 R_JRED1 = R_KLAT + 7  # J1 - u1² / m1: the disk-1 inertia left by the imbalance coupling
 R_JRED4 = R_JRED1 + 1  # J4 - u4² / m4
 R_SAME_LOAD = R_JRED4 + 1  # 1 if the load parameters equal those of the lane to the left, else 0
-R_OPEN_STEPS = R_SAME_LOAD + 1  # steps per step while the slip joint is open (see OPEN_OMEGA_H)
-N_CONST = R_OPEN_STEPS + 1
+N_CONST = R_SAME_LOAD + 1
 R_MODES = N_CONST  # mode of each switching effect (0 at t = 0)
 R_ONSETS = R_MODES + N_SWITCHING  # number of its switches out of mode 0 so far
 N_MODES = 2 * N_SWITCHING
@@ -327,13 +326,6 @@ def _finish_step(w, h, n_lanes, out):
 
 
 # --- events -------------------------------------------------------------------------------------------
-# An open slip joint frees the light bodies 2a and 2b: J2a alone on the motor shaft vibrates at
-# ~1.2 kHz, where an RK4 step of 1e-4 s (ωh ≈ 0.8) is too coarse to tell whether a slip ends (the
-# relative speed grazes zero).  While the joint is open a lane takes steps of at most OPEN_OMEGA_H / ω,
-# ω the faster of the two freed bodies' frequencies (on the event path, lane by lane).
-OPEN_OMEGA_H = 0.3
-
-
 # A step's event functions are checked at its end and at INTERIOR_CHECKS - 1 points inside it, on the
 # third-order continuous extension of RK4, so that a slip that starts and ends inside one step is
 # found too.  Only the state rows the event functions read are interpolated (DENSE_ROWS).
@@ -421,19 +413,15 @@ def _switch(w, lane, which, t):
 def _advance_alone(w, t, h):
     """Advance lane 0 of block ``w`` from (t, rows R_Y) by h, locating and applying every event.
 
-    The event path, for a lane whose plain step crosses an event or whose slip joint is open: Illinois
-    regula falsi on the step fraction, a stop just past the event, the mode switch, and on with the
-    rest of the step (in pieces of h / R_OPEN_STEPS while the joint is open).
+    The event path, for a lane whose plain step crosses an event: Illinois regula falsi on the step
+    fraction, a stop just past the event, the mode switch, and on with the rest of the step.
     """
     t_end = t + h
     while True:
         step = t_end - t
         if step <= 0.0:
             return
-        piece = h / w[_at(R_OPEN_STEPS, 0)]
-        if _joint_open(w, 0) and step > 1.000001 * piece:
-            step = piece
-        t_next = t + step if step < t_end - t else t_end
+        t_next = t_end
         _rk4(w, t, step, 1, False)
         _events(w, R_TRIAL, 1, t_next)
         hi = 1.0
@@ -491,9 +479,9 @@ def _copy_lane_rows(a, lane_a, b, lane_b, first_a, first_b, count):
 # --- driver ---------------------------------------------------------------------------------------
 @njit(**_JIT)
 def _step(w, alone, t, h, n_lanes, events_possible):
-    """Advance all lanes of block ``w`` from t by h; a lane whose step crosses an event, or whose slip
-    joint is open, is redone by the event path on the one-lane scratch block ``alone`` (each lane on
-    its own, so that results do not depend on how simulations are grouped).  Returns the new time."""
+    """Advance all lanes of block ``w`` from t by h; a lane whose step crosses an event is redone by
+    the event path on the one-lane scratch block ``alone`` (each lane on its own, so that results do
+    not depend on how simulations are grouped).  Returns the new time."""
     t_end = t + h
     step = t_end - t
     if step <= 0.0:
@@ -505,7 +493,7 @@ def _step(w, alone, t, h, n_lanes, events_possible):
     _events(w, R_TRIAL, n_lanes, t_end)
     _interior_events(w, n_lanes, t, step)
     for lane in range(n_lanes):
-        if not w[_at(R_G, lane)] <= 0.0 or (w[_at(R_OPEN_STEPS, lane)] > 1.0 and _joint_open(w, lane)):
+        if not w[_at(R_G, lane)] <= 0.0:
             _copy_lane_rows(w, lane, alone, 0, 0, 0, N_CONST + N_MODES)
             _copy_lane_rows(w, lane, alone, 0, R_Y, R_Y, NY)
             alone[_at(R_TL_TIME, 0)] = math.nan  # another lane's load torque
@@ -518,8 +506,8 @@ def _step(w, alone, t, h, n_lanes, events_possible):
 
 
 @njit(**_JIT)
-def _setup_lane(w, lane, p, h):
-    """Parameters, derived quantities, modes and the rig.md initial state of one lane (steps of h)."""
+def _setup_lane(w, lane, p):
+    """Parameters, derived quantities, modes and the rig.md initial state of one lane."""
     for k in range(N_PAR):
         w[_at(k, lane)] = p[k]
     omega = 2.0 * math.pi * p[SPEED] / 60.0
@@ -540,8 +528,6 @@ def _setup_lane(w, lane, p, h):
     for k in (T0, LOAD_AMP, LOAD_FREQ, LOAD_HARM):
         same = same and p[k] == w[_at(k, lane - 1)]
     w[_at(R_SAME_LOAD, lane)] = 1.0 if same else 0.0
-    omega_open = max(math.sqrt(p[KT1] * (1.0 / p[J1] + 1.0 / p[J2A])), math.sqrt(p[KT2] * (1.0 / p[J2B] + 1.0 / p[J3])))
-    w[_at(R_OPEN_STEPS, lane)] = max(1.0, math.ceil(h * omega_open / OPEN_OMEGA_H))
     for k in range(N_MODES):
         w[_at(R_MODES + k, lane)] = 0.0
     for i in range(NY):
@@ -554,14 +540,14 @@ def _setup_lane(w, lane, p, h):
 
 
 @njit(**_JIT)
-def _record(w, codes, out, first, k, n_lanes, t):
-    """Sample k (time t) of every output code for the block's lanes (simulations first, first + 1, ...)."""
+def _record(w, codes, out, sims, k, n_lanes, t):
+    """Sample k (time t) of every output code for the block's lanes (simulations sims[0], sims[1], ...)."""
     for c in range(codes.shape[0]):
         code = codes[c]
         if code == OUT_TORQUE_C or code == OUT_JOINT_TORQUE:
             for lane in range(n_lanes):
                 torques = _joint_torques(w, lane, R_Y, t)
-                out[first + lane, c, k] = torques[1] if code == OUT_TORQUE_C else torques[2]
+                out[sims[lane], c, k] = torques[1] if code == OUT_TORQUE_C else torques[2]
             continue
         if code < 8:  # bearing displacement: (node b1,b2,b3,b4) × (x,y)
             row = R_Y + 5 + 8 * (code % 2) + (0, 2, 5, 7)[code // 2]
@@ -574,26 +560,28 @@ def _record(w, codes, out, first, k, n_lanes, t):
         else:
             row = R_Y + code - OUT_STATE
         for lane in range(n_lanes):
-            out[first + lane, c, k] = w[_at(row, lane)]
+            out[sims[lane], c, k] = w[_at(row, lane)]
 
 
 @njit(**_JIT)
-def _simulate_block(params, first, n_lanes, t_first, fs, n_samples, substeps, codes, out):
-    """Simulate rows first .. first+n_lanes-1 of ``params`` together, one per lane."""
+def _simulate_block(params, sims, t_first, fs, n_samples, substeps, codes, out):
+    """Simulate rows ``sims`` of ``params`` together, one per lane, with ``substeps`` RK4 steps per
+    sample interval."""
+    n_lanes = sims.shape[0]
     h_target = 1.0 / (fs * substeps)
     w = np.zeros(N_ROWS * LANES)  # unused lanes stay finite: the flat copy in _step reads them
     alone = np.zeros(N_ROWS * LANES)  # scratch block of the event path (lane 0 only)
     w[_at(R_TL_TIME, 0)] = math.nan
     events_possible = False
     for lane in range(n_lanes):
-        _setup_lane(w, lane, params[first + lane], h_target)
+        _setup_lane(w, lane, params[sims[lane]])
         for slot in SWITCHING_ON:
-            events_possible = events_possible or params[first + lane, slot] != 0.0
+            events_possible = events_possible or params[sims[lane], slot] != 0.0
     # Padding lanes (never recorded): the last lane's rig without its switching effects, so they
     # never take the event path; lanes are independent, so they change no other lane's result.
     n_run = n_lanes if n_lanes <= SCALAR_MAX else min(LANES, (n_lanes + VECTOR - 1) // VECTOR * VECTOR)
     for lane in range(n_lanes, n_run):
-        _setup_lane(w, lane, params[first + n_lanes - 1], h_target)
+        _setup_lane(w, lane, params[sims[n_lanes - 1]])
         for slot in SWITCHING_ON:
             w[_at(slot, lane)] = 0.0
     for lane in range(n_lanes):  # an effect whose event function is already positive at t = 0 switches there
@@ -612,18 +600,14 @@ def _simulate_block(params, first, n_lanes, t_first, fs, n_samples, substeps, co
                 t_next = t_first + (k - 1 + (s + 1) / substeps) / fs
                 t = _step(w, alone, t, t_next - t, n_run, events_possible)
             t = t_sample
-        _record(w, codes, out, first, k, n_lanes, t)
+        _record(w, codes, out, sims, k, n_lanes, t)
 
 
 @njit(cache=True, error_model="numpy", parallel=True)
-def _simulate_batch(params, t_first, fs, n_samples, substeps, codes, n_threads):
-    n = params.shape[0]
-    out = np.empty((n, codes.shape[0], n_samples))
-    # Blocks of at most LANES simulations, at least as many as threads while each keeps VECTOR lanes
-    # (a narrower block costs as much as one of VECTOR lanes), of equal width rounded up to VECTOR.
-    n_blocks = max((n + LANES - 1) // LANES, min(n_threads, (n + VECTOR - 1) // VECTOR))
-    width = min(LANES, ((n + n_blocks - 1) // n_blocks + VECTOR - 1) // VECTOR * VECTOR) if n > 0 else 1
-    for b in prange((n + width - 1) // width):
-        first = b * width
-        _simulate_block(params, first, min(width, n - first), t_first, fs, n_samples, substeps, codes, out)
+def _simulate_batch(params, order, starts, counts, substeps, t_first, fs, n_samples, codes):
+    """Simulate the blocks of rows order[starts[b] : starts[b] + counts[b]] of ``params`` in parallel,
+    block b with substeps[b] RK4 steps per sample interval."""
+    out = np.empty((params.shape[0], codes.shape[0], n_samples))
+    for b in prange(starts.shape[0]):
+        _simulate_block(params, order[starts[b] : starts[b] + counts[b]], t_first, fs, n_samples, substeps[b], codes, out)
     return out

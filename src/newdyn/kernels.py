@@ -117,7 +117,7 @@ def render(active: dict[str, type[effects.Effect]]) -> str:
     for i, (kind, effect) in enumerate(active.items()):
         names = tuple(p.name for p in effect.kernel_parameters()) or ("unused",)
         layout += [
-            f"_EFFECT_{i} = load_file({effect.source!r})  # {kind}",
+            f"_EFFECT_{i} = loaded({effect.content_hash!r})  # {kind}",
             f"_force_{i} = njit(**_EFFECT_JIT)(_EFFECT_{i}.force)",
             f"_P{i} = namedtuple('_P{i}', {names!r})",
             f"_R{i} = namedtuple('_R{i}', {rig_fields(effect) or ('unused',)!r})",
@@ -267,20 +267,6 @@ def _generated(active, index, switching) -> str:
                 "            w[_at(R_Y + NQ + 1, lane)] = common",
                 "            w[_at(R_Y + NQ + 2, lane)] = common",
             ]
-    lines += [
-        "",
-        "",
-        "@njit(**_JIT, inline='always')",
-        "def _joint_open(w, lane):",
-        '    """Whether a present effect holds the slip joint open in its current mode."""',
-        "    is_open = False",
-    ]
-    for i, (kind, effect) in items:
-        if effect.acts_on == "slip_joint":
-            present = f"w[_at({index[model.effect_slot(kind)]}, lane)] != 0.0"
-            condition = f"({present}) & ({_mode(kind, switching)} != 0.0)" if effect.locks_joint else f"({present})"
-            lines.append(f"    is_open = is_open | ({condition})")
-    lines.append("    return is_open")
     return "\n".join(lines) + "\n"
 
 
@@ -289,14 +275,10 @@ _LOADED: dict[tuple, ModuleType] = {}  # by the (name, effect class) pairs of th
 
 
 def kernel_digest(active: dict[str, type[effects.Effect]], source: str | None = None) -> str:
-    """The name of the compiled kernel of the effects ``active``: a hash of its rendered source, of the
-    effects' files and of numba's and Python's versions.  The source only names the effects' files, so
-    their contents go in too: an edited effect gets a kernel of its own, never the machine code that
-    numba cached for the old one."""
-    digest = hashlib.sha256(((source or render(active)) + numba.__version__ + sys.version).encode())
-    for effect in active.values():
-        digest.update(Path(effect.source).read_bytes())
-    return digest.hexdigest()[:16]
+    """The name of the compiled kernel of the effects ``active``: a hash of its rendered source (which
+    names each effect by its file's content hash, so an edited effect gets a kernel of its own, never
+    the machine code that numba cached for the old one) and of numba's and Python's versions."""
+    return hashlib.sha256(((source or render(active)) + numba.__version__ + sys.version).encode()).hexdigest()[:16]
 
 
 def module(active: dict[str, type[effects.Effect]] | None = None) -> ModuleType:
@@ -357,12 +339,82 @@ def diagnostics(active: dict[str, type[effects.Effect]] | None = None) -> tuple[
 OUT_STATE = 100
 
 
+# A rig whose slip joint can open needs finer steps than the healthy rig: an open joint frees the
+# light bodies 2a and 2b (J2a alone on the motor shaft vibrates at ~1.2 kHz), and every slip onset
+# (a torque drop when r_k < 1) and re-stick (a velocity jump) kicks the chain's fastest torsional
+# modes, whose RK4 phase error then moves the next event.  Such a lane takes steps with ω_max·h at
+# most JOINT_OMEGA_RATE·h (0.18 at the default step of 1e-4 s), ω_max the fastest torsional mode
+# with the joint locked or open; step halving then meets rig.md's bound over the prior (see
+# tests/test_physics.py).  The factor depends on the lane's own parameters only, so halving the
+# step halves it on every lane.
+JOINT_OMEGA_RATE = 1800.0  # rad/s
+
+
+def _fastest_torsional_mode(inertias: np.ndarray, stiffnesses: np.ndarray) -> np.ndarray:
+    """ω_max [rad/s] of free torsional chains, one per row: inertias (n, m), stiffnesses (n, m - 1)."""
+    n, m = inertias.shape
+    stiffness = np.zeros((n, m, m))
+    for i in range(m - 1):
+        k = stiffnesses[:, i]
+        stiffness[:, i, i] += k
+        stiffness[:, i + 1, i + 1] += k
+        stiffness[:, i, i + 1] -= k
+        stiffness[:, i + 1, i] -= k
+    scale = 1.0 / np.sqrt(inertias)
+    return np.sqrt(np.linalg.eigvalsh(scale[:, :, None] * stiffness * scale[:, None, :])[:, -1].clip(0.0))
+
+
+def joint_refinement(params: np.ndarray, active: dict[str, type[effects.Effect]] | None = None) -> np.ndarray:
+    """RK4 steps per step of each row of ``params``: 1, or ceil(ω_max / JOINT_OMEGA_RATE) where an
+    effect on the slip joint is present."""
+    active = dict(active if active is not None else effects.active())
+    index = model.slot_index()
+    joint = np.zeros(params.shape[0], dtype=bool)
+    for kind, effect in active.items():
+        if effect.acts_on == "slip_joint":
+            joint |= params[:, index[model.effect_slot(kind)]] != 0.0
+    refinement = np.ones(params.shape[0], dtype=np.int64)
+    if joint.any():
+        p = {name: params[joint, index[name]] for name in ("J1", "J2a", "J2b", "J3", "J4", "kT1", "kT2", "kT3")}
+        fastest = np.maximum.reduce([
+            _fastest_torsional_mode(np.stack([p["J1"], p["J2a"] + p["J2b"], p["J3"], p["J4"]], 1), np.stack([p["kT1"], p["kT2"], p["kT3"]], 1)),
+            _fastest_torsional_mode(np.stack([p["J1"], p["J2a"]], 1), p["kT1"][:, None]),
+            _fastest_torsional_mode(np.stack([p["J2b"], p["J3"], p["J4"]], 1), np.stack([p["kT2"], p["kT3"]], 1)),
+        ])
+        refinement[joint] = np.maximum(1, np.ceil(fastest / JOINT_OMEGA_RATE)).astype(np.int64)
+    return refinement
+
+
+def _ceil_div(a: int, b: int) -> int:
+    return -(-a // b)
+
+
+def blocks(refinement: np.ndarray, n_threads: int, lanes: int, vector: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Group simulations into blocks of lanes: (order, starts, counts), block b being the rows
+    order[starts[b] : starts[b] + counts[b]].  A block's lanes share their step, so each holds rows of
+    one refinement; within one, blocks of at most ``lanes`` rows, at least as many as threads while each
+    keeps ``vector`` lanes (a narrower block costs as much as one of ``vector`` lanes), of equal width
+    rounded up to ``vector``."""
+    order = np.argsort(refinement, kind="stable")
+    starts, counts = [], []
+    for first, n in zip(*np.unique(refinement[order], return_index=True, return_counts=True)[1:]):
+        n_blocks = max(_ceil_div(n, lanes), min(n_threads, _ceil_div(n, vector)))
+        width = min(lanes, _ceil_div(_ceil_div(n, n_blocks), vector) * vector)
+        starts += range(first, first + n, width)
+        counts += [min(width, first + n - s) for s in range(first, first + n, width)]
+    return order, np.array(starts, dtype=np.int64), np.array(counts, dtype=np.int64)
+
+
 def simulate_batch(params: np.ndarray, t_first, fs, n_samples, substeps, codes) -> np.ndarray:
     """Simulate each row of ``params`` (n, len(model.slot_names())); returns (n, len(codes), n_samples).
 
     Samples lie at t_first + k/fs; the model starts from the rig.md initial state at t = 0.  Each
-    sample interval takes ``substeps`` RK4 steps; the warm-up up to t_first takes steps of the same
-    length or less.
+    sample interval takes ``substeps`` RK4 steps (times the row's :func:`joint_refinement`); the
+    warm-up up to t_first takes steps of the same length or less.
     """
+    kernel = module()
+    refinement = joint_refinement(params)
     # The thread count is read here: inside a compiled function it would make it uncacheable.
-    return module()._simulate_batch(params, t_first, fs, n_samples, substeps, codes, get_num_threads())
+    order, starts, counts = blocks(refinement, get_num_threads(), kernel.LANES, kernel.VECTOR)
+    per_block = substeps * refinement[order[starts]]
+    return kernel._simulate_batch(params, order, starts, counts, per_block, t_first, fs, n_samples, codes)

@@ -21,7 +21,7 @@ from typing import Mapping, Sequence
 from .base import PLACES, Effect, Kinematics, Parameter, RigValues, kernel_function, sincos
 
 __all__ = ["Effect", "EffectError", "Kinematics", "Parameter", "PLACES", "RigValues", "active", "builtin",
-           "kernel_function", "load_file", "sincos", "use", "USER_FOLDER"]
+           "kernel_function", "load_file", "loaded", "sincos", "use", "USER_FOLDER"]
 
 LIBRARY = Path(__file__).resolve().parent / "library"
 #: Where a study's own effects live, relative to the directory Snakemake runs in.
@@ -60,8 +60,9 @@ def load_file(path: str | Path) -> type[Effect]:
     key = str(path.resolve())
     if key in _LOADED and _LOADED[key][0] == stamp:
         return _LOADED[key][1]
+    content = path.read_bytes()
     try:
-        compile(path.read_text(encoding="utf-8"), str(path), "exec")
+        compile(content.decode("utf-8"), str(path), "exec")
     except SyntaxError as error:
         raise EffectError(path, f"syntax error on line {error.lineno}: {error.msg}") from None
     name = _module_name(path)
@@ -85,10 +86,20 @@ def load_file(path: str | Path) -> type[Effect]:
         raise EffectError(path, f"must declare exactly one subclass of newdyn.effects.Effect (found {len(declared)})")
     effect = declared[0]
     effect.source = key
+    effect.content_hash = hashlib.sha256(content).hexdigest()
     for problem in problems(effect, path.stem):
         raise EffectError(path, problem)
     _LOADED[key] = (stamp, effect)
     return effect
+
+
+def loaded(content_hash: str) -> type[Effect]:
+    """The loaded effect whose file had the content hash ``content_hash``.  Compiled kernels bind their
+    effects this way, not by path, so a copy of a file elsewhere (another study) shares their machine code."""
+    for _, effect in _LOADED.values():
+        if effect.content_hash == content_hash:
+            return effect
+    raise LookupError(f"no loaded effect file has content hash {content_hash}")
 
 
 def builtin() -> dict[str, type[Effect]]:

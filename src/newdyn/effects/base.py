@@ -171,6 +171,7 @@ class Effect:
     mode_name: ClassVar[str | None] = None  # the mode variable's name in outputs; None: no switching
     locks_joint: ClassVar[bool] = False  # slip_joint only: the joint is locked while the mode is 0
     source: ClassVar[str] = ""  # the file it was read from (set by the registry)
+    content_hash: ClassVar[str] = ""  # SHA-256 of that file's content (set by the registry)
 
     force: ClassVar[Callable]
     event: ClassVar[Callable | None] = None

@@ -25,13 +25,13 @@ class StickSlip(Effect):
     # "residual": the reduced-χ² excess the best drift of kT1, kT2, kT3 or k_bx leaves): the healthy
     # joint torque peaks at 2109 N·m (1.307 T0), so every draw slips at each load peak.  Hardest corner
     # T_max 2070, r_k 1: w1 off healthy by 1.9-2.1 σ RMS, residual 1.8-2.2 (1.2 with kT2 + beta drifting
-    # together); the effect collapses to 0.3-0.6 at 2090 N·m, so the range stops short of it.  Easiest
-    # corner (1850, 0.9): w1 off by ~170 σ.
+    # together); the effect collapses to 0.3-0.6 at 2090 N·m, so the range stops short of it.  r_k is
+    # drawn over its whole prior; the stall rule (r_k·T_max > T0) keeps 0.78-1.0 of it.
     parameters = (
         Parameter("T_max", "N·m", "static friction torque limit", default=lambda rig: 1.15 * rig["T0"],
                   prior=(1650.0, 2500.0), hidden=(1850.0, 2070.0)),
         Parameter("r_k", "-", "kinetic/static friction ratio", default=1.0, upper=1.0, upper_inclusive=True,
-                  prior=(0.6, 1.0), hidden=(0.9, 1.0)),
+                  prior=(0.6, 1.0)),
         Parameter("J2a_share", "-", "where the joint splits the motor-side inertia: J2a / (J2a + J2b)",
                   default=lambda rig: rig["J2a"] / (rig["J2a"] + rig["J2b"]), upper=1.0,
                   prior=(0.1, 0.9), hidden=(0.2, 0.5), sets_rig=True),
