@@ -339,14 +339,13 @@ def diagnostics(active: dict[str, type[effects.Effect]] | None = None) -> tuple[
 OUT_STATE = 100
 
 
-# A rig whose slip joint can open needs finer steps than the healthy rig: an open joint frees the
-# light bodies 2a and 2b (J2a alone on the motor shaft vibrates at ~1.2 kHz), and every slip onset
-# (a torque drop when r_k < 1) and re-stick (a velocity jump) kicks the chain's fastest torsional
-# modes, whose RK4 phase error then moves the next event.  Such a lane takes steps with ω_max·h at
-# most JOINT_OMEGA_RATE·h (0.18 at the default step of 1e-4 s), ω_max the fastest torsional mode
-# with the joint locked or open; step halving then meets rig.md's bound over the prior (see
-# tests/test_physics.py).  The factor depends on the lane's own parameters only, so halving the
-# step halves it on every lane.
+# A rig whose slip joint opens needs finer steps than the healthy rig: an open joint frees the light
+# bodies 2a and 2b (J2a alone on the motor shaft vibrates at ~1.2 kHz), and every slip onset (a torque
+# drop when r_k < 1) and re-stick kicks the chain's fastest torsional modes, whose RK4 phase error then
+# moves the next event.  Such a lane takes steps with ω_max·h at most JOINT_OMEGA_RATE·h (0.18 at the
+# default step of 1e-4 s), ω_max the fastest torsional mode with the joint locked or open; step halving
+# then meets rig.md's bound over the prior (see tests/test_physics.py).  The factor depends on the
+# lane's own parameters only, so halving the step halves it on every lane.
 JOINT_OMEGA_RATE = 1800.0  # rad/s
 
 
@@ -364,17 +363,24 @@ def _fastest_torsional_mode(inertias: np.ndarray, stiffnesses: np.ndarray) -> np
     return np.sqrt(np.linalg.eigvalsh(scale[:, :, None] * stiffness * scale[:, None, :])[:, -1].clip(0.0))
 
 
-def joint_refinement(params: np.ndarray, active: dict[str, type[effects.Effect]] | None = None) -> np.ndarray:
-    """RK4 steps per step of each row of ``params``: 1, or ceil(ω_max / JOINT_OMEGA_RATE) where an
-    effect on the slip joint is present."""
-    active = dict(active if active is not None else effects.active())
+def _on_the_joint(params: np.ndarray, active: dict[str, type[effects.Effect]], locking: bool) -> np.ndarray:
+    """Rows with a present effect on the slip joint that locks it (``locking``) or holds it open."""
     index = model.slot_index()
-    joint = np.zeros(params.shape[0], dtype=bool)
+    rows = np.zeros(params.shape[0], dtype=bool)
     for kind, effect in active.items():
-        if effect.acts_on == "slip_joint":
-            joint |= params[:, index[model.effect_slot(kind)]] != 0.0
+        if effect.acts_on == "slip_joint" and bool(effect.locks_joint) == locking:
+            rows |= params[:, index[model.effect_slot(kind)]] != 0.0
+    return rows
+
+
+def joint_refinement(params: np.ndarray, active: dict[str, type[effects.Effect]] | None = None) -> np.ndarray:
+    """RK4 steps per step of each row of ``params`` once its slip joint opens: 1, or
+    ceil(ω_max / JOINT_OMEGA_RATE) where an effect on the slip joint is present."""
+    active = dict(active if active is not None else effects.active())
+    joint = _on_the_joint(params, active, True) | _on_the_joint(params, active, False)
     refinement = np.ones(params.shape[0], dtype=np.int64)
     if joint.any():
+        index = model.slot_index()
         p = {name: params[joint, index[name]] for name in ("J1", "J2a", "J2b", "J3", "J4", "kT1", "kT2", "kT3")}
         fastest = np.maximum.reduce([
             _fastest_torsional_mode(np.stack([p["J1"], p["J2a"] + p["J2b"], p["J3"], p["J4"]], 1), np.stack([p["kT1"], p["kT2"], p["kT3"]], 1)),
@@ -405,16 +411,30 @@ def blocks(refinement: np.ndarray, n_threads: int, lanes: int, vector: int) -> t
     return order, np.array(starts, dtype=np.int64), np.array(counts, dtype=np.int64)
 
 
-def simulate_batch(params: np.ndarray, t_first, fs, n_samples, substeps, codes) -> np.ndarray:
-    """Simulate each row of ``params`` (n, len(model.slot_names())); returns (n, len(codes), n_samples).
-
-    Samples lie at t_first + k/fs; the model starts from the rig.md initial state at t = 0.  Each
-    sample interval takes ``substeps`` RK4 steps (times the row's :func:`joint_refinement`); the
-    warm-up up to t_first takes steps of the same length or less.
-    """
-    kernel = module()
-    refinement = joint_refinement(params)
+def _run(kernel: ModuleType, params: np.ndarray, refinement: np.ndarray, t_first, fs, n_samples, substeps, codes) -> np.ndarray:
     # The thread count is read here: inside a compiled function it would make it uncacheable.
     order, starts, counts = blocks(refinement, get_num_threads(), kernel.LANES, kernel.VECTOR)
     per_block = substeps * refinement[order[starts]]
     return kernel._simulate_batch(params, order, starts, counts, per_block, t_first, fs, n_samples, codes)
+
+
+def simulate_batch(params: np.ndarray, t_first, fs, n_samples, substeps, codes) -> np.ndarray:
+    """Simulate each row of ``params`` (n, len(model.slot_names())); returns (n, len(codes), n_samples).
+
+    Samples lie at t_first + k/fs; the model starts from the rig.md initial state at t = 0.  Each
+    sample interval takes ``substeps`` RK4 steps, times the row's :func:`joint_refinement` if its slip
+    joint opens; the warm-up up to t_first takes steps of the same length or less.
+    """
+    kernel = module()
+    active = dict(effects.active())
+    refinement = joint_refinement(params, active)
+    # A joint that its effect keeps locked throughout leaves the rig as smooth as the healthy one, so
+    # rows that may open it run first at the plain step, and only those whose joint opened run again.
+    first = np.where(_on_the_joint(params, active, False), refinement, 1)
+    opened = [output_code(f"{kind}.onsets", active) for kind, effect in active.items() if effect.locks_joint]
+    out = _run(kernel, params, first, t_first, fs, n_samples, substeps, np.concatenate([codes, np.array(opened, dtype=np.int64)]))
+    again = (first < refinement) & (out[:, len(codes):, -1] > 0.0).any(axis=1)
+    out = np.ascontiguousarray(out[:, : len(codes)])
+    if again.any():
+        out[again] = _run(kernel, np.ascontiguousarray(params[again]), refinement[again], t_first, fs, n_samples, substeps, codes)
+    return out
