@@ -23,7 +23,7 @@ State layout (42): positions θ1 θ2a θ2b θ3 θ4, x[8], y[8] (nodes b1 m1 b2 m
 the same velocities.  θ2a/θ2b move as one body J2a + J2b while stuck.
 """
 
-# ruff: noqa: F821 - the layout (_I, N_PAR, N_SWITCHING, SWITCHING_ON) and the effect code (_forces,
+# ruff: noqa: F821 - the layout (_I, N_PAR, N_SWITCHING, SWITCHING_ON, OUT_*) and the effect code (_forces,
 # _event_value, _switch_effect) are generated into the rendered module by newdyn.kernels.
 import math
 from collections import namedtuple  # noqa: F401 - the generated effect parameters
@@ -53,13 +53,7 @@ SPEED, T0, LOAD_AMP, LOAD_FREQ, LOAD_HARM = _I["speed_rpm"], _I["T0"], _I["load_
 NQ = 21  # positions
 NY = 42  # state
 
-# Output codes: 0..10 are model.CHANNELS in order; then the slip joint's locked torque; then per
-# switching effect j its mode (OUT_MODES + j) and its number of onsets (switches out of mode 0,
-# OUT_MODES + N_SWITCHING + j); STATE + i is state component i.
-OUT_TORQUE_C = 10
-OUT_JOINT_TORQUE = 11  # the torque the slip joint carries while locked (the T_f of Eq. 3b)
-OUT_MODES = 12
-OUT_STATE = 100
+# Output codes (OUT_TORQUE_C, OUT_JOINT_TORQUE, OUT_MODES, OUT_STATE) are in the layout: see newdyn.kernels.
 
 # Lanes per block: four AVX2 vectors of doubles.  Fewer lanes share the per-step scalar work (the
 # load torque) among fewer simulations; 32 lanes no longer fit the work array in L1 (measured slower).

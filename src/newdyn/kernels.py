@@ -30,6 +30,14 @@ from . import effects, model
 
 TEMPLATE = Path(__file__).with_name("kernel_template.py")
 
+# Output codes: 0 .. OUT_TORQUE_C are model.CHANNELS in order; then the slip joint's locked torque
+# (the T_f of Eq. 3b); then per switching effect j its mode (OUT_MODES + j) and its number of onsets
+# (switches out of mode 0, OUT_MODES + N_SWITCHING + j); OUT_STATE + i is state component i.
+OUT_TORQUE_C = model.CHANNELS.index("torque_c")
+OUT_JOINT_TORQUE = OUT_TORQUE_C + 1
+OUT_MODES = OUT_JOINT_TORQUE + 1
+OUT_STATE = 100
+
 # Where each torsional place's coordinate is in the state (position offsets a, b: x = q[a] − q[b];
 # b None: x = q[a]) and which element torque its force is added to, with which sign.
 _TORSIONAL = {
@@ -113,6 +121,7 @@ def render(active: dict[str, type[effects.Effect]]) -> str:
         f"N_SWITCHING = {len(switching)}",
         f"SWITCHING_ON = np.array({[index[model.effect_slot(kind)] for kind in switching]!r}, dtype=np.int64)",
         f"DENSE_ROWS = np.array({dense_rows(active)!r}, dtype=np.int64)",
+        f"OUT_TORQUE_C, OUT_JOINT_TORQUE, OUT_MODES, OUT_STATE = {OUT_TORQUE_C}, {OUT_JOINT_TORQUE}, {OUT_MODES}, {OUT_STATE}",
     ]
     for i, (kind, effect) in enumerate(active.items()):
         names = tuple(p.name for p in effect.kernel_parameters()) or ("unused",)
@@ -320,12 +329,12 @@ def output_code(name: str, active: dict[str, type[effects.Effect]] | None = None
     active = dict(active if active is not None else effects.active())
     switching = [(kind, e) for kind, e in active.items() if e.switching()]
     if name == "joint_torque":
-        return 11
+        return OUT_JOINT_TORQUE
     for j, (kind, effect) in enumerate(switching):
         if name == f"{kind}.{effect.mode_name}":
-            return 12 + j
+            return OUT_MODES + j
         if name == f"{kind}.onsets":
-            return 12 + len(switching) + j
+            return OUT_MODES + len(switching) + j
     return None
 
 
@@ -335,8 +344,6 @@ def diagnostics(active: dict[str, type[effects.Effect]] | None = None) -> tuple[
     switching = [(kind, e) for kind, e in active.items() if e.switching()]
     return ("joint_torque", *[f"{k}.{e.mode_name}" for k, e in switching], *[f"{k}.onsets" for k, _ in switching])
 
-
-OUT_STATE = 100
 
 
 # A rig whose slip joint opens needs finer steps than the healthy rig: an open joint frees the light
