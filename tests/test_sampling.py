@@ -4,6 +4,7 @@ import json
 import logging
 
 import arviz as az
+import emcee
 import numpy as np
 import pytest
 import xarray as xr
@@ -251,3 +252,20 @@ def test_every_move_samples_the_same_posterior():
         settings = sampling.MCMCSettings(n_walkers=16, n_steps=1500, n_burn=100, seed=4, move=move)
         draws = sampling.run(log_like, flat, ["x"], initial, settings).posterior["x"].values.ravel()
         assert abs(draws.mean() - 1.0) < 0.05 and abs(draws.std() - 0.5) < 0.05, move
+
+
+
+def test_kde_move_proposes_where_the_walkers_span_fewer_dimensions_than_the_posterior():
+    """Walkers that have collapsed onto a line (a posterior far narrower across it than along it): a
+    Gaussian KDE of them has no density and scipy raises; the move proposes by differential evolution
+    there, along the line, instead of ending the run."""
+    rng = np.random.default_rng(1)
+    walkers = np.column_stack([rng.normal(size=8), np.zeros(8)])
+    others = [np.column_stack([rng.normal(size=8), np.zeros(8)])]
+    with pytest.raises(np.linalg.LinAlgError):
+        emcee.moves.KDEMove().get_proposal(walkers, others, np.random.RandomState(0))
+    move = sampling.KDEMove()
+    move.setup(np.concatenate([walkers, *others]))
+    proposal, log_factors = move.get_proposal(walkers, others, np.random.RandomState(0))
+    assert np.all(np.isfinite(proposal)) and np.all(log_factors == 0.0)
+    assert np.all(proposal[:, 1] == 0.0) and not np.allclose(proposal[:, 0], walkers[:, 0])

@@ -32,7 +32,30 @@ from .io import atomic_write
 __all__ = ["MCMCSettings", "run", "diagnostics", "save", "load"]
 
 BatchFn = Callable[[np.ndarray], np.ndarray]  # theta (n, ndim) -> (n,)
-MOVES = {"kde": emcee.moves.KDEMove, "stretch": emcee.moves.StretchMove, "de": emcee.moves.DEMove}
+
+
+class KDEMove(emcee.moves.KDEMove):
+    """emcee's KDE move, with a differential-evolution proposal for the steps where the complementary
+    walkers span fewer dimensions than the posterior has (a posterior far narrower in one direction
+    than in the others, such as stick-slip's near its chaotic region): a Gaussian KDE has no density
+    there and scipy raises."""
+
+    def __init__(self, **kwargs):
+        super().__init__(**kwargs)
+        self._flat = emcee.moves.DEMove()
+
+    def setup(self, coords):
+        super().setup(coords)
+        self._flat.setup(coords)
+
+    def get_proposal(self, s, c, random):
+        try:
+            return super().get_proposal(s, c, random)
+        except np.linalg.LinAlgError:
+            return self._flat.get_proposal(s, c, random)
+
+
+MOVES = {"kde": KDEMove, "stretch": emcee.moves.StretchMove, "de": emcee.moves.DEMove}
 
 # Attribute keys that run() and diagnostics() write; a caller's ``attrs`` may not use them.
 DIAGNOSTIC_KEYS = ("rhat", "ess_bulk", "ess_tail", "acceptance", "tau", "n_draws", "converged", "reason")
