@@ -14,8 +14,8 @@ import numpy as np
 
 from . import kernels, model
 
-# Longest RK4 step [s]. At 1e-4 s the step-halving error is ~2e-7 (healthy) and ~2e-5 (stick-slip)
-# relative RMS, inside rig.md's 1e-6 and 1e-4; see tests/test_physics.py.
+# Longest RK4 step [s]: step halving stays within rig.md's bounds at it (tests/test_physics.py); a rig
+# whose slip joint opens steps finer (kernels.joint_refinement).
 DEFAULT_MAX_STEP = 1.0e-4
 
 _POSITIONS = ("theta1", "theta2a", "theta2b", "theta3", "theta4") + tuple(
