@@ -1,4 +1,4 @@
-"""Speed of diagnosing one measurement (issue #4 goal: <= 3 minutes on 2 cores), against that goal, for
+"""Speed of diagnosing one measurement (goal: <= 3 minutes on 2 cores), against that goal, for
 a measurement of each kind: healthy, a parameter change, new dynamics, and new dynamics without a
 noise level in the file (σ from the noise floor).
 

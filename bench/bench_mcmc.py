@@ -1,4 +1,4 @@
-"""Speed of a 1-parameter MCMC calibration on the real simulator (issue #3 goal: ESS >= 1000 in <= 30 s
+"""Speed of a 1-parameter MCMC calibration on the real simulator (goal: ESS >= 1000 in <= 30 s
 on one core), for each emcee move.
 
 Run: python bench/bench_mcmc.py

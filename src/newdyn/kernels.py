@@ -438,9 +438,11 @@ def simulate_batch(params: np.ndarray, t_first, fs, n_samples, substeps, codes) 
     # A joint that its effect keeps locked throughout leaves the rig as smooth as the healthy one, so
     # rows that may open it run first at the plain step, and only those whose joint opened run again.
     first = np.where(_on_the_joint(params, active, False), refinement, 1)
-    opened = [output_code(f"{kind}.onsets", active) for kind, effect in active.items() if effect.locks_joint]
+    deferred = first < refinement
+    # their onset counts are recorded only when some row needs them
+    opened = [output_code(f"{kind}.onsets", active) for kind, effect in active.items() if effect.locks_joint] if deferred.any() else []
     out = _run(kernel, params, first, t_first, fs, n_samples, substeps, np.concatenate([codes, np.array(opened, dtype=np.int64)]))
-    again = (first < refinement) & (out[:, len(codes):, -1] > 0.0).any(axis=1)
+    again = deferred & (out[:, len(codes):, -1] > 0.0).any(axis=1)
     out = np.ascontiguousarray(out[:, : len(codes)])
     if again.any():
         out[again] = _run(kernel, np.ascontiguousarray(params[again]), refinement[again], t_first, fs, n_samples, substeps, codes)
