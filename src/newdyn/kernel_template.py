@@ -223,21 +223,15 @@ def _load_torque(t, w, lane):
 
 # --- RK4 over the lanes of a block ------------------------------------------------------------------
 @njit(**_JIT)
-def _accelerations_at_stage(w, n_lanes, t):
+def _accelerations(w, n_lanes, t):
     """Rows R_ACC ← the RHS at the stage state rows R_STAGE, for lanes 0..n_lanes-1 (vectorized).
 
-    Stages 2-4 share this one compiled loop: a copy per stage would no longer fit the CPU's
-    micro-op cache (measured slower).
+    The four stages share this one compiled loop (the first copies the step's start into R_STAGE): a
+    copy per stage would no longer fit the CPU's micro-op cache (measured slower), and each copy
+    inlines the whole right-hand side, which is most of the kernel's compile time.
     """
     for lane in range(n_lanes):
         _rhs(w, lane, R_STAGE, R_ACC, t)
-
-
-@njit(**_JIT)
-def _accelerations_at_start(w, n_lanes, t):
-    """Rows R_ACC ← the RHS at the step start (rows R_Y); saves stage 1 a copy of the state."""
-    for lane in range(n_lanes):
-        _rhs(w, lane, R_Y, R_ACC, t)
 
 
 @njit(**_JIT)
@@ -271,7 +265,10 @@ def _rk4(w, t, h, n_lanes, in_place):
     """
     half = 0.5 * h
     _set_load_torques(w, t, n_lanes)
-    _accelerations_at_start(w, n_lanes, t)
+    for i in range(NY):  # stage 1 at y, copied so that every stage runs the one compiled _accelerations
+        for lane in range(n_lanes):
+            w[_at(R_STAGE + i, lane)] = w[_at(R_Y + i, lane)]
+    _accelerations(w, n_lanes, t)
     for i in range(NQ):  # k1 = (y', a1); stage 2 at y + h/2 k1
         for lane in range(n_lanes):
             a = w[_at(R_ACC + i, lane)]
@@ -279,7 +276,7 @@ def _rk4(w, t, h, n_lanes, in_place):
             w[_at(R_STAGE + i, lane)] = w[_at(R_Y + i, lane)] + half * w[_at(R_Y + NQ + i, lane)]
             w[_at(R_STAGE + NQ + i, lane)] = w[_at(R_Y + NQ + i, lane)] + half * a
     _set_load_torques(w, t + 0.5 * h, n_lanes)
-    _accelerations_at_stage(w, n_lanes, t + 0.5 * h)
+    _accelerations(w, n_lanes, t + 0.5 * h)
     for i in range(NQ):  # k2 = (stage-2 velocity, a2); stage 3 at y + h/2 k2
         for lane in range(n_lanes):
             v = w[_at(R_STAGE + NQ + i, lane)]
@@ -287,7 +284,7 @@ def _rk4(w, t, h, n_lanes, in_place):
             w[_at(R_K23 + NQ + i, lane)] = a
             w[_at(R_STAGE + i, lane)] = w[_at(R_Y + i, lane)] + half * v
             w[_at(R_STAGE + NQ + i, lane)] = w[_at(R_Y + NQ + i, lane)] + half * a
-    _accelerations_at_stage(w, n_lanes, t + 0.5 * h)
+    _accelerations(w, n_lanes, t + 0.5 * h)
     for i in range(NQ):  # k2 + k3, the stage-2 velocity recomputed; stage 4 at y + h k3
         for lane in range(n_lanes):
             v = w[_at(R_STAGE + NQ + i, lane)]
@@ -298,7 +295,7 @@ def _rk4(w, t, h, n_lanes, in_place):
             w[_at(R_STAGE + i, lane)] = w[_at(R_Y + i, lane)] + h * v
             w[_at(R_STAGE + NQ + i, lane)] = w[_at(R_Y + NQ + i, lane)] + h * a
     _set_load_torques(w, t + h, n_lanes)
-    _accelerations_at_stage(w, n_lanes, t + h)
+    _accelerations(w, n_lanes, t + h)
     if in_place:  # two inlined copies, so that each loop has constant rows
         _finish_step(w, h, n_lanes, R_Y)
     else:
@@ -410,37 +407,40 @@ def _advance_alone(w, t, h):
     The event path, for a lane whose plain step crosses an event: Illinois regula falsi on the step
     fraction, a stop just past the event, the mode switch, and on with the rest of the step.
     """
+    # Lane 0 of one, as run-time values: literals would make numba compile the callees (the RK4 stages
+    # with the whole right-hand side inlined, the switches) a second time, for those literals.
+    lanes, lane = np.int64(1), np.int64(0)
     t_end = t + h
     while True:
         step = t_end - t
         if step <= 0.0:
             return
         t_next = t_end
-        _rk4(w, t, step, 1, False)
-        _events(w, R_TRIAL, 1, t_next)
+        _rk4(w, t, step, lanes, False)
+        _events(w, R_TRIAL, lanes, t_next)
         hi = 1.0
         if w[_at(R_G, 0)] <= 0.0 and w[_at(R_G, 0)] > -math.inf:
             hi = _first_interior_event(w, 0, t, step)
             if hi < 1.0:  # bracket the event on the RK4 step that ends there
-                _rk4(w, t, hi * step, 1, False)
-                _events(w, R_TRIAL, 1, t + hi * step)
+                _rk4(w, t, hi * step, lanes, False)
+                _events(w, R_TRIAL, lanes, t + hi * step)
         g_end, which = w[_at(R_G, 0)], w[_at(R_WHICH, 0)]
         if g_end <= 0.0:
             if hi < 1.0:  # the interpolant saw an event that the step to there does not reach
-                _rk4(w, t, step, 1, False)
+                _rk4(w, t, step, lanes, False)
             _copy_lane_rows(w, 0, w, 0, R_TRIAL, R_Y, NY)
             t = t_next
             continue
         # g(0) < 0 because we start inside the mode.
-        _events(w, R_Y, 1, t)
+        _events(w, R_Y, lanes, t)
         g0 = min(w[_at(R_G, 0)], 0.0)
         lo, g_lo, g_hi, side = 0.0, g0, g_end, 0
         for _ in range(60):
             frac = (lo * g_hi - hi * g_lo) / (g_hi - g_lo) if g_hi != g_lo else 0.5 * (lo + hi)
             if not lo < frac < hi:
                 frac = 0.5 * (lo + hi)
-            _rk4(w, t, frac * step, 1, False)
-            _events(w, R_TRIAL, 1, t + frac * step)
+            _rk4(w, t, frac * step, lanes, False)
+            _events(w, R_TRIAL, lanes, t + frac * step)
             g = w[_at(R_G, 0)]
             if g > 0.0:
                 hi, g_hi = frac, g
@@ -457,10 +457,10 @@ def _advance_alone(w, t, h):
             if g_hi < 1e-13 or (hi - lo) * step < 1e-13:
                 break
         # Stop just on the far side of the event so the new mode starts at its own boundary.
-        _rk4(w, t, hi * step, 1, False)
+        _rk4(w, t, hi * step, lanes, False)
         _copy_lane_rows(w, 0, w, 0, R_TRIAL, R_Y, NY)
         t = t + hi * step
-        _switch(w, 0, which, t)
+        _switch(w, lane, which, t)
 
 
 @njit(**_JIT)
