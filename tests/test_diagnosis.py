@@ -178,6 +178,21 @@ def test_a_fault_fit_recovers_the_truth_and_reports_the_values_the_model_ran_wit
     assert ran == pytest.approx({"T_max": 1700.0, "r_k": stalled[index["stick_slip.r_k"]], "J2a_share": 0.3, "kT1": 3e6})
 
 
+def test_a_stick_slip_fit_over_several_load_cycles_reaches_the_misfit_of_the_truth():
+    """Kinetic friction below static and a split off its default, over 0.4 s (five load cycles): the
+    search on the first 0.05 s and least squares on windows doubling from there end where the truth is."""
+    record = model.Sampling(fs=5000.0, t_first=0.3, n_samples=2000)
+    assert hypotheses.fit_windows(record) == [250, 500, 1000, 2000]
+    truth = {"T_max": 2024.0, "r_k": 0.90, "J2a_share": 0.46}
+    clean = simulation.simulate(fault("stick_slip", **truth), record, CHANNELS[:2])
+    y, sigma = noise.add_noise(clean, CHANNELS[:2], 40.0, 5)
+    stick = next(h for h in SETTINGS.hypotheses() if h.name == "stick_slip")
+    fit = hypotheses.fit(stick, y, sigma, model.complete({}), record, CHANNELS[:2])
+    at_truth = hypotheses.fit(stick, y, sigma, model.complete({}), record, CHANNELS[:2], [{**truth, "kT1": 3e6}], search=False)
+    assert fit.chi2_red < at_truth.chi2_red + 0.05 < 1.1
+    assert fit.values["T_max"] * fit.values["r_k"] == pytest.approx(2024.0 * 0.90, rel=0.005)
+
+
 def test_a_parameter_the_data_ignore_costs_at_most_a_nat_of_evidence():
     """Its uniform prior keeps its width in the Laplace approximation: no spurious Occam factor."""
     m = measurement("healthy", {}, seed=3)

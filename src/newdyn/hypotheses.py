@@ -11,7 +11,7 @@ different numbers of parameters compare on one scale (the Occam factor is in the
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Mapping, Sequence
 
 import numpy as np
@@ -23,12 +23,25 @@ HEALTHY = "healthy"
 PARAMETER_CHANGE = faults.PARAMETER_CHANGE
 UNIFORM_UNIT_VARIANCE = 1.0 / 12.0  # variance of a uniform prior in unit coordinates
 FIT_MAX_EVALUATIONS = 60
+# Finite-difference steps of the least squares' Jacobian, in prior-box units, used one after the
+# other on each window: the coarse step sees the broad valley of a switching effect's misfit (a fine
+# one is led off by its ripples), the fine one the narrow trough at the valley's floor, which the
+# coarse step straddles; both far above the simulator's rounding.
+JACOBIAN_STEPS = (1e-3, 1e-5)
 # Global search before least squares: differential evolution over the prior box, each generation one
 # batched simulation.  Measured on stick-slip (4 parameters, 0.1 s at 40 dB, three truths): 40
 # generations of 16·k members land every time in the basin of the truth, where 512 quasi-random
 # points with 4-16 least-squares starts stay in a wrong one (χ² 1.54 against 1.08 at the truth).
 SEARCH_GENERATIONS = 40
 SEARCH_POPULATION = 16  # members per fitted parameter
+# The searches see only the record's start: its first SEARCH_WINDOW seconds (most of a load cycle) and
+# its first 2·SEARCH_WINDOW; least squares then follows each one's optimum through windows that double
+# up to the whole record.  Over a long record a switching effect's misfit is a golf course (plateaus,
+# one per slip pattern, and a needle at the truth) that no search of this size crosses; over part of a
+# cycle the truth's basin is wide enough to be found, though not always on the same window, and a
+# longer window only narrows it around where the shorter one left off (README: Diagnosis).
+SEARCH_WINDOW = 0.05
+SEARCHES = 2  # on the first this many windows
 
 
 @dataclass(frozen=True)
@@ -178,6 +191,15 @@ def evaluate(hypothesis: Hypothesis, theta: np.ndarray, base: Mapping[str, float
     return simulation.simulate_batch(hypothesis.parameter_rows(np.atleast_2d(theta), base), sampling, channels, max_step)
 
 
+def fit_windows(sampling: model.Sampling) -> list[int]:
+    """Sample counts of the windows a fit goes through: the record's first :data:`SEARCH_WINDOW`
+    seconds, doubled until the whole record."""
+    counts = [min(sampling.n_samples, max(1, round(SEARCH_WINDOW * sampling.fs)))]
+    while counts[-1] < sampling.n_samples:
+        counts.append(min(2 * counts[-1], sampling.n_samples))
+    return counts
+
+
 def fit(
     hypothesis: Hypothesis,
     data: np.ndarray,
@@ -193,10 +215,11 @@ def fit(
     """Best fit of ``hypothesis`` by bounded least squares on the simulator (misfit standardized by
     ``sigma``, plus the Normal priors' terms), the best of several starts kept.
 
-    Starts: the given ``starts`` (missing names at their prior's mean or mid-range) and the best
-    ``SCREEN_STARTS`` of ``SCREEN_POINTS`` scrambled-Sobol points (``seed``) of the prior box (unless
-    ``screen`` is False), all simulated in one batch: stick-slip's misfit has many local minima in (T_max, r_k), and a
-    screened start lands in the right basin where a fixed one does not.
+    Starts: the given ``starts`` (missing names at their prior's mean or mid-range) and, unless
+    ``search`` is False, the best member of a differential evolution (``seed``) over the prior box on
+    each of the first :data:`SEARCHES` windows of :func:`fit_windows`.  Each start is fitted on its
+    window, then on the longer ones up to the whole record, each from the last one's optimum:
+    stick-slip's misfit has many local minima, and only a short window shows the truth's basin wide.
 
     Log-evidence by the Laplace approximation in unit coordinates u = (θ − low)/(high − low):
     log Z ≈ log L(u*) + log π(u*) + (k/2) log 2π − ½ log det H − (parameters at a bound)·log 2, with H the
@@ -207,10 +230,10 @@ def fit(
     k = len(hypothesis.priors)
     n_runs = 0
 
-    def simulate(theta):
+    def simulate(theta, window=sampling):
         nonlocal n_runs
         n_runs += len(theta)
-        return evaluate(hypothesis, theta, base, sampling, channels, max_step)
+        return evaluate(hypothesis, theta, base, window, channels, max_step)
 
     if k == 0:
         best = simulate(np.zeros((1, 0)))[0]
@@ -223,30 +246,38 @@ def fit(
     mean = np.array([p.mean if p.sd is not None else 0.0 for p in hypothesis.priors])
     sd = np.array([p.sd if p.sd is not None else 1.0 for p in hypothesis.priors])
 
-    def residuals(u):  # rows (m, k) -> (m, N·C + normal priors)
+    def residuals(u, n_samples):  # rows (m, k) -> (m, n_samples·C + normal priors), on the record's first n_samples
         theta = low + u * span
-        misfit = ((data - simulate(theta)) / sigma[:, None]).reshape(len(u), -1)
+        window = replace(sampling, n_samples=n_samples)
+        misfit = ((data[:, :n_samples] - simulate(theta, window)) / sigma[:, None]).reshape(len(u), -1)
         return np.concatenate([misfit, ((theta - mean) / sd)[:, normal]], axis=1)
 
-    def jacobian(u):  # one-sided differences pointing into the box, all in one batch
-        h = np.where(u + 1e-3 <= 1.0, 1e-3, -1e-3)
-        rows = residuals(np.vstack([u[None], u + np.diag(h)]))
+    def jacobian(u, n_samples, step):  # one-sided differences pointing into the box, all in one batch
+        h = np.where(u + step <= 1.0, step, -step)
+        rows = residuals(np.vstack([u[None], u + np.diag(h)]), n_samples)
         return ((rows[1:] - rows[0]) / h[:, None]).T
 
+    windows = fit_windows(sampling)
     given = [[start.get(p.name, p.mean if p.sd is not None else p.low + 0.5 * (p.high - p.low)) for p in hypothesis.priors]
              for start in starts]
-    u_starts = [(np.array(theta) - low) / span for theta in given]
+    u_starts = [((np.array(theta) - low) / span, 0) for theta in given]  # (start, index of its first window)
     if search:
-        evolved = optimize.differential_evolution(
-            lambda u: np.sum(residuals(np.atleast_2d(u.T)) ** 2, axis=1), [(0.0, 1.0)] * k, vectorized=True,
-            updating="deferred", popsize=SEARCH_POPULATION, maxiter=SEARCH_GENERATIONS, seed=seed, polish=False, tol=0.0,
-        )
-        u_starts.append(evolved.x)
+        for first, n_samples in enumerate(windows[:SEARCHES]):
+            evolved = optimize.differential_evolution(
+                lambda u, n: np.sum(residuals(np.atleast_2d(u.T), n) ** 2, axis=1), [(0.0, 1.0)] * k, args=(n_samples,),
+                vectorized=True, updating="deferred", popsize=SEARCH_POPULATION, maxiter=SEARCH_GENERATIONS, seed=seed,
+                polish=False, tol=0.0,
+            )
+            u_starts.append((evolved.x, first))
     best = None
-    for u0 in u_starts:
-        u0 = np.clip(u0, 1e-6, 1 - 1e-6)
-        result = optimize.least_squares(lambda u: residuals(u[None])[0], u0, jac=jacobian, bounds=(0.0, 1.0),
-                                        method="trf", x_scale="jac", max_nfev=FIT_MAX_EVALUATIONS)
+    for u0, first in u_starts:
+        for n_samples in windows[first:]:
+            for step in JACOBIAN_STEPS:
+                result = optimize.least_squares(
+                    lambda u, n, _: residuals(u[None], n)[0], np.clip(u0, 1e-6, 1 - 1e-6), jac=jacobian,
+                    args=(n_samples, step), bounds=(0.0, 1.0), method="trf", x_scale="jac", max_nfev=FIT_MAX_EVALUATIONS,
+                )
+                u0 = result.x
         if best is None or result.cost < best.cost:
             best = result
     u_star = best.x
