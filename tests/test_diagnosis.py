@@ -13,7 +13,7 @@ from newdyn.effects.library import stick_slip
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = yaml.safe_load((ROOT / ".test" / "config.yaml").read_text())
 SETTINGS = diagnosis.Settings.from_config(CONFIG)
-SAMPLING = model.Sampling(fs=5000.0, t_first=0.5, n_samples=500)
+SAMPLING = model.Sampling(fs=5000.0, t_first=0.25, n_samples=500)  # the CI config's window
 CHANNELS = ("b1_x", "w1", "torque_c")
 
 
