@@ -40,7 +40,7 @@ SEARCH_POPULATION = 16  # members per fitted parameter
 # one per slip pattern, and a needle at the truth) that no search of this size crosses; over part of a
 # cycle the truth's basin is wide enough to be found, though not always on the same window, and a
 # longer window only narrows it around where the shorter one left off (README: Diagnose your own measurement).
-SEARCH_WINDOW = 0.05
+SEARCH_WINDOW = 0.05  # s
 SEARCHES = 2  # on the first this many windows
 
 
