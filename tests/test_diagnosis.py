@@ -180,7 +180,8 @@ def test_a_fault_fit_recovers_the_truth_and_reports_the_values_the_model_ran_wit
 
 def test_a_stick_slip_fit_over_several_load_cycles_reaches_the_misfit_of_the_truth():
     """Kinetic friction below static and a split off its default, over 0.4 s (five load cycles): the
-    search on the first 0.05 s and least squares on windows doubling from there end where the truth is."""
+    searches on its first 0.05 s and 0.1 s and least squares on windows doubling from there end where
+    the truth is."""
     record = model.Sampling(fs=5000.0, t_first=0.3, n_samples=2000)
     assert hypotheses.fit_windows(record) == [250, 500, 1000, 2000]
     truth = {"T_max": 2024.0, "r_k": 0.90, "J2a_share": 0.46}
