@@ -254,7 +254,6 @@ def test_every_move_samples_the_same_posterior():
         assert abs(draws.mean() - 1.0) < 0.05 and abs(draws.std() - 0.5) < 0.05, move
 
 
-
 def test_kde_move_proposes_where_the_walkers_span_fewer_dimensions_than_the_posterior():
     """Walkers that have collapsed onto a line (a posterior far narrower across it than along it): a
     Gaussian KDE of them has no density and scipy raises; the move proposes by differential evolution

@@ -116,7 +116,7 @@ def test_summary_table_has_a_row_per_calibration_and_the_expected_verdicts(study
     assert mcmc and all(r["rhat"] and r["ess_bulk"] and r["converged"] in ("0", "1") for r in mcmc)
     # The built-in cross-check, for converged runs whose posterior lies inside the grid. Stick-slip
     # piles kT1 against the grid bound, where MCMC and grid differ slightly more (H ~ 0.07, sd 194
-    # vs 212; exact draws of the grid posterior score 0.02): an open item of issue #3.
+    # vs 212; exact draws of the grid posterior score 0.02), which is not explained yet.
     def inside(r):
         grid = config["calibration"]["parameters"][r["parameter"]]["grid"]
         return grid["low"] + 1e-3 * (grid["high"] - grid["low"]) < float(r["map"]) < grid["high"] - 1e-3 * (grid["high"] - grid["low"])
