@@ -269,15 +269,24 @@ def fit(
                 polish=False, tol=0.0,
             )
             u_starts.append((evolved.x, first))
-    best = None
-    for u0, first in u_starts:
-        for n_samples in windows[first:]:
+    def follow(u0, from_window):  # least squares through the windows from the from_window-th to the whole record
+        for n_samples in windows[from_window:]:
             for step in JACOBIAN_STEPS:
                 result = optimize.least_squares(
                     lambda u, n, _: residuals(u[None], n)[0], np.clip(u0, 1e-6, 1 - 1e-6), jac=jacobian,
                     args=(n_samples, step), bounds=(0.0, 1.0), method="trf", x_scale="jac", max_nfev=FIT_MAX_EVALUATIONS,
                 )
                 u0 = result.x
+        return result
+
+    best = None
+    for number, (u0, first) in enumerate(u_starts):
+        result = follow(u0, first)
+        if number < len(given) and len(windows) > 1:
+            # A given start that is already good over the whole record (the truth, an MCMC chain's best
+            # draw) can be led off by the short windows into a minimum of the record's start only.
+            if result.cost > 0.5 * np.sum(residuals(np.clip(u0, 1e-6, 1 - 1e-6)[None], windows[-1]) ** 2):
+                result = follow(u0, len(windows) - 1)
         if best is None or result.cost < best.cost:
             best = result
     u_star = best.x
