@@ -9,6 +9,8 @@ rule hidden_draw:
         "results/{set}/truth.json",
     log:
         "results/logs/hidden_draw/{set}.log",
+    # As the diagnoses they feed: a hidden case's diagnosis, the longest job, starts beside the calibrations.
+    priority: 1
     conda:
         "../envs/newdyn.yaml"
     params:
@@ -27,6 +29,7 @@ rule hidden_measurement:
         "results/logs/hidden_measurement/{set}/{name}.log",
     benchmark:
         "results/benchmarks/hidden_measurement/{set}/{name}.tsv"
+    priority: 1
     conda:
         "../envs/newdyn.yaml"
     params:
