@@ -14,9 +14,10 @@ import pytest
 import yaml
 
 import newdyn.config
-from newdyn import calibration, model
+from newdyn import calibration, model, noise
 from newdyn.cli import DIAGNOSIS_FIGURES
 from newdyn.io import read_measurement
+from newdyn.simulation import simulate
 
 ROOT = Path(__file__).resolve().parents[1]
 TEST_CONFIG = ROOT / ".test" / "config.yaml"
@@ -52,11 +53,36 @@ def planned_outputs(workdir, config=TEST_CONFIG, pythonpath=None):
 
 
 @pytest.fixture(scope="module")
-def study(tmp_path_factory):
+def study_run(tmp_path_factory):
+    """The CI study, run once with users' measurements in measurements/: a good one (a healthy rig as a
+    CSV without a noise level) and four bad.  A NetCDF file goes through the same rules in the study's
+    hidden demo; the verdict of each kind of case is tested on the package (test_diagnosis.py)."""
     workdir = tmp_path_factory.mktemp("study")
+    write_users_measurements(workdir / "measurements")
     run = snakemake(workdir)
     assert run.returncode == 0, run.stderr[-3000:]
-    return workdir
+    return workdir, run
+
+
+@pytest.fixture(scope="module")
+def study(study_run):
+    return study_run[0]
+
+
+def write_users_measurements(folder):
+    config = yaml.safe_load(TEST_CONFIG.read_text())
+    sampling = model.Sampling(config["sampling"]["fs"], config["sampling"]["t_warm"],
+                              round(config["sampling"]["fs"] * config["sampling"]["t_rec"]))
+    channels = config["calibration"]["channels"]
+    y, _ = noise.add_noise(simulate({}, sampling, channels), channels, 40.0, 1)
+    rows = np.column_stack([sampling.times, y.T])
+    folder.mkdir()
+    np.savetxt(folder / "plain.csv", rows, delimiter=",", header="time," + ",".join(channels), comments="")
+    (folder / "one_sample.csv").write_text("time,b1_x,w1\n0.5,1e-6,150.0\n")
+    np.savetxt(folder / "with_nan.csv", np.where(np.arange(rows.size).reshape(rows.shape) == 7, np.nan, rows),
+               delimiter=",", header="time," + ",".join(channels), comments="")
+    (folder / "unknown_channel.csv").write_text("time,b1_z\n" + "\n".join(f"{0.5 + k / 5000},0.0" for k in range(500)))
+    (folder / "slow.csv").write_text("time,b1_x,w1\n" + "\n".join(f"{0.5 + k / 1500},1e-6,155.0" for k in range(150)))
 
 
 def test_study_writes_every_scenario_clean_and_noisy_with_provenance(study):
@@ -326,50 +352,25 @@ def test_every_default_channel_is_a_model_channel():
     assert set(config["simulation"]["channels"]) <= set(model.CHANNELS)
 
 
-@pytest.fixture(scope="module")
-def diagnosed(study):
-    """The CI study with users' measurements dropped into measurements/: three good (the healthy one as
-    a CSV without a noise level), four bad."""
-    folder = study / "measurements"
-    folder.mkdir(exist_ok=True)
-    simulations = study / "results" / "default" / "simulations"
-    for scenario in ("kT1_up", "stick_slip"):
-        shutil.copy(simulations / scenario / "snr40_seed1.nc", folder / f"{scenario}.nc")
-    noisy = read_measurement(simulations / "healthy" / "snr40_seed1.nc")
-    rows = np.column_stack([noisy.sampling.times, noisy.y.T])
-    np.savetxt(folder / "plain.csv", rows, delimiter=",", header="time," + ",".join(noisy.channels), comments="")
-    (folder / "one_sample.csv").write_text("time,b1_x,w1\n0.5,1e-6,150.0\n")
-    np.savetxt(folder / "with_nan.csv", np.where(np.arange(rows.size).reshape(rows.shape) == 7, np.nan, rows),
-               delimiter=",", header="time," + ",".join(noisy.channels), comments="")
-    (folder / "unknown_channel.csv").write_text("time,b1_z\n" + "\n".join(f"{0.5 + k / 5000},0.0" for k in range(500)))
-    (folder / "slow.csv").write_text("time,b1_x,w1\n" + "\n".join(f"{0.5 + k / 1500},1e-6,155.0" for k in range(150)))
-    run = snakemake(study)
-    assert run.returncode == 0, run.stderr[-3000:]
-    return study, run
-
-
-def test_every_bad_measurement_gets_one_line_and_the_good_ones_are_diagnosed(diagnosed):
-    study, run = diagnosed
+def test_every_bad_measurement_gets_one_line_and_the_good_ones_are_diagnosed(study_run):
+    study, run = study_run
     for name, problem in (("one_sample.csv", "only 1 sample"), ("with_nan.csv", "non-finite value"),
                           ("unknown_channel.csv", "unknown channel 'b1_z'"), ("slow.csv", "states no noise level")):
         lines = [line for line in run.stderr.splitlines() if f"measurements/{name}" in line]
         assert lines and problem in lines[0] and len(set(lines)) == 1
         assert not (study / "results" / "diagnosis" / Path(name).stem).exists()
-    for name in ("kT1_up", "stick_slip", "plain"):
-        folder = study / "results" / "diagnosis" / name
+    for folder in (study / "results" / "diagnosis" / "plain", study / "results" / "demo" / "diagnosis" / "demo_01"):
         for figure in DIAGNOSIS_FIGURES:
             assert (folder / "figures" / f"{figure}.png").exists() and (folder / "figures" / f"{figure}.pdf").exists()
 
 
-def test_default_scenarios_fed_in_as_files_are_diagnosed_correctly(diagnosed):
-    study, _ = diagnosed
-    verdict = {name: json.loads((study / "results" / "diagnosis" / name / "verdict.json").read_text())
-               for name in ("kT1_up", "stick_slip", "plain")}
+def test_a_users_csv_and_a_hidden_netcdf_measurement_get_their_verdicts(study):
+    verdict = {name: json.loads((study / "results" / folder / "verdict.json").read_text())
+               for name, folder in (("plain", "diagnosis/plain"), ("demo", "demo/diagnosis/demo_01"))}
     assert verdict["plain"]["verdict"] == "healthy"
-    assert verdict["kT1_up"]["verdict"] == "parameter_change" and "kT1" in verdict["kT1_up"]["equivalent"]
-    assert (verdict["stick_slip"]["verdict"], verdict["stick_slip"]["effect"]) == ("new_dynamics", "stick_slip")
-    assert verdict["stick_slip"]["chi2_before"] > 10 and verdict["stick_slip"]["chi2_after"] <= 1.1
     assert "noise floor" in verdict["plain"]["noise"]["source"]  # a CSV carries no noise level
+    assert (verdict["demo"]["verdict"], verdict["demo"]["effect"]) == ("new_dynamics", "stick_slip")  # the CI demo's class
+    assert verdict["demo"]["chi2_before"] > 10 and verdict["demo"]["chi2_after"] <= 1.1
     for v in verdict.values():
         assert v["code_hash"] and v["newdyn_version"] and v["settings"]["diagnosis"]["channels"] == ["b1_x", "w1"]
         assert set(v["rmse_before"]) == set(v["rmse_after"]) == {"b1_x", "w1"}
