@@ -12,6 +12,7 @@ once, and an edit of an effect file compiles anew.
 from __future__ import annotations
 
 import ast
+import fcntl
 import hashlib
 import importlib.util
 import inspect
@@ -320,8 +321,27 @@ def module(active: dict[str, type[effects.Effect]] | None = None) -> ModuleType:
     compiled = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = compiled
     spec.loader.exec_module(compiled)
+    _compile_once(compiled, path)
     _MODULES[digest] = _LOADED[key] = compiled
     return compiled
+
+
+def _compile_once(compiled: ModuleType, path: Path) -> None:
+    """Compile the kernel at ``path`` into numba's cache unless it is there, one process at a time.
+
+    Processes that start together on an empty cache (a study's first jobs, test workers) would each
+    compile the same kernel, a minute of a core apiece; under the lock the first compiles and the
+    others wait, then load its machine code.  The call below compiles the kernel's one entry point
+    with the argument types that :func:`_run` passes, on a run of no steps."""
+    ready = path.with_suffix(".ready")
+    if ready.exists():
+        return
+    with open(path.with_suffix(".lock"), "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not ready.exists():
+            one = np.ones(1, dtype=np.int64)
+            _run(compiled, np.zeros((1, compiled.N_PAR)), one, 0.0, 1.0, 1, 1, np.zeros(1, dtype=np.int64))
+            ready.touch()
 
 
 def output_code(name: str, active: dict[str, type[effects.Effect]] | None = None) -> int | None:
