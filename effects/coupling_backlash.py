@@ -7,6 +7,7 @@ lacks" walks through it.  Only a load that reverses the coupling torque opens th
 from __future__ import annotations
 
 from newdyn.effects import Effect, Parameter
+from newdyn.effects.contact import clearance_event, clearance_spring, clearance_switch
 
 
 class CouplingBacklash(Effect):
@@ -25,16 +26,12 @@ class CouplingBacklash(Effect):
     @staticmethod
     def force(s, p, rig, mode):
         # Replaces the healthy element's torque: against a flank it acts from the flank, in the free play not at all.
-        healthy = rig.kT2 * (s.x + rig.beta * s.v)
-        flank = rig.kT2 * ((s.x - mode * p.b) + rig.beta * s.v)
-        return (flank if (mode != 0.0) | (p.b == 0.0) else 0.0) - healthy
+        return clearance_spring(s.x, s.v, rig.kT2, rig.beta, p.b, mode) - rig.kT2 * (s.x + rig.beta * s.v)
 
     @staticmethod
     def event(s, p, rig, mode):
-        x = s.x / (p.b if p.b > 0.0 else 1.0)  # in units of the free play, so that events are located to 1e-13 of it
-        crossing = abs(x) - 1.0 if mode == 0.0 else 1.0 - mode * x
-        return crossing if p.b > 0.0 else -1.0
+        return clearance_event(s.x, p.b, mode)
 
     @staticmethod
     def switch(s, p, rig, mode):
-        return 0.0 if mode != 0.0 else (1.0 if s.x > 0.0 else -1.0)
+        return clearance_switch(s.x, mode)

@@ -287,8 +287,12 @@ _LOADED: dict[tuple, ModuleType] = {}  # by the (name, effect class) pairs of th
 def kernel_digest(active: dict[str, type[effects.Effect]], source: str | None = None) -> str:
     """The name of the compiled kernel of the effects ``active``: a hash of its rendered source (which
     names each effect by its file's content hash, so an edited effect gets a kernel of its own, never
-    the machine code that numba cached for the old one) and of numba's and Python's versions."""
-    return hashlib.sha256(((source or render(active)) + numba.__version__ + sys.version).encode()).hexdigest()[:16]
+    the machine code that numba cached for the old one), of the effects package's own modules (the
+    helpers effects call, such as ``sincos``: numba's cache does not see an edit of a callee) and of
+    numba's and Python's versions."""
+    shared = b"".join(path.read_bytes() for path in sorted(Path(effects.__file__).parent.glob("*.py")))
+    text = (source or render(active)) + numba.__version__ + sys.version
+    return hashlib.sha256(text.encode() + shared).hexdigest()[:16]
 
 
 def module(active: dict[str, type[effects.Effect]] | None = None) -> ModuleType:

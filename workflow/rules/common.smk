@@ -22,7 +22,17 @@ SEEDS = [str(seed) for seed in config["noise"]["seeds"]]
 # Rules pass these as params so that an edit of the science code reruns exactly its jobs.  The
 # simulator is its modules and the effects' interface; an effect's own file counts only for the jobs
 # that simulate it (effect_files).
-SIMULATOR = ("model", "faults", "effects", "effects.base", "effects.check", "kernels", "kernel_template", "simulation")
+SIMULATOR = (
+    "model",
+    "faults",
+    "effects",
+    "effects.base",
+    "effects.check",
+    "effects.contact",
+    "kernels",
+    "kernel_template",
+    "simulation",
+)
 SIMULATION_CODE = newdyn.provenance.source_hash(*SIMULATOR, "io")
 NOISE_CODE = newdyn.provenance.source_hash("noise", "io")
 CALIBRATION_CODE = newdyn.provenance.source_hash(*SIMULATOR, "io", "likelihood", "calibration")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from newdyn.effects import Effect, Parameter
+from newdyn.effects.contact import clearance_event, clearance_spring, clearance_switch
 
 
 class LooseBearing(Effect):
@@ -22,18 +23,13 @@ class LooseBearing(Effect):
 
     @staticmethod
     def force(s, p, rig, mode):
-        # The healthy ground spring is taken away; in contact it acts from the wall at mode·gap (with
-        # no clearance always, and then exactly as the healthy one).
-        healthy = rig.k_bx * (s.x + rig.beta * s.v)
-        wall = rig.k_bx * ((s.x - mode * p.gap) + rig.beta * s.v)
-        return healthy - (wall if (mode != 0.0) | (p.gap == 0.0) else 0.0)
+        # The healthy ground spring is taken away and acts from the wall instead.
+        return rig.k_bx * (s.x + rig.beta * s.v) - clearance_spring(s.x, s.v, rig.k_bx, rig.beta, p.gap, mode)
 
     @staticmethod
     def event(s, p, rig, mode):
-        x = s.x / (p.gap if p.gap > 0.0 else 1.0)  # in clearances, so that the event is located to 1e-13 of it
-        crossing = abs(x) - 1.0 if mode == 0.0 else 1.0 - mode * x
-        return crossing if p.gap > 0.0 else -1.0  # with no clearance there is nothing to switch
+        return clearance_event(s.x, p.gap, mode)
 
     @staticmethod
     def switch(s, p, rig, mode):
-        return 0.0 if mode != 0.0 else (1.0 if s.x > 0.0 else -1.0)
+        return clearance_switch(s.x, mode)
