@@ -162,6 +162,7 @@ def test_a_fault_fit_reports_the_values_the_model_ran_with():
                          [{"T_max": 1950.0, "r_k": 0.95, "J2a_share": 1 / 3, "kT1": 3e6}], search=False)
     assert fit.chi2_red < 1.1
     assert fit.values["T_max"] * fit.values["r_k"] == pytest.approx(1950.0 * 0.95, rel=0.01)  # the slipping torque
+    assert fit.values["J2a_share"] == pytest.approx(1 / 3, abs=0.1)
     rows = stick.parameter_rows(fit.theta[None], model.complete({}))
     index = model.slot_index()
     assert rows[0, index["stick_slip"]] == 1.0 and rows[0, index["stick_slip.T_max"]] == fit.values["T_max"]
