@@ -1,6 +1,7 @@
 """Diagnosis of a measurement against known truths, on the short record of the CI config (0.1 s)."""
 
 import re
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -35,7 +36,20 @@ def measurement(name, truth, seed=1, snr_db=40.0, known_sigma=True):
 @pytest.fixture(scope="module")
 def diagnosed():
     cases = {"healthy": {}, "kT1_up": {"kT1": 3.25e6}, "stick_slip": STICK_SLIP}
-    return {name: diagnosis.diagnose(measurement(name, truth), SETTINGS) for name, truth in cases.items()}
+    settings = replace(SETTINGS, mcmc={**SETTINGS.mcmc, "max_rounds": 2})  # the CI config's 1 could not tell the paths apart
+    return {name: diagnosis.diagnose(measurement(name, truth), settings) for name, truth in cases.items()}
+
+
+@pytest.mark.parametrize("case", ["healthy", "kT1_up"])
+def test_the_effect_mcmc_runs_one_round_when_a_hypothesis_without_a_fault_explains_the_data(diagnosed, case):
+    mcmc = diagnosed[case].effect_mcmc
+    assert mcmc.attrs["rounds"] == 1
+    assert mcmc.attrs["converged"] or "one round only, as " in mcmc.attrs["reason"]
+
+
+def test_the_effect_mcmc_of_the_fault_that_explains_the_data_runs_until_it_converges(diagnosed):
+    mcmc = diagnosed["stick_slip"].effect_mcmc
+    assert mcmc.attrs["converged"] or mcmc.attrs["rounds"] == 2
 
 
 def test_healthy_rig_is_healthy(diagnosed):

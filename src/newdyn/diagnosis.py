@@ -12,7 +12,9 @@ missing, add it and show the error fall (the paper's Steps 1–3, automated, the
 5. Verdict: the best-evidence hypothesis if its fit brings χ² to the noise (≤ ``chi2_max``), else
    ``unexplained``; hypotheses of the same class within ``evidence_margin`` of it explain the data
    equally, and the unmeasured channels that would separate them are named.
-6. The best fault model is sampled by MCMC for its parameters' uncertainty.
+6. The best fault model is sampled by MCMC for its parameters' uncertainty: to convergence (up to
+   ``max_rounds``) and polished from its best draw, or one round when healthy or a drift explains the
+   data with more evidence, since then the verdict does not rest on it.
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ import json
 import logging
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Mapping, Sequence
 
 import numpy as np
@@ -221,8 +223,17 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
         stage(f"fit of {kind} ({fits[kind].n_simulations} simulations, chi2 {fits[kind].chi2_red:.4g})")
 
     best_fault = max(settings.fault_ranges, key=lambda kind: fits[kind].log_evidence)
-    effect_mcmc, fits[best_fault] = _sample_and_polish(fits[best_fault], data, sigma, values, sampling, channels, settings)
-    stage(f"MCMC of {best_fault}")
+    ahead = _explaining_ahead(fits, calibrations, best_fault, settings.chi2_max)
+    if ahead is None:
+        effect_mcmc, fits[best_fault] = _sample_and_polish(fits[best_fault], data, sigma, values, sampling, channels, settings)
+    else:
+        # The verdict rests on a hypothesis without a fault: one round shows the fault's posterior (how much of
+        # it the data leave room for), the rounds towards convergence and the polish would change nothing.
+        effect_mcmc = _sample_effect(fits[best_fault], data, sigma, values, sampling, channels,
+                                     replace(settings, mcmc={**settings.mcmc, "max_rounds": 1}))
+        if not effect_mcmc.attrs["converged"]:
+            effect_mcmc.attrs["reason"] = f"one round only, as {ahead} explains the data with more evidence; {effect_mcmc.attrs['reason']}"
+    stage(f"MCMC of {best_fault}" + (f" (one round: {ahead} explains the data ahead of it)" if ahead else ""))
 
     verdict = _verdict(fits, calibrations, signatures, settings, values, sampling, data, sigma)
     verdict["effect_fit"] = {
@@ -291,6 +302,20 @@ def _class(hypothesis: hypotheses.Hypothesis) -> str:
     return {HEALTHY: "healthy", PARAMETER_CHANGE: "parameter_change"}.get(hypothesis.kind, "new_dynamics")
 
 
+def _explains(fit: hypotheses.Fit, calibrations, chi2_max: float) -> bool:
+    """Whether a fit brings χ² to the noise, a drift's with a consistent grid posterior (one peak)."""
+    consistent = fit.hypothesis.kind != PARAMETER_CHANGE or calibrations[fit.hypothesis.effect].posterior.consistent()
+    return fit.chi2_red <= chi2_max and consistent
+
+
+def _explaining_ahead(fits, calibrations, fault: str, chi2_max: float) -> str | None:
+    """The best-evidence hypothesis without a fault (healthy or a drift) that explains the data with more
+    evidence than ``fault``'s fit, else None."""
+    ahead = [name for name, fit in fits.items() if _class(fit.hypothesis) != "new_dynamics"
+             and fit.log_evidence > fits[fault].log_evidence and _explains(fit, calibrations, chi2_max)]
+    return max(ahead, key=lambda name: fits[name].log_evidence, default=None)
+
+
 def _verdict(fits, calibrations, signatures, settings: Settings, values, sampling, data, sigma) -> dict:
     """The ranked hypotheses, the verdict, the hypotheses that explain the data equally and the model
     versions nominal → calibrated → + effect (see the module docstring for the rules)."""
@@ -298,19 +323,13 @@ def _verdict(fits, calibrations, signatures, settings: Settings, values, samplin
     log_z = np.array([fits[n].log_evidence for n in names])
     confidence = np.exp(log_z - logsumexp(log_z))
     closest = signatures.mean("parameter")
-
-    def explains(name):
-        fit = fits[name]
-        consistent = fit.hypothesis.kind != PARAMETER_CHANGE or calibrations[fit.hypothesis.effect].posterior.consistent()
-        return fit.chi2_red <= settings.chi2_max and consistent
-
     ranking = []
     for name, c in zip(names, confidence):
         mine = closest.where(signatures["hypothesis"] == name, drop=True)
         ranking.append({
             "hypothesis": name, "class": _class(fits[name].hypothesis), "effect": fits[name].hypothesis.effect,
             "confidence": float(c), "log_evidence": fits[name].log_evidence, "chi2": fits[name].chi2_red,
-            "explains": explains(name), "parameters": _fit_parameters(fits[name], calibrations),
+            "explains": _explains(fits[name], calibrations, settings.chi2_max), "parameters": _fit_parameters(fits[name], calibrations),
             "at_bound": list(fits[name].at_bound),
             "hellinger": float(mine.min()), "closest_signature": str(mine["signature"].values[int(np.argmin(mine.values))]),
         })
