@@ -46,7 +46,8 @@ def test_csv_takes_operating_condition_from_defaults(tmp_path):
 def test_write_is_atomic(tmp_path, monkeypatch):
     """A failing write leaves neither a partial file nor a temporary behind."""
     def fail(self, path, **kwargs):
-        open(path, "w").write("partial")
+        with open(path, "w") as partial:
+            partial.write("partial")
         raise OSError("disk full")
 
     monkeypatch.setattr(xr.Dataset, "to_netcdf", fail)

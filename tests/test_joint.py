@@ -164,7 +164,9 @@ def test_inferred_sigma_covers_the_true_sigma(kT1_up):
 
 def test_too_few_walkers_or_a_missing_sigma_are_refused(kT1_up):
     data, sigma, posteriors = kT1_up
-    run = lambda settings, **kw: joint(kT1_up, settings, **kw)  # noqa: E731
+    def run(settings, **kw):
+        return joint(kT1_up, settings, **kw)
+
     with pytest.raises(ValueError, match="n_walkers must be at least 4 for 2 sampled variables"):
         run(mcmc.MCMCSettings(n_walkers=3, n_steps=10, n_burn=0, seed=1, move="stretch"))
     with pytest.raises(ValueError, match="at least 6 .* KDE"):

@@ -148,7 +148,7 @@ def test_consistent_means_one_likelihood_peak_inside_the_grid(likelihood, consis
 def test_hdi_of_a_bimodal_posterior_spans_both_modes():
     posterior = grid_posterior(GRID, np.log(_gaussian_bump(3, 0.4) + _gaussian_bump(7, 0.4)), 0.0)
     low, high = posterior.hdi(0.94)
-    assert low < 3 < 7 < high and posterior.n_peaks() == 2
+    assert low < 3 and 7 < high and posterior.n_peaks() == 2
     assert posterior.hdi(1.0) == (GRID[0], GRID[-1])
 
 

@@ -100,7 +100,7 @@ def test_too_short_run_is_reported_not_converged():
 def test_a_run_that_misses_its_thresholds_goes_on_in_rounds_and_keeps_its_first_steps():
     precision = 1 / TAU0**2 + len(Y) / SIGMA**2
     start = np.random.default_rng(0).normal(Y.sum() / SIGMA**2 / precision, precision**-0.5, size=(16, 1))
-    base = dict(n_walkers=16, n_steps=20, n_burn=0, seed=3)  # 320 draws from the posterior: ESS < 400
+    base = {"n_walkers": 16, "n_steps": 20, "n_burn": 0, "seed": 3}  # 320 draws from the posterior: ESS < 400
     one = sampling.run(conjugate_loglik, conjugate_logprior, ["theta"], start, sampling.MCMCSettings(**base))
     more = sampling.run(conjugate_loglik, conjugate_logprior, ["theta"], start, sampling.MCMCSettings(**base, max_rounds=20))
     assert not one.attrs["converged"] and one.attrs["rounds"] == 1
@@ -226,7 +226,10 @@ def test_correlated_2d_gaussian_means_and_covariance():
 def test_bad_inputs_fail_before_sampling():
     settings = sampling.MCMCSettings(n_walkers=8, n_steps=10, n_burn=0, seed=0)
     good = np.random.default_rng(0).normal(size=(8, 1))
-    run = lambda start, **kw: sampling.run(conjugate_loglik, conjugate_logprior, ["theta"], start, settings, **kw)
+
+    def run(start, **kw):
+        return sampling.run(conjugate_loglik, conjugate_logprior, ["theta"], start, settings, **kw)
+
     with pytest.raises(ValueError, match="shape"):
         run(good[:4])
     with pytest.raises(ValueError, match="support"):

@@ -13,8 +13,8 @@ kinds of result end as rows of one summary table (:func:`summary_rows`).
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Mapping, Sequence
 
 import numpy as np
 import xarray as xr
@@ -35,7 +35,7 @@ class GridSpec:
     points: int
 
     @classmethod
-    def from_config(cls, name: str, grid: Mapping) -> "GridSpec":
+    def from_config(cls, name: str, grid: Mapping) -> GridSpec:
         return cls(name, float(grid["low"]), float(grid["high"]), int(grid["points"]))
 
     @property

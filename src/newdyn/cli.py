@@ -277,7 +277,7 @@ def compare(paths: list[str], output: str, code_hash: str) -> None:
     distances = comparison.signature_matrices(posteriors)
     chi2_red = xr.full_like(distances.isel(reference=0, drop=True), np.nan)
     for (scenario, parameter, snr, seed), value in chi2.items():
-        chi2_red.loc[dict(scenario=scenario, parameter=parameter, snr_db=snr, seed=seed)] = value
+        chi2_red.loc[{"scenario": scenario, "parameter": parameter, "snr_db": snr, "seed": seed}] = value
     chi2_red.attrs.update(long_name="reduced chi-square of the best-fitting calibrated model", units="1")
     ds = xr.Dataset(
         {"hellinger": distances, "chi2_red": chi2_red},

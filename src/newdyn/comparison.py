@@ -7,7 +7,7 @@ as samples (e.g. from MCMC), or as Gaussians in closed form; every function here
 
 from __future__ import annotations
 
-from typing import Mapping
+from collections.abc import Mapping
 
 import numpy as np
 from scipy import stats
@@ -166,6 +166,6 @@ def signature_matrices(posteriors: Mapping[tuple[str, str, float, int], tuple[np
             for seed in coords["seed"]:
                 present = {s: posteriors[(s, parameter, snr, seed)] for s in scenarios if (s, parameter, snr, seed) in posteriors}
                 names, matrix = distance_matrix(present)
-                distances.loc[dict(parameter=parameter, snr_db=snr, seed=seed, scenario=names, reference=names)] = matrix
+                distances.loc[{"parameter": parameter, "snr_db": snr, "seed": seed, "scenario": names, "reference": names}] = matrix
     distances.attrs.update(long_name="Hellinger distance between posteriors", units="1")
     return distances

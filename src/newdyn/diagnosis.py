@@ -23,8 +23,8 @@ import json
 import logging
 import math
 import time
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
-from typing import Mapping, Sequence
 
 import numpy as np
 import xarray as xr
@@ -60,7 +60,7 @@ class Settings:
     mcmc: Mapping[str, float | int | str] = field(default_factory=dict)
 
     @classmethod
-    def from_config(cls, config: Mapping) -> "Settings":
+    def from_config(cls, config: Mapping) -> Settings:
         """From a study config (or a diagnosis spec holding its rig, diagnosis, calibration and
         simulation sections); the effects' ranges by :func:`newdyn.config.diagnosis_ranges`."""
         from . import config as config_module

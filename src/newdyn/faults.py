@@ -9,7 +9,7 @@ defaults, and the rig values it sets (:meth:`~newdyn.effects.Effect.rig_values`)
 
 from __future__ import annotations
 
-from typing import Mapping
+from collections.abc import Mapping
 
 from . import effects, model
 

@@ -11,8 +11,8 @@ different numbers of parameters compare on one scale (the Occam factor is in the
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
-from typing import Mapping, Sequence
 
 import numpy as np
 from scipy import optimize
@@ -282,11 +282,12 @@ def fit(
     best = None
     for number, (u0, first) in enumerate(u_starts):
         result = follow(u0, first)
-        if number < len(given) and len(windows) > 1:
-            # A given start that is already good over the whole record (the truth, an MCMC chain's best
-            # draw) can be led off by the short windows into a minimum of the record's start only.
-            if result.cost > 0.5 * np.sum(residuals(np.clip(u0, 1e-6, 1 - 1e-6)[None], windows[-1]) ** 2):
-                result = follow(u0, len(windows) - 1)
+        # A given start that is already good over the whole record (the truth, an MCMC chain's best
+        # draw) can be led off by the short windows into a minimum of the record's start only.
+        if number < len(given) and len(windows) > 1 and (
+            result.cost > 0.5 * np.sum(residuals(np.clip(u0, 1e-6, 1 - 1e-6)[None], windows[-1]) ** 2)
+        ):
+            result = follow(u0, len(windows) - 1)
         if best is None or result.cost < best.cost:
             best = result
     u_star = best.x

@@ -12,9 +12,9 @@ import json
 import math
 import os
 import tempfile
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Mapping, Sequence
 
 import numpy as np
 import xarray as xr
@@ -162,9 +162,8 @@ def read_measurement(path: str | os.PathLike, operating_defaults: Mapping[str, f
 
     sampling = _check_time(path, times, operating["load_freq"])
     snr = attrs.get("snr_db")
-    if sigma is None and snr is not None:
-        if isinstance(snr, str) or not math.isfinite(float(snr)):
-            raise MeasurementError(path, f"attribute snr_db must be a finite number (got {snr!r})")
+    if sigma is None and snr is not None and (isinstance(snr, str) or not math.isfinite(float(snr))):
+        raise MeasurementError(path, f"attribute snr_db must be a finite number (got {snr!r})")
     if sigma is not None and not (np.all(np.isfinite(sigma)) and np.all(sigma > 0)):
         raise MeasurementError(path, "coordinate sigma must be finite and positive")
     return Measurement(path.stem, tuple(channels), y, sampling, operating, sigma, dict(attrs))
@@ -174,7 +173,7 @@ def _read_netcdf(path: Path):
     try:
         with xr.open_dataset(path, engine="netcdf4") as ds:
             ds.load()
-    except Exception as exc:  # netCDF4 raises OSError, ValueError or RuntimeError for damaged files
+    except Exception as exc:  # noqa: BLE001 - netCDF4 raises OSError, ValueError, RuntimeError, ... for damaged files
         raise MeasurementError(path, f"unreadable or truncated NetCDF ({type(exc).__name__}: {exc})") from None
     if "y" not in ds:
         raise MeasurementError(path, "no variable 'y'")

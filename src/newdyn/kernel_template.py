@@ -37,8 +37,8 @@ from newdyn.effects.base import Kinematics, RigValues, sincos  # noqa: F401 - us
 # Options of every kernel function: 'numpy' error model so that x / 0 gives inf instead of a branch
 # to a ZeroDivisionError (such a branch blocks vectorization); no fast-math, so every operation is
 # the IEEE operation of the scalar original and vector and scalar lanes agree bit for bit.
-_JIT = dict(cache=True, error_model="numpy")
-_EFFECT_JIT = dict(error_model="numpy", inline="always")
+_JIT = {"cache": True, "error_model": "numpy"}
+_EFFECT_JIT = {"error_model": "numpy", "inline": "always"}
 
 # @layout@
 
@@ -583,7 +583,7 @@ def _simulate_block(params, sims, t_first, fs, n_samples, substeps, codes, out):
         if g > 0.0:
             _switch(w, lane, which, 0.0)
     t = 0.0
-    n_warm = int(math.ceil(t_first / h_target - 1e-9))
+    n_warm = math.ceil(t_first / h_target - 1e-9)
     for k in range(n_warm):
         t = _step(w, alone, t, (k + 1) * t_first / n_warm - t, n_run, events_possible)
     t = t_first

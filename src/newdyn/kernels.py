@@ -17,9 +17,9 @@ import hashlib
 import importlib.util
 import inspect
 import os
-import textwrap
 import sys
 import tempfile
+import textwrap
 from pathlib import Path
 from types import ModuleType
 
@@ -168,8 +168,8 @@ def _effect_lines(i: int, kind: str, effect, index, switching, src: str) -> list
     lines = [
         f"    # {kind} on {effect.acts_on}",
         f"    mode_{i} = {_mode(kind, switching)}",
-        f"    force_{i} = _force_{i}({_kinematics(effect.acts_on, src, 'joint_torque' if force_reads_joint_torque(effect) else '0.0')}, "
-        f"{_parameters(i, effect, index)}, {_rig(i, effect)}, mode_{i})",
+        (f"    force_{i} = _force_{i}({_kinematics(effect.acts_on, src, 'joint_torque' if force_reads_joint_torque(effect) else '0.0')}, "
+         f"{_parameters(i, effect, index)}, {_rig(i, effect)}, mode_{i})"),
     ]
     if effect.acts_on == "slip_joint":
         opened = f"({present}) & (mode_{i} != 0.0)" if effect.locks_joint else f"({present})"

@@ -9,8 +9,9 @@ priors are the grid calibration's (:mod:`newdyn.calibration`), truncated to the 
 from __future__ import annotations
 
 import json
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Callable, Mapping, Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 import xarray as xr
@@ -397,11 +398,8 @@ def _joint_start(data, sigma, variables, priors, grid_posteriors, values, sampli
     for i in np.flatnonzero(~free):
         length = 1 / max(abs(grad[i]), np.sqrt(hessian[i, i]), 1 / (high[i] - low[i]))
         bound, sign = (low[i], 1.0) if active[i] < 0 else (high[i], -1.0)
-        if params[i].mirrored:  # the tail and its mirror image: a Laplace peak across the bound
-            draw = lambda m: (bound + rng.laplace(0.0, length, m))[:, None]  # noqa: E731
-        else:
-            draw = lambda m: (bound + sign * rng.exponential(length, m))[:, None]  # noqa: E731
         walk_low, walk_high = params[i].walk_bounds
+        draw = _bound_tail(rng, bound, sign, length, params[i].mirrored)
         x[:, i] = draw_inside(draw, np.array([walk_low]), np.array([walk_high]), n_walkers)[:, 0]
     record.update(
         n_simulations=n_runs,
@@ -416,6 +414,17 @@ def _joint_start(data, sigma, variables, priors, grid_posteriors, values, sampli
         x = np.column_stack([x, log_sigma])
         record["sigma"] = dict(zip([v.name for v in sigmas], sigma_hat.tolist()))
     return x, record
+
+
+def _bound_tail(rng: np.random.Generator, bound: float, sign: float, length: float, mirrored: bool) -> Callable[[int], np.ndarray]:
+    """Draws (m, 1) near a bound that a Laplace approximation's optimum holds: the exponential tail of
+    ``length`` that the bound cuts, on its ``sign`` side, or with its mirror image (a Laplace peak across it)."""
+
+    def draw(m):
+        step = rng.laplace(0.0, length, m) if mirrored else sign * rng.exponential(length, m)
+        return (bound + step)[:, None]
+
+    return draw
 
 
 def draw_inside(draw: Callable[[int], np.ndarray], low: np.ndarray, high: np.ndarray, n: int) -> np.ndarray:

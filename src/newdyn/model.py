@@ -10,9 +10,9 @@ effect is present, else 0) and ``<kind>.<parameter>`` for each parameter its fun
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from types import MappingProxyType
-from typing import Mapping
 
 import numpy as np
 
@@ -128,7 +128,7 @@ def effect_slot(kind: str, parameter: str | None = None) -> str:
 def slot_names() -> tuple[str, ...]:
     """The names of the kernel's parameter vector for the active effects: rig, operating, then per
     effect its presence flag and the parameters its functions read."""
-    from . import effects  # noqa: PLC0415 - effects build on this module
+    from . import effects  # here: effects build on this module
 
     names = list(PARAMETER_NAMES)
     for kind, effect in effects.active().items():
@@ -143,7 +143,7 @@ def slot_index() -> dict[str, int]:
 def complete(values: Mapping[str, float] | None = None) -> dict[str, float]:
     """All model values: the rig.md defaults overridden by ``values``, then every active effect's
     slots (absent, its parameters at their defaults, unless ``values`` sets them); unknown names are an error."""
-    from . import effects  # noqa: PLC0415 - effects build on this module
+    from . import effects  # here: effects build on this module
 
     values = dict(values or {})
     unknown = sorted(set(values) - set(slot_names()))
@@ -172,8 +172,8 @@ class Sampling:
     n_samples: int = 5000
 
     @classmethod
-    def from_window(cls, fs: float, t_warm: float, t_rec: float) -> "Sampling":
-        return cls(fs=float(fs), t_first=float(t_warm), n_samples=int(round(t_rec * fs)))
+    def from_window(cls, fs: float, t_warm: float, t_rec: float) -> Sampling:
+        return cls(fs=float(fs), t_first=float(t_warm), n_samples=round(float(t_rec) * float(fs)))
 
     @property
     def times(self) -> np.ndarray:

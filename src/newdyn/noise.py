@@ -10,7 +10,7 @@ rig's clean signals have no content: no model enters, so model misfit cannot inf
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 import scipy.signal

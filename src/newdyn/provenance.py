@@ -10,10 +10,10 @@ from __future__ import annotations
 import hashlib
 import json
 import platform
+from collections.abc import Sequence
 from importlib import metadata
 from importlib.util import find_spec
 from pathlib import Path
-from typing import Sequence
 
 _DEPENDENCIES = ("numpy", "scipy", "numba", "xarray", "netCDF4")
 

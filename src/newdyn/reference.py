@@ -19,8 +19,8 @@ relative-tolerance control on θ would let the twist error grow to ~10⁻⁸ rad
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Mapping, Sequence
 
 import numpy as np
 from scipy.integrate import solve_ivp

@@ -12,7 +12,8 @@ by (σ/σ̂)², an error as large as a band's own chance spread √(2/dof) only 
 from __future__ import annotations
 
 import math
-from typing import NamedTuple, Sequence
+from collections.abc import Sequence
+from typing import NamedTuple
 
 import numpy as np
 import scipy  # scipy.signal and scipy.stats load on first use

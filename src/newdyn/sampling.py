@@ -20,7 +20,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
-from typing import Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 import arviz as az
 import emcee
@@ -29,7 +29,7 @@ import xarray as xr
 
 from .io import atomic_write
 
-__all__ = ["MCMCSettings", "run", "diagnostics", "save", "load"]
+__all__ = ["MCMCSettings", "diagnostics", "load", "run", "save"]
 
 BatchFn = Callable[[np.ndarray], np.ndarray]  # theta (n, ndim) -> (n,)
 
@@ -87,7 +87,7 @@ class MCMCSettings:
     move: str = "kde"
 
     @classmethod
-    def from_config(cls, mcmc: Mapping) -> "MCMCSettings":
+    def from_config(cls, mcmc: Mapping) -> MCMCSettings:
         """From a config block (``calibration.mcmc``'s keys: walkers, steps, burn, seed, rhat_max,
         ess_min, move, max_rounds)."""
         return cls(
@@ -181,7 +181,7 @@ def run(
 
 
 def _inference_data(sampler, names, settings, to_values, prior_samples, observed) -> az.InferenceData:
-    kept = dict(discard=settings.n_burn, thin=settings.thin)
+    kept = {"discard": settings.n_burn, "thin": settings.thin}
     chain = sampler.get_chain(**kept).swapaxes(0, 1)  # (walker, draw, ndim)
     if to_values is not None:
         chain = np.asarray(to_values(chain.reshape(-1, len(names))), dtype=np.float64).reshape(chain.shape)
@@ -189,7 +189,9 @@ def _inference_data(sampler, names, settings, to_values, prior_samples, observed
     ll = sampler.get_blobs(**kept).T
     tau = sampler.get_autocorr_time(quiet=True, **kept)  # in steps; emcee logs if the run is < 50 tau
 
-    draws = lambda data: az.dict_to_dataset(data, library=emcee)  # noqa: E731  (chain, draw, ...) arrays
+    def draws(data):  # (chain, draw, ...) arrays
+        return az.dict_to_dataset(data, library=emcee)
+
     stats = draws({"lp": lp, "log_likelihood": ll}).assign_coords(parameter=names)
     stats["acceptance_fraction"] = ("chain", sampler.acceptance_fraction)  # over burn-in and kept steps
     stats["tau"] = ("parameter", tau)
@@ -217,7 +219,9 @@ def diagnostics(idata: az.InferenceData, settings: MCMCSettings) -> dict:
     # independent (every move uses the others' positions), so rank-R-hat and ESS are heuristics here,
     # ESS can be optimistic; emcee's own tau (n_steps / tau is the per-walker ESS) is a cross-check.
     posterior = idata.posterior
-    worst = lambda ds, pick: float(pick(np.concatenate([ds[v].values.ravel() for v in ds.data_vars])))  # noqa: E731
+    def worst(ds, pick):
+        return float(pick(np.concatenate([ds[v].values.ravel() for v in ds.data_vars])))
+
     result = {
         "rhat": worst(az.rhat(posterior, method="rank"), np.max),
         "ess_bulk": worst(az.ess(posterior, method="bulk"), np.min),

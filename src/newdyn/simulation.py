@@ -6,9 +6,8 @@ Outputs are the measurement channels (``model.CHANNELS``), the switching diagnos
 
 from __future__ import annotations
 
-from typing import Mapping, Sequence
-
 import math
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
@@ -17,6 +16,7 @@ from . import kernels, model
 # Longest RK4 step [s]: step halving stays within rig.md's bounds at it (tests/test_physics.py); a rig
 # whose slip joint opens steps finer (kernels.joint_refinement).
 DEFAULT_MAX_STEP = 1.0e-4
+DEFAULT_SAMPLING = model.Sampling()  # rig.md's record
 
 _POSITIONS = ("theta1", "theta2a", "theta2b", "theta3", "theta4") + tuple(
     f"{d}_{node}" for d in "xy" for node in model.NODES
@@ -48,7 +48,7 @@ def substeps(fs: float, max_step: float) -> int:
 
 def simulate_batch(
     values: Sequence[Mapping[str, float]] | np.ndarray,
-    sampling: model.Sampling = model.Sampling(),
+    sampling: model.Sampling = DEFAULT_SAMPLING,
     outputs: Sequence[str] = model.CHANNELS,
     max_step: float = DEFAULT_MAX_STEP,
 ) -> np.ndarray:
@@ -71,7 +71,7 @@ def simulate_batch(
 
 def simulate(
     values: Mapping[str, float] | None = None,
-    sampling: model.Sampling = model.Sampling(),
+    sampling: model.Sampling = DEFAULT_SAMPLING,
     outputs: Sequence[str] = model.CHANNELS,
     max_step: float = DEFAULT_MAX_STEP,
 ) -> np.ndarray:

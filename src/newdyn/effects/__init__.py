@@ -15,13 +15,13 @@ import importlib
 import importlib.util
 import inspect
 import sys
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Mapping, Sequence
 
 from .base import PLACES, Effect, Kinematics, Parameter, RigValues, kernel_function, sincos
 
-__all__ = ["Effect", "EffectError", "Kinematics", "Parameter", "PLACES", "RigValues", "active", "builtin",
-           "kernel_function", "load_file", "loaded", "sincos", "use", "USER_FOLDER"]
+__all__ = ["PLACES", "USER_FOLDER", "Effect", "EffectError", "Kinematics", "Parameter", "RigValues", "active", "builtin",
+           "kernel_function", "load_file", "loaded", "sincos", "use"]
 
 LIBRARY = Path(__file__).resolve().parent / "library"
 #: Where a study's own effects live, relative to the directory Snakemake runs in.
@@ -51,7 +51,7 @@ def load_file(path: str | Path) -> type[Effect]:
     """The effect declared in ``path``, checked (:func:`newdyn.effects.check.problems`); raises
     :class:`EffectError` with one line naming the file and its first problem.  A file is read again
     when it changed."""
-    from .check import problems  # noqa: PLC0415 - check needs the model, which needs this package
+    from .check import problems  # here: check needs the model, which needs this package
 
     path = Path(path)
     if not path.is_file():
@@ -77,7 +77,7 @@ def load_file(path: str | Path) -> type[Effect]:
         sys.modules[name] = module
         try:
             spec.loader.exec_module(module)
-        except Exception as error:  # a user's file may fail in any way; say how, in one line
+        except Exception as error:  # noqa: BLE001 - a user's file may fail in any way; say how, in one line
             del sys.modules[name]
             raise EffectError(path, f"cannot be imported: {type(error).__name__}: {error}") from None
     declared = [obj for obj in vars(module).values()

@@ -41,8 +41,9 @@ from __future__ import annotations
 
 import math
 from collections import namedtuple
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Callable, ClassVar, Mapping
+from typing import ClassVar
 
 import numpy as np
 from numba import njit
@@ -75,7 +76,7 @@ Kinematics = namedtuple("Kinematics", "t x v theta1 theta4 omega1 omega4 joint_t
 RIG_FIELDS: tuple[str, ...] = (*model.PARAMETER_NAMES, "Omega")
 RigValues = namedtuple("RigValues", RIG_FIELDS)
 
-_FUNCTION_OPTIONS = dict(cache=True, error_model="numpy", inline="always")
+_FUNCTION_OPTIONS = {"cache": True, "error_model": "numpy", "inline": "always"}
 
 
 def kernel_function(function: Callable) -> Callable:

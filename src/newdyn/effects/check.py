@@ -11,7 +11,7 @@ from __future__ import annotations
 import inspect
 import itertools
 import math
-from typing import Iterator
+from collections.abc import Iterator
 
 import numpy as np
 
@@ -145,7 +145,7 @@ def _evaluation_problems(effect: type[Effect]) -> Iterator[str]:
                     continue
                 try:
                     result = f(s, p, rig_values, mode)
-                except Exception as error:  # a user's function may fail in any way; say how, in one line
+                except Exception as error:  # noqa: BLE001 - a user's function may fail in any way; say how, in one line
                     yield f"{effect.name}: {function}() failed at {_where(values, s, mode)}: {type(error).__name__}: {error}"
                     return
                 if not _number(result) and not isinstance(result, np.floating):
@@ -166,7 +166,7 @@ _TYPES: dict = {}
 
 def effect_parameters_type(effect: type[Effect]):
     """The named tuple an effect's functions receive as ``p`` (one type per effect, made once)."""
-    from collections import namedtuple  # noqa: PLC0415
+    from collections import namedtuple
 
     key = (effect.name, tuple(p.name for p in effect.kernel_parameters()))
     if key not in _TYPES:

@@ -63,8 +63,8 @@ class StickSlip(Effect):
     def problems(cls, values, rig):
         t_max, r_k = values.get("T_max", 1.15 * rig["T0"]), values.get("r_k", 1.0)
         if r_k * t_max <= rig["T0"]:
-            return [("T_max", f"r_k·T_max must exceed T0 = {rig['T0']:g} N·m, or the slipping joint cannot carry "
-                              "the mean load and the rig stalls")]
+            return [("T_max", (f"r_k·T_max must exceed T0 = {rig['T0']:g} N·m, or the slipping joint cannot carry "
+                               "the mean load and the rig stalls"))]
         return []
 
     @classmethod
