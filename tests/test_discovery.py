@@ -89,5 +89,7 @@ def test_bad_shapes_and_scale_ranges_are_refused():
         force.estimate("here", residual, SIGMA, g[:, :-1], np.arange(g.shape[2]), (0.1, 1.0))
     with pytest.raises(ValueError, match="sigma must be"):
         force.estimate("here", residual, np.array([1.0, -1.0]), g, np.arange(g.shape[2]), (0.1, 1.0))
+    with pytest.raises(ValueError, match="times must"):
+        force.estimate("here", residual, SIGMA, g, np.arange(g.shape[2] - 1), (0.1, 1.0))
     with pytest.raises(ValueError, match="scale_range"):
         force.estimate("here", residual, SIGMA, g, np.arange(g.shape[2]), (1.0, 0.1))

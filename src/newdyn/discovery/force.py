@@ -73,6 +73,8 @@ def estimate(
     the force's scale, in the force's units.
     """
     r, g = _whitened(residual, sigma, sensitivity)
+    if np.shape(times) != (g.shape[1],):
+        raise ValueError(f"times must give the centres of the {g.shape[1]} basis pulses, got shape {np.shape(times)}")
     s_low, s_high = (float(x) for x in scale_range)
     if not 0.0 < s_low < s_high:
         raise ValueError(f"scale_range must be 0 < low < high, got {scale_range!r}")
