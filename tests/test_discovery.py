@@ -1,12 +1,20 @@
-"""Estimating a missing force: the closed forms of Bayesian linear regression, and what they decide."""
+"""Discovery: the closed forms of Bayesian linear regression, the rig's linear response against statics and the
+simulator, the catalogue's effect files, and the search on a measurement it must explain."""
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 from scipy import integrate, stats
 
-from newdyn.discovery import force
+from newdyn import effects, faults, model, simulation
+from newdyn import noise as measurement_noise
+from newdyn.discovery import effect_file, force, search
+from newdyn.discovery.forms import FORMS, Peaks, Trajectory
+from newdyn.discovery.linear import LinearRig
+from newdyn.effects import Kinematics, RigValues
+from newdyn.effects.check import effect_parameters_type
 
 SIGMA = np.array([0.5, 2.0])
 
@@ -93,3 +101,126 @@ def test_bad_shapes_and_scale_ranges_are_refused():
         force.estimate("here", residual, SIGMA, g, np.arange(g.shape[2] - 1), (0.1, 1.0))
     with pytest.raises(ValueError, match="scale_range"):
         force.estimate("here", residual, SIGMA, g, np.arange(g.shape[2]), (1.0, 0.1))
+
+
+# ------------------------------------------------------------------------- the rig's linear response, and the search
+
+FS = 5000.0
+RECORD = model.Sampling()  # rig.md's: 0.5 s of warm-up, 1 s recorded
+BASE = model.complete()
+
+
+@pytest.fixture(scope="module")
+def linear():
+    return LinearRig.build(BASE, FS, 4 * 5000, ("w1", "w4", "torque_c", "b1_x", "b2_y"))
+
+
+@pytest.mark.parametrize(("place", "w1_per_torque", "coupling_torque_per_torque"), [
+    ("motor", "1/c_m", 0.0),  # a steady torque on the rotor: the motor's slope takes it, the shafts do not
+    ("load", "1/c_m", -1.0),  # on the load: it travels back through the coupling to the motor
+    ("coupling", 0.0, -1.0),  # across the coupling, like its own torque: the element relaxes by as much
+    ("motor_shaft", 0.0, 0.0),  # across the motor shaft: balanced in the shaft, nothing moves on
+])
+def test_steady_torque_at_each_place_gives_the_static_closed_form(linear, place, w1_per_torque, coupling_torque_per_torque):
+    response = linear.response(place, np.ones(4 * 5000))  # 4 s: every mode has decayed
+    expected_w1 = 1.0 / model.motor_slope(BASE) if w1_per_torque == "1/c_m" else 0.0
+    assert response[0, -1] == pytest.approx(expected_w1, abs=1e-9)
+    assert response[1, -1] == pytest.approx(expected_w1, abs=1e-9)  # a rigid rotation: both disks alike
+    assert response[2, -1] == pytest.approx(coupling_torque_per_torque, abs=1e-6)
+
+
+def test_steady_lateral_force_gives_the_static_deflection(linear):
+    _, _, stiffness = model.linear_matrices(BASE)
+    n = len(model.NODES)
+    force = np.zeros(2 * n)
+    force[model.NODES.index("b2") + n] = 1.0  # b2 in y
+    static = np.linalg.solve(stiffness[4:, 4:], force)
+    response = linear.response("b2_y", np.ones(4 * 5000))
+    assert response[4, -1] == pytest.approx(static[model.NODES.index("b2") + n], rel=1e-6)
+    assert response[3, -1] == pytest.approx(0.0, abs=1e-30)  # x does not see a force in y
+
+
+def test_linear_response_to_a_crack_is_the_simulators_to_first_order():
+    # A breathing crack adds -α/2 (1 - cos θ4) kT3 (x + β v) across the load shaft: along the healthy motion
+    # that force, through the linear model, is the simulator's change to first order in α.
+    channels = ("w1", "w4", "torque_c")
+    grid = model.Sampling(FS, 0.0, 2500 + RECORD.n_samples)
+    healthy = simulation.simulate(BASE, grid, channels)[:, 2500:]
+    motion = Trajectory.simulate(BASE, FS, grid.n_samples, simulation.DEFAULT_MAX_STEP)
+    x, v, theta4 = motion.x["load_shaft"], motion.v["load_shaft"], motion.theta["4"]
+    linear = LinearRig.build(BASE, FS, grid.n_samples, channels)
+    sigma = np.std(healthy, axis=1) * 0.01  # 40 dB
+    sizes, errors = [], []
+    for alpha in (0.02, 0.04):
+        crack = faults.scenario_values({"fault": {"kind": "breathing_crack", "parameters": {"alpha": alpha}}}, model.DEFAULTS)
+        change = simulation.simulate(model.complete(crack), RECORD, channels) - healthy
+        force_history = -0.5 * alpha * (1 - np.cos(theta4)) * BASE["kT3"] * (x + BASE["beta"] * v)
+        predicted = linear.response("load_shaft", force_history)[:, 2500:]
+        sizes.append(np.sqrt(np.mean((change / sigma[:, None]) ** 2)))
+        errors.append(np.sqrt(np.mean(((change - predicted) / sigma[:, None]) ** 2)))
+    assert errors[0] < 0.03 * sizes[0]
+    assert sizes[1] / sizes[0] == pytest.approx(2.0, rel=0.05) and errors[1] / errors[0] == pytest.approx(4.0, rel=0.15)
+
+
+def test_spectral_peaks_find_a_line_within_the_resolution_and_none_in_noise():
+    rng = np.random.default_rng(4)
+    t = RECORD.times
+    noise_only = rng.normal(size=(2, t.size)) * SIGMA[:, None]
+    assert search.spectral_peaks(noise_only, SIGMA, FS).frequencies == ()
+    line = noise_only + np.array([[0.0], [1.0]]) * np.sin(2 * np.pi * 37.3 * t)  # its whitened power ~ 300
+    peaks = search.spectral_peaks(line, SIGMA, FS)
+    assert peaks.resolution == pytest.approx(1.0) and abs(peaks.frequencies[0] - 37.3) <= peaks.resolution / 4
+
+
+@pytest.fixture(scope="module")
+def motion():
+    return Trajectory.simulate(BASE, FS, 2500 + RECORD.n_samples, simulation.DEFAULT_MAX_STEP)
+
+
+@pytest.mark.parametrize("term", list(FORMS))
+def test_each_forms_effect_file_loads_and_its_force_is_the_forms_basis(term, motion, tmp_path):
+    form = FORMS[term]
+    place, shape = next((p, s[0]) for p in form.places() if (s := form.shapes(motion, p, Peaks((49.4, 74.0), 1.0))))
+    basis = form.basis(motion, place, shape)
+    coefficients = np.linspace(0.4, 0.7, len(basis)) * np.where(term == "dead_zone", 1.0, 1e-3)
+    candidate = search.Candidate(term, place, 0.0, shape, None, None, {
+        name: {"value": value, "sd": 0.1 * abs(value), "hdi_low": 0.8 * value, "hdi_high": 1.2 * value, "unit": unit}
+        for name, (value, unit) in form.parameters(coefficients, shape, place).items()}, 1.0)
+    name, content = effect_file.render(candidate, "a measurement-1")
+    (tmp_path / f"{name}.py").write_text(content)
+    effect = effects.load_file(tmp_path / f"{name}.py")  # checked: declarations, units, ranges, finite forces
+    assert effect.acts_on == place and name.isidentifier()
+    p = effect_parameters_type(effect)(**effect.defaults(BASE))
+    rig = RigValues(**{name: BASE[name] for name in model.PARAMETER_NAMES}, Omega=model.omega(BASE))
+    samples = range(2500, 2500 + RECORD.n_samples, 97)
+    forces = [effect.force(Kinematics(motion.t[k], motion.x[place][k], motion.v[place][k], motion.theta["1"][k],
+                                      motion.theta["4"][k], 0.0, 0.0, 0.0), p, rig, 0.0) for k in samples]
+    assert forces == pytest.approx(list(coefficients @ basis[:, list(samples)]), rel=1e-9, abs=1e-12 * np.max(np.abs(forces)))
+
+
+def test_a_small_breathing_crack_is_found_as_a_stiffness_turning_with_the_load(motion):
+    # The crack is the library's, but the search knows only the catalogue: its top form must be a
+    # stiffness modulated once per revolution of disk 4, and its frequency that speed.
+    channels = ("b1_x", "w1")
+    crack = faults.scenario_values({"fault": {"kind": "breathing_crack", "parameters": {"alpha": 0.02}}}, model.DEFAULTS)
+    data, sigma = measurement_noise.add_noise(simulation.simulate(model.complete(crack), RECORD, channels), channels, 40.0, 3)
+    residual = data - simulation.simulate(BASE, RECORD, channels)
+    found = search.discover(residual, sigma, BASE, RECORD, channels, simulation.DEFAULT_MAX_STEP)
+    best = found.candidates[0]
+    assert (best.term, best.shape.label) == ("angle_stiffness", "1x disk 4")
+    assert best.frequency_hz == pytest.approx(BASE["speed_rpm"] / 60, rel=0.01)
+    assert best.chi2_after < found.chi2_before and search.log_bayes_factor(best, found) > 10
+    assert {c.acts_on for c in search.equivalent(found, 3.0)} >= {"load_shaft"}  # w1 alone cannot tell the shafts apart
+    assert found.forces["load_shaft"].log_bayes_factor > 0 > found.forces["b1_x"].log_bayes_factor
+
+
+def test_including_an_effect_file_adds_it_for_the_block_only(tmp_path):
+    source = (Path(__file__).parent / "effects" / "torque_ripple.py").read_text()
+    (tmp_path / "torque_ripple.py").write_text(source)
+    before = list(effects.active())
+    with effects.including(tmp_path / "torque_ripple.py") as effect:
+        assert list(effects.active()) == [*before, "torque_ripple"] and effect.name == "torque_ripple"
+        assert "torque_ripple.amplitude" in model.slot_names()
+        with pytest.raises(effects.EffectError, match="already active"), effects.including(tmp_path / "torque_ripple.py"):
+            pass
+    assert list(effects.active()) == before

@@ -310,8 +310,9 @@ def plot(kind: str, inputs: list[str], output: str, code_hash: str, measurement:
 
 
 def diagnose_measurement(measurement_path: str, grid_paths: list[str], spec: dict, verdict: str, table: str,
-                         netcdf: str, mcmc: str, code_hash: str) -> None:
-    """Diagnose one measurement file: verdict (JSON), model versions and posteriors (NetCDF), MCMC of the effect."""
+                         netcdf: str, mcmc: str, discovery: str, code_hash: str) -> None:
+    """Diagnose one measurement file: verdict (JSON), model versions and posteriors (NetCDF), MCMC of the effect,
+    and a folder with the discovered term's effect file when nothing of the library explains it."""
     from . import config, diagnosis, io, model
 
     settings = diagnosis.Settings.from_config(spec)
@@ -321,7 +322,7 @@ def diagnose_measurement(measurement_path: str, grid_paths: list[str], spec: dic
     v = result.verdict
     log.info("%s: %s %s (chi2 %.4g -> %.4g) in %.1f s", measurement_path, v["verdict"], v["effect"], v["chi2_before"],
              v["chi2_after"], time.perf_counter() - start)
-    diagnosis.write(result, verdict, table, netcdf, mcmc, config.canonical_json(spec), code_hash)
+    diagnosis.write(result, verdict, table, netcdf, mcmc, discovery, config.canonical_json(spec), code_hash)
 
 
 def plot_diagnosis(verdict: str, netcdf: str, mcmc: str, outputs: dict, code_hash: str) -> None:
@@ -418,7 +419,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--spec", required=True, help="the diagnosis settings as JSON (built by the workflow)")
     p.add_argument("--grids", nargs="*", default=[], help="the study's coarse grid files, in the spec's calibration "
                    "parameter order (reused when their condition is the measurement's)")
-    for output in ("verdict", "table", "netcdf", "mcmc"):
+    for output in ("verdict", "table", "netcdf", "mcmc", "discovery"):
         p.add_argument(f"--{output}", required=True)
     p.add_argument("--code-hash", default="")
     p = commands.add_parser("plot-diagnosis", help="the figures of one diagnosis")
@@ -464,7 +465,7 @@ def main(argv: list[str] | None = None) -> int:
         plot(args.kind, args.inputs, args.output, args.code_hash, args.measurement, args.chi2_output, args.snr_db, args.seed)
     elif args.command == "diagnose":
         diagnose_measurement(args.measurement, args.grids, json.loads(args.spec), args.verdict, args.table, args.netcdf,
-                             args.mcmc, args.code_hash)
+                             args.mcmc, args.discovery, args.code_hash)
     elif args.command == "plot-diagnosis":
         plot_diagnosis(args.verdict, args.netcdf, args.mcmc, {name: getattr(args, name) for name in DIAGNOSIS_FIGURES},
                        args.code_hash)

@@ -12,7 +12,10 @@ missing, add it and show the error fall (the paper's Steps 1–3, automated, the
 5. Verdict: the best-evidence hypothesis if its fit brings χ² to the noise (≤ ``chi2_max``), else
    ``unexplained``; hypotheses of the same class within ``evidence_margin`` of it explain the data
    equally, and the unmeasured channels that would separate them are named.
-6. The best fault model is sampled by MCMC for its parameters' uncertainty: to convergence (up to
+6. Discovery, when nothing explains the data: the form of the missing term at the place where it acts
+   (:mod:`newdyn.discovery`), its best candidate written as an effect file and fitted on the full
+   simulator with the drift parameters, so that its χ² and evidence stand beside the library's.
+7. The best fault model is sampled by MCMC for its parameters' uncertainty: to convergence (up to
    ``max_rounds``) and polished from its best draw, or one round when healthy or a drift explains the
    data with more evidence, since then the verdict does not rest on it.
 """
@@ -84,12 +87,14 @@ class Settings:
             mcmc={**{k: c["mcmc"][k] for k in ("rhat_max", "ess_min", "move", "max_rounds")}, **d["mcmc"]},
         )
 
-    def hypotheses(self) -> list[hypotheses.Hypothesis]:
-        priors = {
+    def calibration_priors(self) -> dict[str, hypotheses.Prior]:
+        return {
             p: hypotheses.Prior(p, self.grids[p].low, self.grids[p].high, self.priors[p].mean, self.priors[p].sd)
             for p in self.grids
         }
-        return hypotheses.library(priors, self.fault_ranges, self.drift)
+
+    def hypotheses(self) -> list[hypotheses.Hypothesis]:
+        return hypotheses.library(self.calibration_priors(), self.fault_ranges, self.drift)
 
 
 def check_measurement(measurement: io.Measurement, channels: Sequence[str], band_hz: float, path=None) -> None:
@@ -173,6 +178,7 @@ class Diagnosis:
     verdict: dict
     versions: dict[str, np.ndarray]  # model version name -> outputs (channel, time)
     effect_mcmc: object  # arviz.InferenceData of the best fault model
+    effect_file: tuple[str, str] | None = None  # (name, content) of the discovered term's effect file
 
 
 def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mapping[str, str] | None = None) -> Diagnosis:
@@ -248,9 +254,51 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
         verdict[key] = residuals.where_it_fails(data - versions[version], sigma, channels, sampling.times,
                                                 sampling.fs, values["load_freq"])
     verdict["noise"] = {"sigma": dict(zip(channels, sigma.tolist())), "source": noise_source}
+    effect_file = None
+    if verdict["verdict"] == "unexplained":
+        verdict["discovery"], effect_file, discovered = _discover(measurement.name, fits, verdict, data, sigma, values, sampling,
+                                                                  settings)
+        if discovered is not None:
+            versions["discovered"] = discovered.model
+            verdict["models"]["discovered"] = discovered.hypothesis.name
+            verdict["model_versions"].append(_version_row("+ discovered", discovered, data, channels))
+        stage(f"discovery ({len(verdict['discovery']['candidates'])} candidates)")
     verdict["statement"] = statement(verdict, settings.chi2_max)
     return Diagnosis(measurement, channels, data, sigma, noise_source, calibrations, fits, signatures, verdict,
-                     versions, effect_mcmc)
+                     versions, effect_mcmc, effect_file)
+
+
+def _discover(name: str, fits, verdict, data, sigma, values, sampling, settings: Settings):
+    """The discovery section of the verdict, the best candidate's effect file (name, content) and its fit on
+    the full simulator with the drift parameters (None when the search found no candidate)."""
+    import tempfile
+    from pathlib import Path
+
+    from .discovery import effect_file, search
+
+    calibrated = fits[verdict["models"]["calibrated"]]
+    base = {**values, **calibrated.values}
+    found = search.discover(data - calibrated.model, sigma, base, sampling, settings.channels, settings.max_step)
+    section = {"from": calibrated.hypothesis.name, "peaks_hz": list(found.peaks.frequencies), "chi2_before": found.chi2_before,
+               "candidates": [{**c.summary(), "log_bayes_factor": search.log_bayes_factor(c, found)} for c in found.candidates],
+               "equivalent": [f"{c.term} on {c.acts_on}" for c in search.equivalent(found, settings.evidence_margin)],
+               "places": {p: {"log_bayes_factor": f.log_bayes_factor, "chi2_after": f.chi2_after}
+                          for p, f in sorted(found.forces.items(), key=lambda item: -item[1].log_bayes_factor)}}
+    if not found.candidates:
+        return section, None, None
+    effect_name, content = effect_file.render(found.candidates[0], name)
+    with tempfile.TemporaryDirectory() as folder:
+        path = Path(folder) / f"{effect_name}.py"
+        path.write_text(content, encoding="utf-8")
+        with effects.including(path) as effect:
+            ranges = {effect.name: {p.name: p.prior for p in effect.parameters}}
+            hypothesis = hypotheses.library(settings.calibration_priors(), ranges, settings.drift)[-1]
+            fit = hypotheses.fit(hypothesis, data, sigma, values, sampling, settings.channels,
+                                 [{**effect.defaults(values), **calibrated.values}], settings.max_step, search=False)
+    section["effect_file"] = f"{effect_name}.py"
+    section["fit"] = {"effect": effect_name, "chi2_after": fit.chi2_red, "log_evidence": fit.log_evidence,
+                      "explains": fit.chi2_red <= settings.chi2_max, "parameters": _laplace_parameters(fit)}
+    return section, (effect_name, content), fit
 
 
 def _signature_distances(settings: Settings, hyps, values, calibrations, calibrate_all, sampling, channels) -> xr.DataArray:
@@ -386,7 +434,20 @@ def statement(verdict: Mapping, chi2_max: float) -> str:
         return f"new dynamics: {effect} added to the model, with {fitted}, brings reduced chi2 from {before:.3g} to {after:.3g}"
     where = "; ".join(_finding(f) for f in verdict["remaining"][:3]) or "no single band or load phase"
     return (f"unexplained: no hypothesis of the library brings reduced chi2 to {chi2_max:g} or below; the closest, "
-            f"{verdict['models']['after']}, leaves {after:.3g}, above the noise in {where}")
+            f"{verdict['models']['after']}, leaves {after:.3g}, above the noise in {where}"
+            + (f"; {_discovered(verdict['discovery'], before)}" if verdict.get("discovery", {}).get("candidates") else ""))
+
+
+def _discovered(section: Mapping, before: float) -> str:
+    """What discovery found, in words: the best candidate, and whether its fit on the full simulator explains the data."""
+    best = section["candidates"][0]
+    values = ", ".join(f"{name} {row['value']:.4g} {row['unit']}".rstrip(" -") for name, row in best["parameters"].items())
+    found = f"discovered: a {best['term']} term on {best['acts_on']} ({best['shape']}; {values})"
+    fit = section.get("fit")
+    if fit is None:
+        return found
+    return (f"{found} {'explains' if fit['explains'] else 'does not explain'} the data: reduced chi2 {before:.3g} -> "
+            f"{fit['chi2_after']:.3g} on the full model (effect file {section['effect_file']})")
 
 
 def _finding(finding: Mapping) -> str:
@@ -502,11 +563,21 @@ def _mcmc_parameters(idata, names) -> dict:
 VERSION_COLUMNS = ("version", "hypothesis", "chi2_red", "log_evidence")
 
 
-def write(diagnosis: Diagnosis, verdict_path, table_path, netcdf_path, mcmc_path, settings_json: str, code_hash: str) -> None:
+def write(diagnosis: Diagnosis, verdict_path, table_path, netcdf_path, mcmc_path, discovery_folder, settings_json: str,
+          code_hash: str) -> None:
     """Write the verdict (JSON), the model versions' errors (CSV: χ², log-evidence, RMSE per channel),
-    the data, model versions, posteriors and signature distances (NetCDF) and the effect model's MCMC
-    posterior (ArviZ NetCDF); each file atomically."""
+    the data, model versions, posteriors and signature distances (NetCDF), the effect model's MCMC
+    posterior (ArviZ NetCDF), each file atomically, and the folder ``discovery_folder`` with the
+    discovered term's effect file (empty when discovery did not run)."""
+    from pathlib import Path
+
     from . import provenance, sampling
+
+    folder = Path(discovery_folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    if diagnosis.effect_file is not None:
+        name, content = diagnosis.effect_file
+        io.atomic_write(folder / f"{name}.py", lambda tmp: Path(tmp).write_text(content, encoding="utf-8"))
 
     m = diagnosis.measurement
     stamp = provenance.attributes(code_hash)

@@ -18,9 +18,10 @@ from pathlib import Path
 _DEPENDENCIES = ("numpy", "scipy", "numba", "xarray", "netCDF4")
 
 
-def source_hash(*modules: str, files: Sequence[str] = ()) -> str:
-    """SHA-256 (first 16 hex digits) over the source files of ``newdyn.<module>`` for each module and
-    over ``files`` (e.g. the files of the effects a job simulates)."""
+def source_hash(*modules: str, files: Sequence[str] = (), packages: Sequence[str] = ()) -> str:
+    """SHA-256 (first 16 hex digits) over the source files of ``newdyn.<module>`` for each module, of every
+    module of ``newdyn.<package>`` for each package (its subpackages too) and over ``files`` (e.g. the
+    files of the effects a job simulates)."""
     digest = hashlib.sha256()
     origins = []
     for name in sorted(modules):
@@ -28,6 +29,12 @@ def source_hash(*modules: str, files: Sequence[str] = ()) -> str:
         if spec is None or spec.origin is None:
             raise ModuleNotFoundError(f"newdyn.{name}")
         origins.append((name, spec.origin))
+    for name in sorted(packages):
+        spec = find_spec(f"newdyn.{name}")
+        if spec is None or not spec.submodule_search_locations:
+            raise ModuleNotFoundError(f"newdyn.{name} (a package)")
+        folder = Path(spec.origin).parent
+        origins += [(f"{name}/{path.relative_to(folder).as_posix()}", str(path)) for path in sorted(folder.rglob("*.py"))]
     for name, path in origins + [(Path(path).name, path) for path in files]:
         with open(path, "rb") as source:
             digest.update(name.encode() + b"\0" + source.read())

@@ -266,6 +266,7 @@ DIAGNOSIS_CODE = newdyn.provenance.source_hash(
     "hypotheses",
     "diagnosis",
     files=effect_files(),  # every effect is a hypothesis
+    packages=("discovery",),
 )
 HIDDEN_CODE = newdyn.provenance.source_hash(*SIMULATOR, "noise", "io", "hidden", files=effect_files())
 SCORE_CODE = newdyn.provenance.source_hash("hidden", "plots", files=effect_files())

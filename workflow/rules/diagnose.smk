@@ -20,6 +20,7 @@ rule diagnose:
         ),
         netcdf="{root}/diagnosis/{name}/diagnosis.nc",
         mcmc="{root}/diagnosis/{name}/effect_mcmc.nc",
+        discovery=directory("{root}/diagnosis/{name}/discovery"),
     log:
         "{root}/logs/diagnose/{name}.log",
     benchmark:
@@ -36,7 +37,7 @@ rule diagnose:
     shell:
         "NUMBA_NUM_THREADS={threads} OPENBLAS_NUM_THREADS={threads} newdyn diagnose --measurement {input.measurement} "
         "--grids {input.grids} --spec {params.spec:q} --code-hash {params.code} --verdict {output.verdict} --table {output.table} "
-        "--netcdf {output.netcdf} --mcmc {output.mcmc} > {log} 2>&1"
+        "--netcdf {output.netcdf} --mcmc {output.mcmc} --discovery {output.discovery} > {log} 2>&1"
 
 
 rule plot_diagnosis:

@@ -1,6 +1,8 @@
 """The open world: when no effect of the library explains a measurement, find the missing term.
 
-:mod:`.force` estimates a missing generalized force at a place of the rig from the residual of the
-calibrated model, through the sensitivity of the measured channels to a force there, and scores the
-place by its evidence.
+:mod:`.linear` gives the rig's response to a force at any place (the model linearized about its
+motion); :mod:`.force` estimates the force history at a place from the calibrated model's residual,
+with its evidence; :mod:`.forms` is the catalogue of parametric terms (one file each); :mod:`.search`
+ranks every form at the places where the force acts by evidence; :mod:`.effect_file` writes the best
+one out as an effect file that a study adds like any user's effect.
 """

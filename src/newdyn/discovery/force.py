@@ -58,6 +58,53 @@ def log_evidence_without_force(residual: np.ndarray, sigma: np.ndarray) -> float
     return float(-0.5 * (np.sum(r**2) + r.size * LOG_2PI) - r.shape[1] * np.sum(np.log(sigma)))
 
 
+@dataclass(frozen=True)
+class Regression:
+    """The posterior of coefficients c in r = G c + e, c ~ N(0, s² I), s log-uniform, and the evidence."""
+
+    mean: np.ndarray
+    sd: np.ndarray
+    scale: float  # the prior scale s of highest posterior weight
+    log_evidence: float  # log p(r | G), s marginalized; in the residual's units
+    log_bayes_factor: float  # against r being the noise alone
+    chi2_before: float  # reduced χ² of the residual
+    chi2_after: float  # reduced χ² of the residual less G times the posterior mean
+
+
+def regress(residual: np.ndarray, sigma: np.ndarray, sensitivity: np.ndarray, scale_range: tuple[float, float]) -> Regression:
+    """Bayesian linear regression of ``residual`` (channel, time), noise σ per channel, on the columns of
+    ``sensitivity`` (channel, time, column), the prior scale's log-uniform range ``scale_range``."""
+    r, g = _whitened(residual, sigma, sensitivity)
+    s_low, s_high = (float(x) for x in scale_range)
+    if not 0.0 < s_low < s_high:
+        raise ValueError(f"scale_range must be 0 < low < high, got {scale_range!r}")
+    # Eigenvectors V and eigenvalues S² of GᵀG (G's right singular vectors and squared singular values), and
+    # w = Vᵀ Gᵀ r: the regression in V's coordinates, without dividing by the small singular values.
+    responding = g[np.any(g != 0.0, axis=1)]  # rows of channels the force moves at all
+    squared, v = np.linalg.eigh(responding.T @ responding)
+    squared = np.maximum(squared, 0.0)
+    w = v.T @ (g.T @ r)
+    log_scales = np.linspace(math.log(s_low), math.log(s_high), SCALE_POINTS)
+    variance = np.exp(2.0 * log_scales)[:, None]  # s² (scale, 1)
+    spread = 1.0 + variance * squared  # eigenvalues of the whitened residual's covariance along U
+    log_z = -0.5 * (np.sum(np.log(spread) - variance * w**2 / spread, axis=1) + r @ r + r.size * LOG_2PI)
+    log_z -= residual.shape[1] * float(np.sum(np.log(sigma)))  # back to the residual's units
+    # Log-uniform prior on s: density 1/(log s_high − log s_low) in log s, integrated by the trapezoidal rule.
+    log_weights = np.log(trapezoid(np.eye(SCALE_POINTS), log_scales, axis=1) / (log_scales[-1] - log_scales[0]))
+    log_evidence = float(logsumexp(log_z + log_weights))
+    posterior_weights = np.exp(log_z + log_weights - log_evidence)  # p(s | r) at the quadrature points
+    means = (variance * w / spread) @ v.T  # (scale, basis)
+    variances = (variance / spread) @ (v.T) ** 2  # diagonal of V diag(s²/(1 + s² S²)) Vᵀ
+    mean = posterior_weights @ means
+    sd = np.sqrt(np.maximum(posterior_weights @ (variances + means**2) - mean**2, 0.0))
+    remaining = r - g @ mean
+    return Regression(
+        mean=mean, sd=sd, scale=float(np.exp(log_scales[np.argmax(posterior_weights)])), log_evidence=log_evidence,
+        log_bayes_factor=log_evidence - log_evidence_without_force(residual, sigma),
+        chi2_before=float(r @ r / r.size), chi2_after=float(remaining @ remaining / r.size),
+    )
+
+
 def estimate(
     place: str,
     residual: np.ndarray,
@@ -72,35 +119,11 @@ def estimate(
     place centred at ``times[j]``; ``scale_range``: the range [s_low, s_high] of the log-uniform prior on
     the force's scale, in the force's units.
     """
-    r, g = _whitened(residual, sigma, sensitivity)
-    if np.shape(times) != (g.shape[1],):
-        raise ValueError(f"times must give the centres of the {g.shape[1]} basis pulses, got shape {np.shape(times)}")
-    s_low, s_high = (float(x) for x in scale_range)
-    if not 0.0 < s_low < s_high:
-        raise ValueError(f"scale_range must be 0 < low < high, got {scale_range!r}")
-    u, singular, vt = np.linalg.svd(g, full_matrices=False)
-    z = u.T @ r
-    outside = float(r @ r - z @ z)  # the part of r no force at the place can produce
-    log_scales = np.linspace(math.log(s_low), math.log(s_high), SCALE_POINTS)
-    variance = np.exp(2.0 * log_scales)[:, None]  # s² (scale, 1)
-    spread = 1.0 + variance * singular**2  # eigenvalues of the whitened residual's covariance in U's span
-    log_z = -0.5 * (np.sum(np.log(spread) + z**2 / spread, axis=1) + outside + r.size * LOG_2PI)
-    log_z -= residual.shape[1] * float(np.sum(np.log(sigma)))  # back to the residual's units
-    # Log-uniform prior on s: density 1/(log s_high − log s_low) in log s, integrated by the trapezoidal rule.
-    log_weights = np.log(trapezoid(np.eye(SCALE_POINTS), log_scales, axis=1) / (log_scales[-1] - log_scales[0]))
-    log_evidence = float(logsumexp(log_z + log_weights))
-    posterior_weights = np.exp(log_z + log_weights - log_evidence)  # p(s | r) at the quadrature points
-    shrink = variance * singular / spread  # the posterior mean's gain on z, per scale
-    means = (shrink * z) @ vt  # (scale, basis)
-    variances = (variance / spread) @ vt**2  # diagonal of V diag(s²/(1 + s² S²)) Vᵀ
-    if vt.shape[0] < vt.shape[1]:  # fewer data than pulses: the prior's variance remains off V's span
-        variances += variance * (1.0 - np.sum(vt**2, axis=0))
-    mean = posterior_weights @ means
-    sd = np.sqrt(np.maximum(posterior_weights @ (variances + means**2) - mean**2, 0.0))
-    remaining = r - g @ mean
+    if np.shape(times) != (np.shape(sensitivity)[-1],):
+        raise ValueError(f"times must give the centres of the {np.shape(sensitivity)[-1]} basis pulses, got shape {np.shape(times)}")
+    fit = regress(residual, sigma, sensitivity, scale_range)
     return ForceEstimate(
-        place=place, times=np.asarray(times, dtype=float), mean=mean, sd=sd,
-        scale=float(np.exp(log_scales[np.argmax(posterior_weights)])), log_evidence=log_evidence,
-        log_bayes_factor=log_evidence - log_evidence_without_force(residual, sigma),
-        chi2_before=float(r @ r / r.size), chi2_after=float(remaining @ remaining / r.size),
+        place=place, times=np.asarray(times, dtype=float), mean=fit.mean, sd=fit.sd, scale=fit.scale,
+        log_evidence=fit.log_evidence, log_bayes_factor=fit.log_bayes_factor, chi2_before=fit.chi2_before,
+        chi2_after=fit.chi2_after,
     )

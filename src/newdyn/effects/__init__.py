@@ -15,13 +15,14 @@ import importlib
 import importlib.util
 import inspect
 import sys
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 
 from .base import PLACES, Effect, Kinematics, Parameter, RigValues, kernel_function, sincos
 
 __all__ = ["PLACES", "USER_FOLDER", "Effect", "EffectError", "Kinematics", "Parameter", "RigValues", "active", "builtin",
-           "kernel_function", "load_file", "loaded", "sincos", "use"]
+           "including", "kernel_function", "load_file", "loaded", "sincos", "use"]
 
 LIBRARY = Path(__file__).resolve().parent / "library"
 #: Where a study's own effects live, relative to the directory Snakemake runs in.
@@ -129,3 +130,18 @@ def use(names: Sequence[str] = (), folder: str | Path = USER_FOLDER) -> Mapping[
     _ACTIVE.clear()
     _ACTIVE.update(chosen)
     return _ACTIVE
+
+
+@contextmanager
+def including(path: str | Path) -> Iterator[type[Effect]]:
+    """The active set with the effect of the file ``path`` added, inside a with-block; as before after it."""
+    before = dict(active())
+    effect = load_file(path)
+    if effect.name in before:
+        raise EffectError(path, f"'{effect.name}' is already active")
+    _ACTIVE[effect.name] = effect
+    try:
+        yield effect
+    finally:
+        _ACTIVE.clear()
+        _ACTIVE.update(before)

@@ -1,0 +1,124 @@
+"""The rig's response to a small added force at a place, from its linearization.
+
+A missing effect is, to first order, a force history f(t) at a place added to a model that otherwise
+fits; the channels answer with y = h * f, h the place's impulse response in the model linearized about
+its motion (:func:`newdyn.model.linear_matrices`: torsional and lateral, the slip joint locked, no
+imbalance).  Leaving out the imbalance drops the cross-domain responses, a torque's trace in the
+bearing displacements and a lateral force's in the speeds: on the default rig at 40 dB these are
+about 2 % of the same-domain response (tests/test_discovery.py measures it on the library's effects).
+
+The force is taken as piecewise linear between the samples of the simulation's grid (t = k/fs from
+t = 0, where the model starts), so the first-order-hold discretization is exact for it and the impulse
+response is that of a unit hat at one sample.  Across the locked slip joint a force does nothing.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import signal
+
+from .. import model
+from ..effects import PLACES
+
+#: Torsional places -> (DOF, sign) pairs of the linear model's θ1 θ2 θ3 θ4 (an element's force acts like
+#: its own spring torque: −τ on the motor-side body, +τ on the other; see newdyn.effects.PLACES).
+TORSIONAL_INPUTS: Mapping[str, tuple[tuple[int, float], ...]] = {
+    "motor": ((0, 1.0),),
+    "motor_shaft": ((0, -1.0), (1, 1.0)),
+    "slip_joint": (),  # internal to the locked joint: no response
+    "coupling": ((1, -1.0), (2, 1.0)),
+    "load_shaft": ((2, -1.0), (3, 1.0)),
+    "load": ((3, 1.0),),
+}
+N_TORSIONAL = 4
+N_DOF = N_TORSIONAL + 2 * len(model.NODES)
+
+
+def _input_vector(place: str) -> np.ndarray:
+    b = np.zeros(N_DOF)
+    if place in TORSIONAL_INPUTS:
+        for dof, sign in TORSIONAL_INPUTS[place]:
+            b[dof] = sign
+        return b
+    node, _, axis = place.rpartition("_")
+    b[N_TORSIONAL + (0 if axis == "x" else len(model.NODES)) + model.NODES.index(node)] = 1.0
+    return b
+
+
+def _output_rows(channel: str, values: Mapping[str, float]) -> np.ndarray:
+    """The channel as a row on the state (positions, then velocities)."""
+    row = np.zeros(2 * N_DOF)
+    if channel in ("w1", "w4"):
+        row[N_DOF + (0 if channel == "w1" else 3)] = 1.0
+    elif channel == "torque_c":
+        row[[1, 2]] = values["kT2"] * np.array([1.0, -1.0])
+        row[[N_DOF + 1, N_DOF + 2]] = values["beta"] * values["kT2"] * np.array([1.0, -1.0])
+    else:
+        node, _, axis = channel.partition("_")
+        row[N_TORSIONAL + (0 if axis == "x" else len(model.NODES)) + model.NODES.index(node)] = 1.0
+    return row
+
+
+@dataclass(frozen=True)
+class LinearRig:
+    """Impulse responses of ``channels`` to a unit force at every place, on a grid of ``n_samples``
+    samples at ``fs`` from t = 0: ``responses[place]`` is (channel, lag), ``spectra[place]`` its real
+    FFT zero-padded to ``fft_size`` (≥ 2 n_samples − 1, so that products are linear convolutions)."""
+
+    fs: float
+    channels: tuple[str, ...]
+    responses: Mapping[str, np.ndarray]
+    spectra: Mapping[str, np.ndarray]
+    fft_size: int
+
+    @classmethod
+    def build(cls, values: Mapping[str, float], fs: float, n_samples: int, channels: Sequence[str]) -> LinearRig:
+        mass, damping, stiffness = model.linear_matrices(values)
+        inverse_mass = np.linalg.inv(mass)
+        a = np.block([[np.zeros((N_DOF, N_DOF)), np.eye(N_DOF)], [-inverse_mass @ stiffness, -inverse_mass @ damping]])
+        places = list(PLACES)
+        b = np.vstack([np.zeros((N_DOF, len(places))), inverse_mass @ np.column_stack([_input_vector(p) for p in places])])
+        c = np.vstack([_output_rows(channel, values) for channel in channels])
+        ad, bd, cd, dd, _ = signal.cont2discrete((a, b, c, np.zeros((len(channels), len(places)))), 1.0 / fs, method="foh")
+        # A unit sample at k = 0 through the discrete system, for every place at once.
+        responses = np.empty((n_samples, len(channels), len(places)))
+        state = bd.copy()
+        responses[0] = dd
+        for k in range(1, n_samples):
+            responses[k] = cd @ state
+            state = ad @ state
+        by_place = {p: np.ascontiguousarray(responses[:, :, i].T) for i, p in enumerate(places)}
+        size = 1 << (2 * n_samples - 1).bit_length()
+        return cls(float(fs), tuple(channels), by_place, {p: np.fft.rfft(r, size) for p, r in by_place.items()}, size)
+
+    def response(self, place: str, force: np.ndarray) -> np.ndarray:
+        """Each channel's response (channel, ..., time) to force histories (..., time) at ``place``,
+        sampled on the grid from t = 0."""
+        force = np.asarray(force, dtype=float)
+        n = force.shape[-1]
+        if n > self.responses[place].shape[1]:
+            raise ValueError(f"a force of {n} samples is longer than the grid's {self.responses[place].shape[1]}")
+        spectrum = self.spectra[place]
+        out = np.fft.irfft(spectrum.reshape(spectrum.shape[:1] + (1,) * (force.ndim - 1) + spectrum.shape[1:])
+                           * np.fft.rfft(force, self.fft_size), self.fft_size)
+        return out[..., :n]
+
+    def pulse_sensitivity(self, place: str, first: int, n_record: int, spacing: int) -> tuple[np.ndarray, np.ndarray]:
+        """(channel, record sample, pulse) responses to unit hats of half-width ``spacing`` samples centred
+        every ``spacing`` samples from t = spacing/fs (the first hat whole) to the record's end, on the
+        record (samples first … first + n_record − 1 of the grid), and the pulses' centres in samples.
+        Time invariance makes every column a shift of one response."""
+        centres = np.arange(spacing, first + n_record, spacing)
+        lags = np.arange(-spacing + 1, spacing)
+        hat = 1.0 - np.abs(lags) / spacing
+        n_grid = first + n_record
+        unit = np.zeros(n_grid)
+        unit[lags + spacing] = hat  # the hat centred at sample `spacing`
+        one = self.response(place, unit)  # (channel, grid)
+        # Column j is the response to a hat centred at centres[j], i.e. `one` shifted by centres[j] − spacing.
+        shift = first + np.arange(n_record)[:, None] - centres[None, :] + spacing
+        columns = np.where(shift >= 0, one[:, np.clip(shift, 0, n_grid - 1)], 0.0)
+        return columns, centres

@@ -1,0 +1,201 @@
+"""Find the missing term: where the force acts, and which form of the catalogue it has.
+
+From the calibrated model's residual r (channel, time) and noise σ:
+
+1. the residual's spectral peaks above the noise (whitened periodogram, a line's power far above the
+   noise's unit mean) give the frequencies that forms with one try;
+2. at every place a force can act, the force history that explains r best, and its evidence
+   (:func:`.force.estimate` on the linear model's pulse responses): where the missing force acts, the
+   places whose log Bayes factor against no force is at least :data:`PLACE_SHARE` of the best's;
+3. every form of :data:`.forms.FORMS` at each of those places it can act, each shape it proposes: its basis
+   forces along the calibrated motion, normalized to unit RMS so that one log-uniform prior on the
+   force's RMS holds for all, through the linear model, then Bayesian linear regression on them
+   (:func:`.force.regress`); the shapes marginalized with the form's prior.  Candidates are ranked by
+   that evidence; those within ``evidence_margin`` of the best explain the data equally.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import signal, stats
+from scipy.special import logsumexp
+
+from .. import model
+from ..effects.base import TORSIONAL_PLACES
+from . import force
+from .forms import ESTIMABLE_PLACES, FORMS, Form, Peaks, Shape, Trajectory
+from .linear import LinearRig
+
+HDI_PROB = 0.94
+PEAKS = 3  # spectral peaks tried as frequencies
+PEAK_POWER = 25.0  # a peak's whitened power (noise: mean 1, exponential) to count as a line
+ZERO_PADDING = 4
+SCALE_DECADES = (-5.0, 1.0)  # log-uniform prior range of a force's RMS, relative to the place's natural scale
+PULSE_SPACING = 0.002  # s, between the force estimate's basis pulses
+# A place is tried when a free force there explains at least this share of what a free force at the best
+# place explains (log Bayes factors against no force): on a rig whose channels each see one domain, this
+# keeps the domain the force acts in and leaves the other, whose free forces explain nothing.
+PLACE_SHARE = 0.5
+POSTERIORS = 10  # candidates whose parameters' posteriors are drawn (the best ones)
+
+
+def natural_scale(place: str, values: Mapping[str, float]) -> float:
+    """A force's natural size at ``place``: the mean torque T0 on the shaft line, the motor rotor's
+    imbalance force u·Ω² laterally."""
+    return values["T0"] if place in TORSIONAL_PLACES else values["u1"] * model.omega(values) ** 2
+
+
+def scale_range(place: str, values: Mapping[str, float]) -> tuple[float, float]:
+    scale = natural_scale(place, values)
+    return scale * 10.0 ** SCALE_DECADES[0], scale * 10.0 ** SCALE_DECADES[1]
+
+
+def spectral_peaks(residual: np.ndarray, sigma: np.ndarray, fs: float, n: int = PEAKS) -> Peaks:
+    """Up to ``n`` lines in the residual, strongest first: peaks of the whitened periodogram summed over
+    channels (the noise's mean 1 per channel) above :data:`PEAK_POWER`."""
+    whitened = residual / sigma[:, None]
+    size = ZERO_PADDING * whitened.shape[1]
+    power = np.sum(np.abs(np.fft.rfft(whitened - whitened.mean(axis=1, keepdims=True), size)) ** 2, axis=0) / whitened.shape[1]
+    frequencies = np.fft.rfftfreq(size, 1.0 / fs)
+    found, _ = signal.find_peaks(power, height=PEAK_POWER * len(sigma), distance=2 * ZERO_PADDING)
+    strongest = found[np.argsort(power[found])[::-1]][:n]
+    return Peaks(tuple(float(frequencies[i]) for i in strongest), fs / whitened.shape[1])
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """A form at a place, fitted on the linear model: its evidence, best shape and parameters."""
+
+    term: str
+    acts_on: str
+    log_evidence: float
+    shape: Shape
+    frequency_hz: float | None
+    order: float | None
+    parameters: Mapping[str, Mapping[str, float | str]]  # name -> value, sd, hdi_low, hdi_high, unit
+    chi2_after: float
+
+    def summary(self) -> dict:
+        return {"term": self.term, "acts_on": self.acts_on, "frequency_hz": self.frequency_hz, "order": self.order,
+                "shape": self.shape.label, "parameters": {k: dict(v) for k, v in self.parameters.items()},
+                "chi2_after": self.chi2_after, "log_evidence": self.log_evidence, "method": "linearized model"}
+
+
+@dataclass(frozen=True)
+class Discovery:
+    """Candidates ranked by evidence, the force estimated at each place, and what the search saw."""
+
+    candidates: list[Candidate]
+    forces: dict[str, force.ForceEstimate]
+    peaks: Peaks
+    log_evidence_without: float
+    chi2_before: float
+    trajectory: Trajectory
+    linear: LinearRig
+    first: int  # the record's first sample on the trajectory's grid
+
+
+def _record_start(sampling: model.Sampling) -> int:
+    first = sampling.t_first * sampling.fs
+    if abs(first - round(first)) > 1e-6:
+        raise ValueError(f"the record must start on the sample grid from t = 0 (t_first·fs = {first:g})")
+    return round(first)
+
+
+def discover(residual: np.ndarray, sigma: np.ndarray, values: Mapping[str, float], sampling: model.Sampling,
+             channels: Sequence[str], max_step: float) -> Discovery:
+    """Search the catalogue for the term behind ``residual`` (channel, time) of the model with ``values``."""
+    residual, sigma = np.asarray(residual, dtype=float), np.asarray(sigma, dtype=float)
+    first = _record_start(sampling)
+    n_grid = first + sampling.n_samples
+    trajectory = Trajectory.simulate(values, sampling.fs, n_grid, max_step)
+    linear = LinearRig.build(values, sampling.fs, n_grid, channels)
+    peaks = spectral_peaks(residual, sigma, sampling.fs)
+
+    spacing = max(1, round(PULSE_SPACING * sampling.fs))
+    forces = {}
+    for place in ESTIMABLE_PLACES:
+        columns, centres = linear.pulse_sensitivity(place, first, sampling.n_samples, spacing)
+        forces[place] = force.estimate(place, residual, sigma, columns, centres / sampling.fs, scale_range(place, values))
+
+    best_place = max(f.log_bayes_factor for f in forces.values())
+    places = [p for p, f in forces.items() if f.log_bayes_factor > 0 and f.log_bayes_factor >= PLACE_SHARE * best_place]
+    scored = sorted((scored for form in FORMS.values() for place in form.places() if place in places
+                     if (scored := _score(form, place, residual, sigma, trajectory, linear, first, peaks)) is not None),
+                    key=lambda s: -s[0])
+    candidates = [_candidate(*s, trajectory) for s in scored[:POSTERIORS]]
+    r = residual / sigma[:, None]
+    return Discovery(candidates, forces, peaks, force.log_evidence_without_force(residual, sigma), float(np.mean(r**2)),
+                     trajectory, linear, first)
+
+
+def _score(form: type[Form], place: str, residual, sigma, trajectory: Trajectory, linear: LinearRig, first: int,
+           peaks: Peaks):
+    """(log-evidence with the shapes marginalized, form, place, the shapes, their posterior weights, the
+    best shape's regression and its basis' RMS), or None when the form proposes no shape at ``place``."""
+    shapes = form.shapes(trajectory, place, peaks)
+    if not shapes:
+        return None
+    record = slice(first, first + residual.shape[1])
+    fits, scales = [], []
+    for shape in shapes:
+        basis = form.basis(trajectory, place, shape)
+        rms = np.sqrt(np.mean(basis[:, record] ** 2, axis=1))
+        rms = np.where(rms > 0, rms, 1.0)
+        columns = np.moveaxis(linear.response(place, basis / rms[:, None])[:, :, record], 1, 2)  # (channel, time, coefficient)
+        fits.append(force.regress(residual, sigma, columns, scale_range(place, trajectory.values)))
+        scales.append(rms)
+    log_z = np.array([f.log_evidence for f in fits]) + form.log_prior(trajectory, peaks, len(shapes))
+    log_evidence = float(logsumexp(log_z))
+    best = int(np.argmax(log_z))
+    return log_evidence, form, place, shapes, np.exp(log_z - log_evidence), fits[best], scales[best]
+
+
+def _candidate(log_evidence, form, place, shapes, shape_weights, fit, scale, trajectory) -> Candidate:
+    best = int(np.argmax(shape_weights))
+    parameters = _posterior(form, fit, scale, shapes, best, shape_weights, place)
+    return Candidate(form.term, place, log_evidence, shapes[best], form.frequency_hz(shapes[best], trajectory),
+                     form.order(shapes[best]), parameters, fit.chi2_after)
+
+
+def _posterior(form: type[Form], fit: force.Regression, scale: np.ndarray, shapes: Sequence[Shape], best: int,
+               shape_weights: np.ndarray, place: str, draws: int = 4000) -> dict:
+    """Each named parameter's mean, sd and 94 % HDI: the coefficients' Normal posterior (drawn, and turned
+    into the form's parameters), the shape's over the shapes tried."""
+    rng = np.random.default_rng(0)
+    coefficients = (fit.mean + fit.sd * rng.standard_normal((draws, len(fit.mean)))) / scale
+    named = [form.parameters(c, shapes[best], place) for c in coefficients]
+    rows = {}
+    for name, (value, unit) in form.parameters(fit.mean / scale, shapes[best], place).items():
+        if name in shapes[best].values:  # a shape parameter: its posterior over the shapes tried
+            grid = np.array([s.values[name] for s in shapes])
+            samples = rng.choice(grid, size=draws, p=shape_weights)
+        else:
+            samples = np.array([n[name][0] for n in named])
+        circular = name == "phase"  # an angle: its mean, spread and interval on the circle
+        low, high = _hdi(samples, circular)
+        mean = stats.circmean(samples, math.pi, -math.pi) if circular else np.mean(samples)
+        sd = stats.circstd(samples, math.pi, -math.pi) if circular else np.std(samples)
+        rows[name] = {"value": float(value), "mean": float(mean), "sd": float(sd), "hdi_low": low, "hdi_high": high, "unit": unit}
+    return rows
+
+
+def _hdi(samples: np.ndarray, circular: bool) -> tuple[float, float]:
+    import arviz as az
+
+    low, high = az.hdi(np.asarray(samples, dtype=float), hdi_prob=HDI_PROB, circular=circular)
+    return float(low), float(high)
+
+
+def log_bayes_factor(candidate: Candidate, discovery: Discovery) -> float:
+    return candidate.log_evidence - discovery.log_evidence_without
+
+
+def equivalent(discovery: Discovery, margin: float) -> list[Candidate]:
+    """The candidates whose evidence is within ``margin`` of the best's."""
+    top = discovery.candidates[0].log_evidence if discovery.candidates else math.nan
+    return [c for c in discovery.candidates if top - c.log_evidence <= margin]
