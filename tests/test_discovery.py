@@ -186,10 +186,14 @@ def test_each_forms_effect_file_loads_and_its_force_is_the_forms_basis(term, mot
     candidate = search.Candidate(term, place, 0.0, shape, None, None, {
         name: {"value": value, "sd": 0.1 * abs(value), "hdi_low": 0.8 * value, "hdi_high": 1.2 * value, "unit": unit}
         for name, (value, unit) in form.parameters(coefficients, shape, place).items()}, 1.0)
+    generic, generic_content = effect_file.render_generic(term, place, shape)
+    (tmp_path / f"{generic}.py").write_text(generic_content)
+    assert effects.load_file(tmp_path / f"{generic}.py").parameter_names() == tuple(candidate.parameters)
     name, content = effect_file.render(candidate, "a measurement-1")
+    assert name.startswith(generic) and name.isidentifier() and "measurement" not in generic_content
     (tmp_path / f"{name}.py").write_text(content)
     effect = effects.load_file(tmp_path / f"{name}.py")  # checked: declarations, units, ranges, finite forces
-    assert effect.acts_on == place and name.isidentifier()
+    assert effect.acts_on == place
     p = effect_parameters_type(effect)(**effect.defaults(BASE))
     rig = RigValues(**{name: BASE[name] for name in model.PARAMETER_NAMES}, Omega=model.omega(BASE))
     samples = range(2500, 2500 + RECORD.n_samples, 97)

@@ -13,7 +13,7 @@ import sys
 import time
 
 log = logging.getLogger("newdyn")
-DIAGNOSIS_FIGURES = ("overlays", "residuals", "hypotheses", "error_fall", "effect_mcmc")
+DIAGNOSIS_FIGURES = ("overlays", "residuals", "hypotheses", "error_fall", "discovery", "effect_mcmc")
 
 
 def simulate_scenario(spec: dict, output: str, code_hash: str) -> None:

@@ -40,6 +40,10 @@ from .hypotheses import HEALTHY, PARAMETER_CHANGE
 log = logging.getLogger("newdyn")
 VERDICTS = ("healthy", "parameter_change", "new_dynamics", "unexplained")
 HDI_PROB = 0.94
+DISCOVERY_FULL_FITS = 3  # terms whose best candidate discovery fits on the full simulator, at most
+# ... those whose linearized log Bayes factor is at least this share of the best's: the linearized ranking of a
+# state-dependent term is only first order (a strong dry friction ranks just behind a line at its resonance).
+DISCOVERY_FULL_FIT_SHARE = 0.5
 SIGNATURE_REFINE_POINTS = 21  # refined runs per likelihood maximum of a signature (the measurement's use the config's)
 
 
@@ -61,6 +65,7 @@ class Settings:
     refine_points: int
     max_step: float
     mcmc: Mapping[str, float | int | str] = field(default_factory=dict)
+    discovery: str = "unexplained"  # or "always"
 
     @classmethod
     def from_config(cls, config: Mapping) -> Settings:
@@ -85,6 +90,7 @@ class Settings:
             refine_points=int(c["refine_points"]),
             max_step=float(config["simulation"]["max_step"]),
             mcmc={**{k: c["mcmc"][k] for k in ("rhat_max", "ess_min", "move", "max_rounds")}, **d["mcmc"]},
+            discovery=d.get("discovery", "unexplained"),
         )
 
     def calibration_priors(self) -> dict[str, hypotheses.Prior]:
@@ -179,6 +185,7 @@ class Diagnosis:
     versions: dict[str, np.ndarray]  # model version name -> outputs (channel, time)
     effect_mcmc: object  # arviz.InferenceData of the best fault model
     effect_file: tuple[str, str] | None = None  # (name, content) of the discovered term's effect file
+    forces: xr.Dataset | None = None  # discovery's force estimate at each place (place, pulse)
 
 
 def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mapping[str, str] | None = None) -> Diagnosis:
@@ -254,9 +261,9 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
         verdict[key] = residuals.where_it_fails(data - versions[version], sigma, channels, sampling.times,
                                                 sampling.fs, values["load_freq"])
     verdict["noise"] = {"sigma": dict(zip(channels, sigma.tolist())), "source": noise_source}
-    effect_file = None
-    if verdict["verdict"] == "unexplained":
-        verdict["discovery"], effect_file, discovered = _discover(measurement.name, fits, verdict, data, sigma, values, sampling,
+    effect_file = forces = None
+    if verdict["verdict"] == "unexplained" or settings.discovery == "always":
+        verdict["discovery"], effect_file, discovered, forces = _discover(measurement.name, fits, verdict, data, sigma, values, sampling,
                                                                   settings)
         if discovered is not None:
             versions["discovered"] = discovered.model
@@ -265,40 +272,93 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
         stage(f"discovery ({len(verdict['discovery']['candidates'])} candidates)")
     verdict["statement"] = statement(verdict, settings.chi2_max)
     return Diagnosis(measurement, channels, data, sigma, noise_source, calibrations, fits, signatures, verdict,
-                     versions, effect_mcmc, effect_file)
+                     versions, effect_mcmc, effect_file, forces)
 
 
 def _discover(name: str, fits, verdict, data, sigma, values, sampling, settings: Settings):
-    """The discovery section of the verdict, the best candidate's effect file (name, content) and its fit on
-    the full simulator with the drift parameters (None when the search found no candidate)."""
-    import tempfile
-    from pathlib import Path
+    """The discovery section of the verdict, the best candidate's effect file (name, content), its fit on the
+    full simulator (both None when the search found no candidate) and the force estimated at each place.
 
+    The best candidate of each of the :data:`DISCOVERY_FULL_FITS` best terms (within :data:`DISCOVERY_FULL_FIT_SHARE`)
+    is fitted on the full simulator with the drift parameters, from its linearized fit (its form's generic
+    effect file, whose kernel compiles once per machine); these are ranked by that fit's evidence, the others
+    follow on the linearized model's."""
     from .discovery import effect_file, search
 
     calibrated = fits[verdict["models"]["calibrated"]]
     base = {**values, **calibrated.values}
     found = search.discover(data - calibrated.model, sigma, base, sampling, settings.channels, settings.max_step)
+    top = search.log_bayes_factor(found.candidates[0], found) if found.candidates else 0.0
+    terms = list(dict.fromkeys(c.term for c in found.candidates
+                               if search.log_bayes_factor(c, found) >= DISCOVERY_FULL_FIT_SHARE * top))[:DISCOVERY_FULL_FITS]
+    tried = [next(c for c in found.candidates if c.term == term) for term in terms]
+    full = {id(c): _full_fit(c, data, sigma, values, calibrated, sampling, settings) for c in tried}
+    ranked = sorted(tried, key=lambda c: -full[id(c)].log_evidence) + [c for c in found.candidates if id(c) not in full]
+
+    def row(c):
+        summary = {**c.summary(), "log_bayes_factor": search.log_bayes_factor(c, found)}
+        if id(c) in full:
+            fit = full[id(c)]
+            summary.update(chi2_after=fit.chi2_red, log_evidence=fit.log_evidence, method="full simulator",
+                           parameters=_merged(c.parameters, _laplace_parameters(fit)))
+        return summary
+
     section = {"from": calibrated.hypothesis.name, "peaks_hz": list(found.peaks.frequencies), "chi2_before": found.chi2_before,
-               "candidates": [{**c.summary(), "log_bayes_factor": search.log_bayes_factor(c, found)} for c in found.candidates],
+               "candidates": [row(c) for c in ranked],
                "equivalent": [f"{c.term} on {c.acts_on}" for c in search.equivalent(found, settings.evidence_margin)],
                "places": {p: {"log_bayes_factor": f.log_bayes_factor, "chi2_after": f.chi2_after}
                           for p, f in sorted(found.forces.items(), key=lambda item: -item[1].log_bayes_factor)}}
-    if not found.candidates:
-        return section, None, None
-    effect_name, content = effect_file.render(found.candidates[0], name)
-    with tempfile.TemporaryDirectory() as folder:
-        path = Path(folder) / f"{effect_name}.py"
-        path.write_text(content, encoding="utf-8")
-        with effects.including(path) as effect:
-            ranges = {effect.name: {p.name: p.prior for p in effect.parameters}}
-            hypothesis = hypotheses.library(settings.calibration_priors(), ranges, settings.drift)[-1]
-            fit = hypotheses.fit(hypothesis, data, sigma, values, sampling, settings.channels,
-                                 [{**effect.defaults(values), **calibrated.values}], settings.max_step, search=False)
+    forces = _force_dataset(found)
+    if not ranked:
+        return section, None, None, forces
+    best, fit = ranked[0], full[id(ranked[0])]
+    refit = replace(best, parameters=_merged(best.parameters, _laplace_parameters(fit)))
+    effect_name, content = effect_file.render(refit, name)
     section["effect_file"] = f"{effect_name}.py"
     section["fit"] = {"effect": effect_name, "chi2_after": fit.chi2_red, "log_evidence": fit.log_evidence,
                       "explains": fit.chi2_red <= settings.chi2_max, "parameters": _laplace_parameters(fit)}
-    return section, (effect_name, content), fit
+    return section, (effect_name, content), fit, forces
+
+
+def _force_dataset(found) -> xr.Dataset:
+    """The force estimated at each place (posterior mean and sd at the pulses' centres) and the imbalance
+    disks' angles there, for the figures."""
+    places = list(found.forces)
+    times = found.forces[places[0]].times
+    at = np.rint(times * found.linear.fs).astype(int)
+    return xr.Dataset(
+        {"force_mean": (("place", "pulse_time"), np.stack([found.forces[p].mean for p in places])),
+         "force_sd": (("place", "pulse_time"), np.stack([found.forces[p].sd for p in places])),
+         "force_log_bayes_factor": ("place", [found.forces[p].log_bayes_factor for p in places]),
+         "theta1_at_pulse": ("pulse_time", found.trajectory.theta["1"][at]),
+         "theta4_at_pulse": ("pulse_time", found.trajectory.theta["4"][at])},
+        coords={"place": places, "pulse_time": times},
+    )
+
+
+def _full_fit(candidate, data, sigma, values, calibrated: hypotheses.Fit, sampling, settings: Settings) -> hypotheses.Fit:
+    """``candidate`` (its form's generic effect file) and the drift parameters fitted on the full simulator,
+    within :func:`newdyn.discovery.effect_file.prior_range` of its linearized fit."""
+    from pathlib import Path
+
+    from . import kernels
+    from .discovery import effect_file
+
+    effect_name, content = effect_file.render_generic(candidate.term, candidate.acts_on, candidate.shape)
+    path = kernels.cache_folder() / "discovery" / f"{effect_name}.py"
+    if not path.is_file() or path.read_text(encoding="utf-8") != content:
+        io.atomic_write(path, lambda tmp: Path(tmp).write_text(content, encoding="utf-8"))
+    with effects.including(path) as effect:
+        ranges = {effect.name: {key: effect_file.prior_range(key, row)[:2] for key, row in candidate.parameters.items()}}
+        hypothesis = hypotheses.library(settings.calibration_priors(), ranges, settings.drift)[-1]
+        start = {**{key: float(row["value"]) for key, row in candidate.parameters.items()}, **calibrated.values}
+        return hypotheses.fit(hypothesis, data, sigma, values, sampling, settings.channels, [start], settings.max_step, search=False)
+
+
+def _merged(linearized: Mapping, full: Mapping) -> dict:
+    """The candidate's parameters with their full-simulator fit's values where it has them (units kept)."""
+    return {key: ({**row, **{k: full[key][k] for k in ("mean", "sd", "hdi_low", "hdi_high")}, "value": full[key]["map"]}
+                  if key in full else dict(row)) for key, row in linearized.items()}
 
 
 def _signature_distances(settings: Settings, hyps, values, calibrations, calibrate_all, sampling, channels) -> xr.DataArray:
@@ -442,7 +502,8 @@ def _discovered(section: Mapping, before: float) -> str:
     """What discovery found, in words: the best candidate, and whether its fit on the full simulator explains the data."""
     best = section["candidates"][0]
     values = ", ".join(f"{name} {row['value']:.4g} {row['unit']}".rstrip(" -") for name, row in best["parameters"].items())
-    found = f"discovered: a {best['term']} term on {best['acts_on']} ({best['shape']}; {values})"
+    article = "an" if best["term"][0] in "aeiou" else "a"
+    found = f"discovered: {article} {best['term']} term on {best['acts_on']} ({best['shape']}; {values})"
     fit = section.get("fit")
     if fit is None:
         return found
@@ -608,5 +669,7 @@ def write(diagnosis: Diagnosis, verdict_path, table_path, netcdf_path, mcmc_path
         ds[f"prior_{p}"] = (f"grid_{p}", post.prior_density)
         ds[f"scaled_likelihood_{p}"] = (f"grid_{p}", post.scaled_likelihood)
         ds = ds.assign_coords({f"grid_{p}": post.grid})
+    if diagnosis.forces is not None:
+        ds = ds.merge(diagnosis.forces)
     io.write_netcdf(ds, netcdf_path)
     sampling.save(diagnosis.effect_mcmc, mcmc_path)

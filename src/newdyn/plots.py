@@ -287,8 +287,8 @@ def model_overlays(
 
 
 def diagnosis_figures(verdict_path: PathLike, diagnosis_path: PathLike, mcmc_path: PathLike, png_paths: dict, code_hash: str = "") -> None:
-    """The figures of one diagnosis: ``png_paths`` maps overlays, residuals, hypotheses, error_fall and
-    effect_mcmc to their PNG paths."""
+    """The figures of one diagnosis: ``png_paths`` maps overlays, residuals, hypotheses, error_fall,
+    discovery and effect_mcmc to their PNG paths."""
     with open(verdict_path) as f:
         verdict = json.load(f)
     result = _load(diagnosis_path)
@@ -301,6 +301,7 @@ def diagnosis_figures(verdict_path: PathLike, diagnosis_path: PathLike, mcmc_pat
                  f"{name}: where the calibrated model ({verdict['models']['calibrated']}) fails", code_hash, sources)
     hypothesis_ranking(verdict, result, png_paths["hypotheses"], code_hash, sources)
     error_fall(verdict, result, png_paths["error_fall"], code_hash, sources)
+    discovered_force(verdict, result, png_paths["discovery"], code_hash, sources)
     mcmc_diagnostics([mcmc_path], png_paths["effect_mcmc"], code_hash)
 
 
@@ -360,11 +361,61 @@ def hypothesis_ranking(verdict: dict, result: xr.Dataset, png_path: PathLike, co
     return fig
 
 
+def discovered_force(verdict: dict, result: xr.Dataset, png_path: PathLike, code_hash: str = "", sources=()) -> Figure:
+    """The missing force that discovery estimated where its best candidate acts, over the record: in time
+    (posterior mean ± 2 sd), as a spectrum, against the disk's angle and against the load-cycle phase; a
+    note instead when discovery did not run."""
+    fig = Figure(figsize=(15, 7.5), layout="constrained")
+    discovery = verdict.get("discovery") or {}
+    if "force_mean" not in result or not discovery.get("candidates"):
+        fig.text(0.5, 0.5, f"{verdict['measurement']}: verdict {verdict['verdict']}, no discovery "
+                 "(it runs when nothing of the library explains the data, or with diagnosis.discovery: always)",
+                 ha="center", va="center")
+        save(fig, png_path, code_hash, sources)
+        return fig
+    best = discovery["candidates"][0]
+    place = best["acts_on"]
+    times = result["pulse_time"].values
+    record = times >= float(result["time"].values[0])
+    mean, sd = (result[name].sel(place=place).values[record] for name in ("force_mean", "force_sd"))
+    t = times[record]
+    unit = next(iter(best["parameters"].values()))["unit"] if best["parameters"] else ""
+    time_ax, spectrum_ax, angle_ax, phase_ax = fig.subplots(2, 2).ravel()
+    time_ax.fill_between(t, mean - 2 * sd, mean + 2 * sd, color="tab:blue", alpha=0.25, lw=0, label="± 2 sd")
+    time_ax.plot(t, mean, lw=0.7, color="tab:blue", label="posterior mean")
+    time_ax.set_xlabel("time [s]")
+    time_ax.set_ylabel(f"force on {place}")
+    time_ax.legend(fontsize="small")
+    step = float(t[1] - t[0])
+    frequency = np.fft.rfftfreq(t.size, step)
+    amplitude = np.abs(np.fft.rfft(mean - mean.mean()))[1:] * 2 / t.size  # without the mean, whose place the calibration took
+    spectrum_ax.semilogy(frequency[1:], amplitude, lw=0.7)
+    spectrum_ax.axhline(2 * np.sqrt(np.mean(sd**2) / t.size), color="grey", ls="--", label="uncertainty of one line")
+    if best["frequency_hz"]:
+        spectrum_ax.axvline(best["frequency_hz"], color=MARK_COLOR, ls=":", label=f"{best['term']} {best['shape']}")
+    spectrum_ax.set_xlabel("frequency [Hz]")
+    spectrum_ax.set_ylabel("amplitude")
+    spectrum_ax.legend(fontsize="small")
+    disk = "4" if "disk 4" in best["shape"] else "1"
+    angle = np.mod(result[f"theta{disk}_at_pulse"].values[record], 2 * np.pi)
+    angle_ax.plot(angle, mean, ".", ms=2)
+    angle_ax.set_xlabel(f"angle of disk {disk} [rad]")
+    angle_ax.set_ylabel(f"force on {place}")
+    phase_ax.plot(np.mod(t * float(result.attrs["load_freq"]), 1.0), mean, ".", ms=2)
+    phase_ax.set_xlabel("load-cycle phase")
+    phase_ax.set_ylabel(f"force on {place}")
+    fig.suptitle(f"{verdict['measurement']}: the missing force on {place} estimated from the residual of "
+                 f"{discovery['from']}; best form {best['term']} ({best['shape']}){f' [{unit}]' if unit else ''}")
+    save(fig, png_path, code_hash, sources)
+    return fig
+
+
 def error_fall(verdict: dict, result: xr.Dataset, png_path: PathLike, code_hash: str = "", sources=()) -> Figure:
-    """The error falling over the model versions: reduced χ² (left), RMSE per channel relative to the
-    noise σ (middle), and the residual spectra of the nominal model and the final one (right)."""
-    versions = ("nominal", "calibrated", "effect")
-    rows = {r["hypothesis"]: r for r in verdict["ranking"]}
+    """The error falling over the model versions, nominal → calibrated → best library effect (→ the
+    discovered term): reduced χ² (left), RMSE per channel relative to the noise σ (middle), and the
+    residual spectra of the nominal model and the final one (right)."""
+    versions = [v for v in ("nominal", "calibrated", "effect", "discovered") if v in verdict["models"]]
+    rows = {r["hypothesis"]: r for r in (*verdict["ranking"], *verdict["model_versions"])}
     channels = [str(c) for c in result["channel"].values]
     sigma = result["sigma"].values
     fs = float(result.attrs["fs"])
@@ -386,8 +437,8 @@ def error_fall(verdict: dict, result: xr.Dataset, png_path: PathLike, code_hash:
     rmse_ax.axhline(1.0, color="grey", ls="--", label="noise σ")
     rmse_ax.set_ylabel("RMSE / σ")
     rmse_ax.legend(fontsize="small")
-    after = next(v for v in ("nominal", "calibrated", "effect") if verdict["models"][v] == verdict["models"]["after"]) \
-        if verdict["models"]["after"] in [verdict["models"][v] for v in versions] else "effect"
+    after = "discovered" if "discovered" in verdict["models"] else next(
+        (v for v in versions if verdict["models"][v] == verdict["models"]["after"]), "effect")
     for i, channel in enumerate(channels):
         data = result["y"].sel(channel=channel).values
         for version, style in (("nominal", ":"), (after, "-")):

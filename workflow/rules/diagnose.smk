@@ -68,4 +68,5 @@ rule plot_diagnosis:
     shell:
         "newdyn plot-diagnosis --verdict {input.verdict} --netcdf {input.netcdf} --mcmc {input.mcmc} "
         "--overlays {output.overlays} --residuals {output.residuals} --hypotheses {output.hypotheses} "
-        "--error-fall {output.error_fall} --effect-mcmc {output.effect_mcmc} --code-hash {params.code} > {log} 2>&1"
+        "--error-fall {output.error_fall} --discovery {output.discovery} --effect-mcmc {output.effect_mcmc} "
+        "--code-hash {params.code} > {log} 2>&1"

@@ -1,8 +1,10 @@
-"""A discovered term written out as an effect file of :mod:`newdyn.effects`, ready to add to a study.
+"""A discovered term written out as an effect file of :mod:`newdyn.effects`.
 
-The file declares the form's fitted parameters with their units, the discovered values as defaults
-and a prior range around them for the next diagnosis to fit over; the shape's discrete values (an
-order, a disk) are written into its force as numbers.
+Two kinds of file, one force: the *found* file hands the term to the user, ready to add to a study,
+with the discovered values as defaults and prior ranges around them for the next diagnosis to fit
+over; the *generic* file of a form at a place holds no number of any measurement, so its simulation
+kernel compiles once per machine and serves every full-simulator fit of that form there (a fit takes
+its ranges from :func:`prior_range`, not from the file).
 """
 
 from __future__ import annotations
@@ -11,53 +13,95 @@ import math
 import re
 from collections.abc import Mapping
 
-from .forms import FORMS
+from .forms import FORMS, Shape
 
-#: Prior range of a fitted parameter around its discovered value, by parameter name:
-#: (low, high, lower bound, lower inclusive, upper bound, upper inclusive) from the value v.
-_PRIORS = {
+#: A fitted parameter's range around its discovered value v, by name: (low, high, lower bound, lower
+#: inclusive, upper bound, upper inclusive).  Any other parameter is a coefficient (:func:`_coefficient`).
+_AROUND = {
     "frequency": lambda v: (0.99 * v, 1.01 * v, 0.0, False, math.inf, False),
+    "order": lambda v: (0.995 * v, 1.005 * v, 0.0, False, math.inf, False),
     "phase": lambda v: (v - math.pi, v + math.pi, -4 * math.pi, True, 4 * math.pi, True),
     "share": lambda v: (0.0, 1.0, 0.0, True, 1.0, True),
     "clearance": lambda v: (0.0, 4.0 * v, 0.0, True, math.inf, False),
+    "v_smooth": lambda v: (0.1 * v, 10.0 * v, 0.0, False, math.inf, False),
 }
+#: The generic file's ranges: wide and finite, the same for every measurement.
+_GENERIC = {
+    "frequency": (1e-3, 1e5, 0.0, False, math.inf, False),
+    "order": (0.1, 100.0, 0.0, False, math.inf, False),
+    "phase": (-math.pi, math.pi, -4 * math.pi, True, 4 * math.pi, True),
+    "share": (0.0, 1.0, 0.0, True, 1.0, True),
+    "clearance": (0.0, 1.0, 0.0, True, math.inf, False),
+    "v_smooth": (1e-9, 1e3, 0.0, False, math.inf, False),
+}
+_GENERIC_COEFFICIENT = (-1e30, 1e30, -1e31, True, 1e31, True)
 
 
-def _magnitude(v: float) -> tuple:
-    """A coefficient keeps the sign it was found with; its prior runs from zero to three times it."""
+def _coefficient(v: float) -> tuple:
+    """A coefficient keeps the sign it was found with; its range runs from zero to three times it."""
     return (0.0, 3.0 * v, 0.0, True, math.inf, False) if v >= 0 else (3.0 * v, 0.0, -math.inf, False, 0.0, True)
 
 
-def effect_name(term: str, place: str, measurement: str) -> str:
-    """A valid effect name saying what was found where and in which measurement."""
-    return re.sub(r"\W", "_", f"discovered_{term}_{place}_{measurement}")
+def prior_range(name: str, row: Mapping) -> tuple:
+    """(low, high, lower, lower inclusive, upper, upper inclusive) of a discovered parameter (``row``: its
+    value and 94 % HDI) for fitting it again."""
+    value = float(row["value"])
+    bounds = _AROUND.get(name, _coefficient)(value)
+    if bounds[0] == bounds[1]:  # found at zero: up to the posterior's reach
+        bounds = (0.0, max(abs(row["hdi_low"]), abs(row["hdi_high"]), 1e-12), *bounds[2:])
+    return bounds
+
+
+def _disk(shape: Shape) -> str:
+    return f"_disk{int(shape.values['disk'])}" if "disk" in shape.values else ""
+
+
+def effect_name(term: str, place: str, shape: Shape, measurement: str | None = None) -> str:
+    """The found file's effect name (what, where, in which measurement), or the generic one's (no measurement)."""
+    return re.sub(r"\W", "_", f"discovered_{term}_{place}{_disk(shape)}" + (f"_{measurement}" if measurement else "")).lower()
 
 
 def render(candidate, measurement: str) -> tuple[str, str]:
-    """(effect name, file content) of ``candidate`` (a :class:`.search.Candidate`) found in ``measurement``."""
-    form = FORMS[candidate.term]
-    name = effect_name(candidate.term, candidate.acts_on, measurement)
-    expression, fitted = form.effect_body(candidate.acts_on, candidate.shape)
-    declared = []
-    for parameter in fitted:
-        row: Mapping = candidate.parameters[parameter]
-        value = float(row["value"])
-        low, high, lower, lower_inclusive, upper, upper_inclusive = _PRIORS.get(parameter, _magnitude)(value)
-        if low == high:  # a coefficient found at zero: a range from zero to the posterior's reach
-            high = max(abs(row["hdi_low"]), abs(row["hdi_high"]), 1e-12)
-        declared.append(
-            f"        Parameter({parameter!r}, {row['unit']!r}, {_description(parameter, candidate)!r}, default={value!r},\n"
+    """(effect name, content) of the found file of ``candidate`` (a :class:`.search.Candidate`) in ``measurement``."""
+    name = effect_name(candidate.term, candidate.acts_on, candidate.shape, measurement)
+    declared = {key: (float(row["value"]), row["unit"], prior_range(key, row)) for key, row in candidate.parameters.items()}
+    found = ", ".join(f"{key} = {row['value']:.6g} {row['unit']} (sd {row['sd']:.3g})" for key, row in candidate.parameters.items())
+    return name, _content(name, candidate.term, candidate.acts_on, candidate.shape, declared,
+                          f"Found by newdyn's discovery in the measurement {measurement}: {found}.  Add it to a study by\n"
+                          f"copying this file into its effects folder and naming it in the config (``effects: [{name}]``).",
+                          f"discovered in {measurement}")
+
+
+def render_generic(term: str, place: str, shape: Shape) -> tuple[str, str]:
+    """(effect name, content) of the generic file of the form ``term`` at ``place`` (turning with ``shape``'s disk)."""
+    name = effect_name(term, place, shape)
+    units = {key: unit for key, (_, unit) in FORMS[term].parameters(_unit_coefficients(term), shape, place).items()}
+    declared = {key: (None, unit, _GENERIC.get(key, _GENERIC_COEFFICIENT)) for key, unit in units.items()}
+    return name, _content(name, term, place, shape, declared, "The generic form newdyn's discovery fits on the full simulator.",
+                          "newdyn discovery's generic form")
+
+
+def _unit_coefficients(term: str):
+    import numpy as np
+
+    return np.ones(len(FORMS[term].coefficients))
+
+
+def _content(name: str, term: str, place: str, shape: Shape, declared: Mapping, provenance: str, origin: str) -> str:
+    form = FORMS[term]
+    expression = form.effect_body(place, shape)
+    parameters = []
+    for key, (value, unit, (low, high, lower, lower_inclusive, upper, upper_inclusive)) in declared.items():
+        parameters.append(
+            f"        Parameter({key!r}, {unit!r}, {f'{key} of the {term} term on {place}'!r}, default={value!r},\n"
             f"                  lower={_literal(lower)}, lower_inclusive={lower_inclusive}, upper={_literal(upper)}, "
             f"upper_inclusive={upper_inclusive},\n"
             f"                  prior=({low!r}, {high!r})),"
         )
-    found = ", ".join(f"{key} = {row['value']:.6g} {row['unit']} (sd {row['sd']:.3g})" for key, row in candidate.parameters.items())
     class_name = "".join(part.title() for part in name.split("_"))
-    return name, f'''"""{form.description[0].upper() + form.description[1:]}, on {candidate.acts_on}.
+    return f'''"""{form.description[0].upper() + form.description[1:]}, on {place}.
 
-Found by newdyn's discovery in the measurement {measurement}: {found};
-log-evidence {candidate.log_evidence:.6g} on the linearized model.  Add it to a study by copying this file
-into its effects folder and naming it in the config (``effects: [{name}]``).
+{provenance}
 """
 
 from __future__ import annotations
@@ -68,13 +112,13 @@ from newdyn.effects import Effect, Parameter, sincos
 
 
 class {class_name}(Effect):
-    """{candidate.term} on {candidate.acts_on}: {expression}"""
+    """{term} on {place}: {expression}"""
 
     name = "{name}"
-    description = "{candidate.term} on {candidate.acts_on} ({candidate.shape.label}), discovered in {measurement}"
-    acts_on = "{candidate.acts_on}"
+    description = "{term} on {place}{_disk(shape).replace('_', ' ')}, {origin}"
+    acts_on = "{place}"
     parameters = (
-{chr(10).join(declared)}
+{chr(10).join(parameters)}
     )
 
     @staticmethod
@@ -85,7 +129,3 @@ class {class_name}(Effect):
 
 def _literal(x: float) -> str:
     return repr(x) if math.isfinite(x) else ("math.inf" if x > 0 else "-math.inf")
-
-
-def _description(parameter: str, candidate) -> str:
-    return f"{parameter} of the {candidate.term} term on {candidate.acts_on}"

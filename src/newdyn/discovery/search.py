@@ -17,6 +17,7 @@ From the calibrated model's residual r (channel, time) and noise σ:
 from __future__ import annotations
 
 import math
+from collections import Counter
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
@@ -40,7 +41,7 @@ PULSE_SPACING = 0.002  # s, between the force estimate's basis pulses
 # place explains (log Bayes factors against no force): on a rig whose channels each see one domain, this
 # keeps the domain the force acts in and leaves the other, whose free forces explain nothing.
 PLACE_SHARE = 0.5
-POSTERIORS = 10  # candidates whose parameters' posteriors are drawn (the best ones)
+PLACES_PER_TERM = 3  # each form's best places that become candidates (with their parameters' posteriors)
 
 
 def natural_scale(place: str, values: Mapping[str, float]) -> float:
@@ -127,7 +128,12 @@ def discover(residual: np.ndarray, sigma: np.ndarray, values: Mapping[str, float
     scored = sorted((scored for form in FORMS.values() for place in form.places() if place in places
                      if (scored := _score(form, place, residual, sigma, trajectory, linear, first, peaks)) is not None),
                     key=lambda s: -s[0])
-    candidates = [_candidate(*s, trajectory) for s in scored[:POSTERIORS]]
+    seen = Counter()
+    candidates = []
+    for entry in scored:  # best first: each form's best places
+        seen[entry[1].term] += 1
+        if seen[entry[1].term] <= PLACES_PER_TERM:
+            candidates.append(_candidate(*entry, trajectory))
     r = residual / sigma[:, None]
     return Discovery(candidates, forces, peaks, force.log_evidence_without_force(residual, sigma), float(np.mean(r**2)),
                      trajectory, linear, first)

@@ -132,10 +132,9 @@ class Form:
         return -math.log(n_shapes)
 
     @classmethod
-    def effect_body(cls, place: str, shape: Shape) -> tuple[str, Sequence[str]]:
-        """The effect file's force expression (Python, reading ``s``, ``p``, ``rig``, ``math`` and ``sincos``)
-        and the names of the parameters it reads, which the file declares; the shape's other values
-        (an order, a smoothing speed) are written into the expression as numbers."""
+    def effect_body(cls, place: str, shape: Shape) -> str:
+        """The effect file's force expression (Python, reading ``s``, ``p``, ``rig``, ``math`` and ``sincos``),
+        its parameters named as in :meth:`parameters`; a disk the shape turns with is written into it."""
         raise NotImplementedError
 
     @classmethod

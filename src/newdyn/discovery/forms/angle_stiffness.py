@@ -37,5 +37,4 @@ class AngleStiffness(Form):
     @classmethod
     def effect_body(cls, place, shape):
         disk = str(int(shape.values["disk"]))
-        return (f"p.depth * rig.{ELEMENT_STIFFNESS[place]} * s.x * sincos({shape.values['order']!r} * s.theta{disk} + p.phase)[0]",
-                ("depth", "phase"))
+        return f"p.depth * rig.{ELEMENT_STIFFNESS[place]} * s.x * sincos(p.order * s.theta{disk} + p.phase)[0]"

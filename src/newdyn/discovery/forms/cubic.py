@@ -29,4 +29,4 @@ class Cubic(Form):
 
     @classmethod
     def effect_body(cls, place, shape):
-        return f"{resisting(place)}p.k3 * s.x * s.x * s.x", ("k3",)
+        return f"{resisting(place)}p.k3 * s.x * s.x * s.x"

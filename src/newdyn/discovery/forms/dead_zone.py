@@ -40,4 +40,4 @@ class DeadZone(Form):
     @classmethod
     def effect_body(cls, place, shape):
         sign = "" if resisting(place) else "-"
-        return (f"{sign}p.share * rig.{ELEMENT_STIFFNESS[place]} * min(max(s.x, -p.clearance), p.clearance)", ("share", "clearance"))
+        return f"{sign}p.share * rig.{ELEMENT_STIFFNESS[place]} * min(max(s.x, -p.clearance), p.clearance)"

@@ -35,5 +35,4 @@ class Friction(Form):
 
     @classmethod
     def effect_body(cls, place, shape):
-        v_s = shape.values["v_smooth"]
-        return f"{resisting(place)}p.friction * s.v / math.sqrt(s.v * s.v + {v_s * v_s!r})", ("friction",)
+        return f"{resisting(place)}p.friction * s.v / math.sqrt(s.v * s.v + p.v_smooth * p.v_smooth)"

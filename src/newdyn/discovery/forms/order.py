@@ -45,4 +45,4 @@ class Order(Form):
     @classmethod
     def effect_body(cls, place, shape):
         disk = str(int(shape.values["disk"]))
-        return f"p.amplitude * sincos({shape.values['order']!r} * s.theta{disk} + p.phase)[0]", ("amplitude", "phase")
+        return f"p.amplitude * sincos(p.order * s.theta{disk} + p.phase)[0]"

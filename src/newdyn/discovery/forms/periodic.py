@@ -39,4 +39,4 @@ class Periodic(Form):
 
     @classmethod
     def effect_body(cls, place, shape):
-        return "p.amplitude * sincos(2.0 * math.pi * p.frequency * s.t + p.phase)[0]", ("amplitude", "frequency", "phase")
+        return "p.amplitude * sincos(2.0 * math.pi * p.frequency * s.t + p.phase)[0]"
