@@ -214,7 +214,12 @@ def test_a_small_breathing_crack_is_found_as_a_stiffness_turning_with_the_load(m
     assert (best.term, best.shape.label) == ("angle_stiffness", "1x disk 4")
     assert best.frequency_hz == pytest.approx(BASE["speed_rpm"] / 60, rel=0.01)
     assert best.chi2_after < found.chi2_before and search.log_bayes_factor(best, found) > 10
-    assert {c.acts_on for c in search.equivalent(found, 3.0)} >= {"load_shaft"}  # w1 alone cannot tell the shafts apart
+    equal = search.equivalent(found, 3.0)
+    assert {c.acts_on for c in equal} >= {"load_shaft"} and len(equal) > 1  # w1 alone cannot tell the shafts apart
+    # ... the coupling's torque tells them apart (each one's fitted force through the linearized rig), a bearing not at all
+    separating = search.separating_channels(equal, found, {"b2_x": 1e-9, "torque_c": 0.2})
+    assert [row["channel"] for row in separating] == ["torque_c", "b2_x"]
+    assert separating[0]["expected_log_bayes_factor"] > 10 and separating[1]["expected_log_bayes_factor"] == 0.0
     assert found.forces["load_shaft"].log_bayes_factor > 0 > found.forces["b1_x"].log_bayes_factor
 
 

@@ -234,3 +234,34 @@ def test_model_overlays_show_a_white_noise_residual_at_the_noise_floor(tmp_path,
 def test_save_refuses_a_path_that_is_not_png(tmp_path):
     with pytest.raises(ValueError, match=r"\.png"):
         plots.save(Figure(), tmp_path / "figure.pdf")
+
+
+def _discovery_result(line_hz=37.0, amplitude=8.0):
+    """A diagnosis file holding a force estimate at two places: at `load` a line of ``amplitude`` at ``line_hz``."""
+    pulses = np.arange(0.002, 1.5, 0.002)
+    theta1 = 2 * np.pi * 24.7 * pulses
+    force = np.stack([amplitude * np.sin(2 * np.pi * line_hz * pulses), np.zeros_like(pulses)])
+    return xr.Dataset(
+        {"y": (("channel", "time"), clean_signal()), "force_mean": (("place", "pulse_time"), force),
+         "force_sd": (("place", "pulse_time"), np.full_like(force, 0.5)), "theta1_at_pulse": ("pulse_time", theta1),
+         "theta4_at_pulse": ("pulse_time", theta1 - 0.3)},
+        coords={"channel": CHANNELS, "time": SAMPLING.times, "place": ["load", "b1_x"], "pulse_time": pulses},
+        attrs={"load_freq": 12.0},
+    )
+
+
+def test_discovery_figure_shows_the_force_where_the_best_form_acts_and_its_line(tmp_path):
+    candidate = {"term": "periodic", "acts_on": "load", "shape": "37.00 Hz", "frequency_hz": 37.0,
+                 "parameters": {"amplitude": {"value": 8.0, "unit": "N·m"}}}
+    verdict = {"measurement": "m", "verdict": "unexplained", "discovery": {"from": "healthy", "candidates": [candidate]}}
+    fig = plots.discovered_force(verdict, _discovery_result(), tmp_path / "d.png")
+    time_ax, spectrum_ax, angle_ax, phase_ax = fig.axes
+    t, mean = time_ax.lines[0].get_data()
+    assert t.min() >= SAMPLING.t_first and np.max(np.abs(mean)) == pytest.approx(8.0, rel=0.01)  # the record only
+    frequency, amplitude = spectrum_ax.lines[0].get_data()
+    assert frequency[np.argmax(amplitude)] == pytest.approx(37.0, abs=1.0) and np.max(amplitude) == pytest.approx(8.0, rel=0.1)
+    angle, phase = angle_ax.lines[0].get_xdata(), phase_ax.lines[0].get_xdata()
+    assert 0.0 <= angle.min() and angle.max() < 2 * np.pi and 0.0 <= phase.min() and phase.max() < 1.0
+    assert "load" in fig._suptitle.get_text() and (tmp_path / "d.pdf").exists()
+    note = plots.discovered_force({"measurement": "m", "verdict": "healthy"}, _discovery_result(), tmp_path / "n.png")
+    assert "no discovery" in note.texts[0].get_text()

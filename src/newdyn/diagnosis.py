@@ -186,6 +186,7 @@ class Diagnosis:
     effect_mcmc: object  # arviz.InferenceData of the best fault model
     effect_file: tuple[str, str] | None = None  # (name, content) of the discovered term's effect file
     forces: xr.Dataset | None = None  # discovery's force estimate at each place (place, pulse)
+    pointwise: xr.DataArray | None = None  # each version's log-likelihood (comparison_version, comparison_draw, channel, load_cycle)
 
 
 def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mapping[str, str] | None = None) -> Diagnosis:
@@ -270,9 +271,47 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
             verdict["models"]["discovered"] = discovered.hypothesis.name
             verdict["model_versions"].append(_version_row("+ discovered", discovered, data, channels))
         stage(f"discovery ({len(verdict['discovery']['candidates'])} candidates)")
+    verdict["model_comparison"], pointwise = _compare_versions(verdict, fits, calibrations, effect_mcmc,
+                                                               discovered if effect_file else None, data, sigma, values, sampling,
+                                                               settings)
+    stage("model versions compared by PSIS-LOO")
     verdict["statement"] = statement(verdict, settings.chi2_max)
     return Diagnosis(measurement, channels, data, sigma, noise_source, calibrations, fits, signatures, verdict,
-                     versions, effect_mcmc, effect_file, forces)
+                     versions, effect_mcmc, effect_file, forces, pointwise)
+
+
+def _compare_versions(verdict, fits, calibrations, effect_mcmc, discovered, data, sigma, values, sampling, settings: Settings):
+    """``az.compare`` of the model versions by PSIS-LOO over blocks of one channel and load cycle, and their
+    pointwise log-likelihoods (version, draw, channel, cycle).  Draws: the drift's grid posterior, the
+    library effect's MCMC, the discovered term's Laplace approximation; the nominal model has none."""
+    from . import model_comparison
+
+    rng = np.random.default_rng(int(settings.mcmc.get("seed", 0)))
+    n = model_comparison.DRAWS
+
+    def simulate(fit):
+        return lambda theta: hypotheses.evaluate(fit.hypothesis, theta, values, sampling, settings.channels, settings.max_step)
+
+    nominal, calibrated, effect = (fits[verdict["models"][key]] for key in ("nominal", "calibrated", "effect"))
+    evaluators = {"nominal": (simulate(nominal), np.zeros((n, 0)), [])}
+    if calibrated.hypothesis.kind == PARAMETER_CHANGE:
+        posterior = calibrations[calibrated.hypothesis.effect].posterior
+        cdf = np.concatenate([[0.0], np.cumsum(np.diff(posterior.grid) * 0.5 * (posterior.density[1:] + posterior.density[:-1]))])
+        theta = np.interp(rng.uniform(0, cdf[-1], n), cdf, posterior.grid)[:, None]
+        evaluators["calibrated"] = (simulate(calibrated), theta, calibrated.hypothesis.parameters)
+    stacked = np.column_stack([effect_mcmc.posterior[name].values.ravel() for name in effect.hypothesis.parameters])
+    evaluators["effect"] = (simulate(effect), stacked[rng.choice(len(stacked), n, replace=len(stacked) < n)], effect.hypothesis.parameters)
+    cycle = model_comparison.cycles(sampling.times, values["load_freq"])
+    idata = model_comparison.evaluate_versions(evaluators, data, sigma, cycle, settings.channels)
+    if discovered is not None:
+        low, high = np.array([[p.low, p.high] for p in discovered.hypothesis.priors]).T
+        with effects.including(_generic_path(discovered.hypothesis.effect)):
+            idata.update(model_comparison.evaluate_versions(
+                {"discovered": (simulate(discovered), model_comparison.draws(discovered.theta, discovered.covariance, low, high, rng),
+                                discovered.hypothesis.parameters)}, data, sigma, cycle, settings.channels))
+    pointwise = xr.concat([d.log_likelihood["y"].isel(chain=0, drop=True) for d in idata.values()],
+                          dim=xr.Variable("comparison_version", list(idata)))
+    return model_comparison.compare(idata), pointwise.rename({"draw": "comparison_draw", "cycle": "load_cycle"})
 
 
 def _discover(name: str, fits, verdict, data, sigma, values, sampling, settings: Settings):
@@ -306,8 +345,15 @@ def _discover(name: str, fits, verdict, data, sigma, values, sampling, settings:
     section = {"from": calibrated.hypothesis.name, "peaks_hz": list(found.peaks.frequencies), "chi2_before": found.chi2_before,
                "candidates": [row(c) for c in ranked],
                "equivalent": [f"{c.term} on {c.acts_on}" for c in search.equivalent(found, settings.evidence_margin)],
+               "equivalent_margin": settings.evidence_margin,
                "places": {p: {"log_bayes_factor": f.log_bayes_factor, "chi2_after": f.chi2_after}
                           for p, f in sorted(found.forces.items(), key=lambda item: -item[1].log_bayes_factor)}}
+    equal = search.equivalent(found, settings.evidence_margin)
+    if len(equal) > 1:
+        # σ of each unmeasured channel at the measurement's SNR, as for the library's equivalent hypotheses.
+        others = [c for c in model.CHANNELS if c not in settings.channels]
+        noise_sd = _noise_at_measured_snr(data, sigma, simulation.simulate(base, sampling, others, settings.max_step))[1]
+        section["separating_channels"] = search.separating_channels(equal, found, dict(zip(others, noise_sd.tolist())))
     forces = _force_dataset(found)
     if not ranked:
         return section, None, None, forces
@@ -336,16 +382,22 @@ def _force_dataset(found) -> xr.Dataset:
     )
 
 
+def _generic_path(effect_name: str):
+    """Where a form's generic effect file lives: beside the compiled kernels, which it shares across studies."""
+    from . import kernels
+
+    return kernels.cache_folder() / "discovery" / f"{effect_name}.py"
+
+
 def _full_fit(candidate, data, sigma, values, calibrated: hypotheses.Fit, sampling, settings: Settings) -> hypotheses.Fit:
     """``candidate`` (its form's generic effect file) and the drift parameters fitted on the full simulator,
     within :func:`newdyn.discovery.effect_file.prior_range` of its linearized fit."""
     from pathlib import Path
 
-    from . import kernels
     from .discovery import effect_file
 
     effect_name, content = effect_file.render_generic(candidate.term, candidate.acts_on, candidate.shape)
-    path = kernels.cache_folder() / "discovery" / f"{effect_name}.py"
+    path = _generic_path(effect_name)
     if not path.is_file() or path.read_text(encoding="utf-8") != content:
         io.atomic_write(path, lambda tmp: Path(tmp).write_text(content, encoding="utf-8"))
     with effects.including(path) as effect:
@@ -561,15 +613,21 @@ def _separating_channels(equivalent: Sequence[hypotheses.Fit], values, sampling,
     others = [c for c in model.CHANNELS if c not in settings.channels]
     if not others:
         return []
-    snr_db = float(np.mean(20 * np.log10(np.sqrt(np.maximum(np.var(data, axis=-1) - sigma**2, 0)) / sigma)))
     outputs = [hypotheses.evaluate(f.hypothesis, f.theta[None], values, sampling, others, settings.max_step)[0] for f in equivalent]
-    noise_sd = np.std(outputs[0], axis=-1) * 10 ** (-snr_db / 20)
+    snr_db, noise_sd = _noise_at_measured_snr(data, sigma, outputs[0])
     rows = []
     for i, channel in enumerate(others):
         pair = min(0.5 * np.sum(((a[i] - b[i]) / noise_sd[i]) ** 2)
                    for j, a in enumerate(outputs) for b in outputs[j + 1:])
         rows.append({"channel": channel, "expected_log_bayes_factor": float(pair), "snr_db": snr_db})
     return sorted(rows, key=lambda r: -r["expected_log_bayes_factor"])
+
+
+def _noise_at_measured_snr(data, sigma, signals) -> tuple[float, np.ndarray]:
+    """(the measured channels' mean SNR [dB], the noise σ of ``signals`` (channel, time) at that SNR): what
+    an unmeasured channel would show, measured as well as the others."""
+    snr_db = float(np.mean(20 * np.log10(np.sqrt(np.maximum(np.var(data, axis=-1) - sigma**2, 0)) / sigma)))
+    return snr_db, np.std(signals, axis=-1) * 10 ** (-snr_db / 20)
 
 
 def _sample_effect(fit: hypotheses.Fit, data, sigma, values, sampling, channels, settings: Settings):
@@ -671,5 +729,8 @@ def write(diagnosis: Diagnosis, verdict_path, table_path, netcdf_path, mcmc_path
         ds = ds.assign_coords({f"grid_{p}": post.grid})
     if diagnosis.forces is not None:
         ds = ds.merge(diagnosis.forces)
+    if diagnosis.pointwise is not None:
+        ds["pointwise_log_likelihood"] = diagnosis.pointwise.assign_attrs(
+            long_name="log-likelihood of the data in one channel over one load cycle, at each version's posterior draws")
     io.write_netcdf(ds, netcdf_path)
     sampling.save(diagnosis.effect_mcmc, mcmc_path)

@@ -79,6 +79,7 @@ class Candidate:
     order: float | None
     parameters: Mapping[str, Mapping[str, float | str]]  # name -> value, sd, hdi_low, hdi_high, unit
     chi2_after: float
+    force: np.ndarray  # the fitted force history on the trajectory's grid
 
     def summary(self) -> dict:
         return {"term": self.term, "acts_on": self.acts_on, "frequency_hz": self.frequency_hz, "order": self.order,
@@ -165,7 +166,8 @@ def _candidate(log_evidence, form, place, shapes, shape_weights, fit, scale, tra
     best = int(np.argmax(shape_weights))
     parameters = _posterior(form, fit, scale, shapes, best, shape_weights, place)
     return Candidate(form.term, place, log_evidence, shapes[best], form.frequency_hz(shapes[best], trajectory),
-                     form.order(shapes[best]), parameters, fit.chi2_after)
+                     form.order(shapes[best]), parameters, fit.chi2_after,
+                     (fit.mean / scale) @ form.basis(trajectory, place, shapes[best]))
 
 
 def _posterior(form: type[Form], fit: force.Regression, scale: np.ndarray, shapes: Sequence[Shape], best: int,
@@ -195,6 +197,22 @@ def _hdi(samples: np.ndarray, circular: bool) -> tuple[float, float]:
 
     low, high = az.hdi(np.asarray(samples, dtype=float), hdi_prob=HDI_PROB, circular=circular)
     return float(low), float(high)
+
+
+def separating_channels(candidates: Sequence[Candidate], discovery: Discovery, sigma: Mapping[str, float]) -> list[dict]:
+    """Channels ranked by how well they would separate the closest pair of ``candidates`` (which explain the
+    measured channels equally): ½ Σ ((m_a − m_b)/σ_c)², the expected log Bayes factor, m the channel's
+    response to each candidate's fitted force through the linearized rig, σ_c the noise there."""
+    values, trajectory, first = discovery.trajectory.values, discovery.trajectory, discovery.first
+    channels = list(sigma)
+    linear = LinearRig.build(values, discovery.linear.fs, trajectory.t.size, channels)
+    responses = [linear.response(c.acts_on, c.force)[:, first:] for c in candidates]
+    rows = []
+    for i, channel in enumerate(channels):
+        pair = min(0.5 * float(np.sum(((a[i] - b[i]) / sigma[channel]) ** 2))
+                   for j, a in enumerate(responses) for b in responses[j + 1:])
+        rows.append({"channel": channel, "expected_log_bayes_factor": pair})
+    return sorted(rows, key=lambda r: -r["expected_log_bayes_factor"])
 
 
 def log_bayes_factor(candidate: Candidate, discovery: Discovery) -> float:

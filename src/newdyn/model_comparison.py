@@ -1,0 +1,75 @@
+"""Model versions compared the ArviZ way: pointwise log-likelihoods in blocks, PSIS-LOO, ``az.compare``.
+
+A diagnosis's model versions (nominal, calibrated, + library effect, + discovered term) are each a fit
+with a posterior of its parameters.  The Gaussian log-likelihood of the data, summed within blocks of
+one channel over one load cycle, is evaluated at draws of that posterior: blocks small enough to keep
+and many enough for leave-one-out, a block being what a new load cycle of one sensor would bring.
+``az.loo`` per version and ``az.compare`` across them then rank the versions by expected log predictive
+density, leaving one load cycle of one channel out.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+
+import numpy as np
+
+from . import likelihood
+
+DRAWS = 128  # posterior draws per model version
+
+
+def cycles(times: np.ndarray, load_freq: float) -> np.ndarray:
+    """Each sample's load cycle, counted from the record's first sample."""
+    return np.floor((times - times[0]) * load_freq + 1e-9).astype(int)
+
+
+def pointwise(data: np.ndarray, sigma: np.ndarray, outputs: np.ndarray, cycle: np.ndarray) -> np.ndarray:
+    """Log-likelihood (draw, channel, cycle) of ``data`` (channel, time) under model ``outputs`` (draw,
+    channel, time), summed over the samples of each channel within each load cycle."""
+    return np.stack([likelihood.log_likelihood(data[:, cycle == c], outputs[..., cycle == c], sigma, per_channel=True)
+                     for c in range(int(cycle.max()) + 1)], axis=-1)
+
+
+def draws(mean: np.ndarray, covariance: np.ndarray | None, low: np.ndarray, high: np.ndarray, rng: np.random.Generator,
+          n: int = DRAWS) -> np.ndarray:
+    """(n, k) draws of a Normal (Laplace) posterior truncated to the prior box; the mean alone without a covariance."""
+    if covariance is None or len(mean) == 0:
+        return np.repeat(np.atleast_2d(mean), n, axis=0)
+    kept = np.empty((0, len(mean)))
+    while len(kept) < n:
+        proposed = rng.multivariate_normal(mean, covariance, 4 * n)
+        kept = np.vstack([kept, proposed[np.all((proposed >= low) & (proposed <= high), axis=1)]])
+    return kept[:n]
+
+
+def inference_data(log_likelihood: np.ndarray, parameters: Mapping[str, np.ndarray], channels: Sequence[str]):
+    """InferenceData of one version: its draws (one chain) and the pointwise log-likelihood (channel, cycle)."""
+    import arviz as az
+
+    # A version without parameters (the nominal model) gets its one constant, so that loo has a posterior.
+    posterior = {name: values[None] for name, values in parameters.items()} or {"no_parameters": np.zeros((1, len(log_likelihood)))}
+    return az.from_dict(posterior=posterior, log_likelihood={"y": log_likelihood[None]},
+                        coords={"channel": list(channels), "cycle": np.arange(log_likelihood.shape[-1])},
+                        dims={"y": ["channel", "cycle"]})
+
+
+def compare(versions: Mapping[str, object]) -> list[dict]:
+    """``az.compare`` of the versions' InferenceData by PSIS-LOO: one row per version, best first."""
+    import warnings
+
+    import arviz as az
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # a constant version's Pareto k is undefined: its `warning` column says so
+        table = az.compare(dict(versions), ic="loo", method="pseudo-BMA")
+    return [{"version": str(name), **{key: (bool(value) if key == "warning" else float(value)) for key, value in row.items()
+                                      if key in ("rank", "elpd_loo", "p_loo", "elpd_diff", "weight", "se", "dse", "warning")}}
+            for name, row in table.iterrows()]
+
+
+def evaluate_versions(evaluators: Mapping[str, tuple[Callable[[np.ndarray], np.ndarray], np.ndarray, Sequence[str]]],
+                      data: np.ndarray, sigma: np.ndarray, cycle: np.ndarray, channels: Sequence[str]) -> dict:
+    """InferenceData per version from (simulate(draws) -> outputs, draws (n, k), parameter names)."""
+    return {name: inference_data(pointwise(data, sigma, simulate(theta), cycle), dict(zip(names, theta.T)), channels)
+            for name, (simulate, theta, names) in evaluators.items()}
