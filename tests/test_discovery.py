@@ -185,7 +185,7 @@ def test_each_forms_effect_file_loads_and_its_force_is_the_forms_basis(term, mot
     coefficients = np.linspace(0.4, 0.7, len(basis)) * np.where(term == "dead_zone", 1.0, 1e-3)
     candidate = search.Candidate(term, place, 0.0, shape, None, None, {
         name: {"value": value, "sd": 0.1 * abs(value), "hdi_low": 0.8 * value, "hdi_high": 1.2 * value, "unit": unit}
-        for name, (value, unit) in form.parameters(coefficients, shape, place).items()}, 1.0)
+        for name, (value, unit) in form.parameters(coefficients, shape, place).items()}, 1.0, coefficients @ basis)
     generic, generic_content = effect_file.render_generic(term, place, shape)
     (tmp_path / f"{generic}.py").write_text(generic_content)
     assert effects.load_file(tmp_path / f"{generic}.py").parameter_names() == tuple(candidate.parameters)

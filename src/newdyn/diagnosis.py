@@ -264,7 +264,7 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
     verdict["noise"] = {"sigma": dict(zip(channels, sigma.tolist())), "source": noise_source}
     effect_file = forces = None
     if verdict["verdict"] == "unexplained" or settings.discovery == "always":
-        verdict["discovery"], effect_file, discovered, forces = _discover(measurement.name, fits, verdict, data, sigma, values, sampling,
+        verdict["discovery"], effect_file, discovered, forces = discover_term(measurement.name, fits, verdict, data, sigma, values, sampling,
                                                                   settings)
         if discovered is not None:
             versions["discovered"] = discovered.model
@@ -314,7 +314,7 @@ def _compare_versions(verdict, fits, calibrations, effect_mcmc, discovered, data
     return model_comparison.compare(idata), pointwise.rename({"draw": "comparison_draw", "cycle": "load_cycle"})
 
 
-def _discover(name: str, fits, verdict, data, sigma, values, sampling, settings: Settings):
+def discover_term(name: str, fits, verdict, data, sigma, values, sampling, settings: Settings):
     """The discovery section of the verdict, the best candidate's effect file (name, content), its fit on the
     full simulator (both None when the search found no candidate) and the force estimated at each place.
 
