@@ -40,9 +40,12 @@ from .hypotheses import HEALTHY, PARAMETER_CHANGE
 log = logging.getLogger("newdyn")
 VERDICTS = ("healthy", "parameter_change", "new_dynamics", "unexplained")
 HDI_PROB = 0.94
-DISCOVERY_FULL_FITS = 3  # terms whose best candidate discovery fits on the full simulator, at most
-# ... those whose linearized log Bayes factor is at least this share of the best's: the linearized ranking of a
-# state-dependent term is only first order (a strong dry friction ranks just behind a line at its resonance).
+# Discovery fits on the full simulator the best DISCOVERY_FULL_FIT_PLACES places of each of the best
+# DISCOVERY_FULL_FIT_TERMS terms whose linearized log Bayes factor is at least DISCOVERY_FULL_FIT_SHARE of the
+# best's: the linearized ranking of a term that depends on the motion is first order only (a strong dry friction
+# across the coupling ranked behind a line at its resonance, and behind itself across the motor shaft).
+DISCOVERY_FULL_FIT_TERMS = 2
+DISCOVERY_FULL_FIT_PLACES = 2
 DISCOVERY_FULL_FIT_SHARE = 0.5
 SIGNATURE_REFINE_POINTS = 21  # refined runs per likelihood maximum of a signature (the measurement's use the config's)
 
@@ -318,19 +321,18 @@ def discover_term(name: str, fits, verdict, data, sigma, values, sampling, setti
     """The discovery section of the verdict, the best candidate's effect file (name, content), its fit on the
     full simulator (both None when the search found no candidate) and the force estimated at each place.
 
-    The best candidate of each of the :data:`DISCOVERY_FULL_FITS` best terms (within :data:`DISCOVERY_FULL_FIT_SHARE`)
-    is fitted on the full simulator with the drift parameters, from its linearized fit (its form's generic
-    effect file, whose kernel compiles once per machine); these are ranked by that fit's evidence, the others
-    follow on the linearized model's."""
+    The leading candidates (see :data:`DISCOVERY_FULL_FIT_TERMS`) are fitted on the full simulator with the drift
+    parameters, from their linearized fits (each through its form's generic effect file, whose kernel compiles
+    once per machine); these are ranked by that fit's evidence, the others follow on the linearized model's."""
     from .discovery import effect_file, search
 
     calibrated = fits[verdict["models"]["calibrated"]]
     base = {**values, **calibrated.values}
     found = search.discover(data - calibrated.model, sigma, base, sampling, settings.channels, settings.max_step)
     top = search.log_bayes_factor(found.candidates[0], found) if found.candidates else 0.0
-    terms = list(dict.fromkeys(c.term for c in found.candidates
-                               if search.log_bayes_factor(c, found) >= DISCOVERY_FULL_FIT_SHARE * top))[:DISCOVERY_FULL_FITS]
-    tried = [next(c for c in found.candidates if c.term == term) for term in terms]
+    leading = [c for c in found.candidates if search.log_bayes_factor(c, found) >= DISCOVERY_FULL_FIT_SHARE * top]
+    terms = list(dict.fromkeys(c.term for c in leading))[:DISCOVERY_FULL_FIT_TERMS]
+    tried = [c for term in terms for c in [c for c in leading if c.term == term][:DISCOVERY_FULL_FIT_PLACES]]
     full = {id(c): _full_fit(c, data, sigma, values, calibrated, sampling, settings) for c in tried}
     ranked = sorted(tried, key=lambda c: -full[id(c)].log_evidence) + [c for c in found.candidates if id(c) not in full]
 
