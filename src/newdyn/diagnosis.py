@@ -344,16 +344,16 @@ def discover_term(name: str, fits, verdict, data, sigma, values, sampling, setti
                            parameters=_merged(c.parameters, _laplace_parameters(fit)))
         return summary
 
+    equal = search.equivalent(found, settings.evidence_margin)
     section = {"from": calibrated.hypothesis.name, "peaks_hz": list(found.peaks.frequencies), "chi2_before": found.chi2_before,
                "candidates": [row(c) for c in ranked],
-               "equivalent": [f"{c.term} on {c.acts_on}" for c in search.equivalent(found, settings.evidence_margin)],
+               "equivalent": [f"{c.term} on {c.acts_on}" for c in equal],
                "equivalent_margin": settings.evidence_margin,
                "places": {p: {"log_bayes_factor": f.log_bayes_factor, "chi2_after": f.chi2_after}
                           for p, f in sorted(found.forces.items(), key=lambda item: -item[1].log_bayes_factor)}}
-    equal = search.equivalent(found, settings.evidence_margin)
-    if len(equal) > 1:
+    others = [c for c in model.CHANNELS if c not in settings.channels]
+    if len(equal) > 1 and others:
         # σ of each unmeasured channel at the measurement's SNR, as for the library's equivalent hypotheses.
-        others = [c for c in model.CHANNELS if c not in settings.channels]
         noise_sd = _noise_at_measured_snr(data, sigma, simulation.simulate(base, sampling, others, settings.max_step))[1]
         section["separating_channels"] = search.separating_channels(equal, found, dict(zip(others, noise_sd.tolist())))
     forces = _force_dataset(found)
