@@ -299,7 +299,7 @@ def _compare_versions(verdict, fits, calibrations, effect_mcmc, discovered, data
     evaluators = {"nominal": (simulate(nominal), np.zeros((n, 0)), [])}
     if calibrated.hypothesis.kind == PARAMETER_CHANGE:
         posterior = calibrations[calibrated.hypothesis.effect].posterior
-        cdf = np.concatenate([[0.0], np.cumsum(np.diff(posterior.grid) * 0.5 * (posterior.density[1:] + posterior.density[:-1]))])
+        cdf = posterior.cdf
         theta = np.interp(rng.uniform(0, cdf[-1], n), cdf, posterior.grid)[:, None]
         evaluators["calibrated"] = (simulate(calibrated), theta, calibrated.hypothesis.parameters)
     stacked = np.column_stack([effect_mcmc.posterior[name].values.ravel() for name in effect.hypothesis.parameters])

@@ -4,8 +4,8 @@ The residual r of the calibrated model (channel, time) is taken as the response 
 history at the place plus the measurement's noise: r = G c + e, where the columns of the sensitivity
 G are the channels' responses to unit basis pulses of force at the place, c the force at the pulses'
 centres, and e ~ N(0, σ_c²) independent.  With a Normal prior c ~ N(0, s² I) this is Bayesian linear
-regression: the posterior of c and the evidence p(r | place, s) are closed-form, from one singular
-value decomposition of the whitened sensitivity.  The prior scale s is marginalized over a
+regression: the posterior of c and the evidence p(r | place, s) are closed-form, from one eigen-
+decomposition of the whitened sensitivity's Gram matrix.  The prior scale s is marginalized over a
 log-uniform prior on [s_low, s_high] (quadrature on a logarithmic grid), so places are compared by
 their evidence, Occam factor included, and against the evidence of no missing force at all.
 
@@ -15,7 +15,7 @@ The noise is white here; where it is not, whiten r and G first.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 from scipy.integrate import trapezoid
@@ -23,21 +23,6 @@ from scipy.special import logsumexp
 
 SCALE_POINTS = 61  # quadrature points of the prior scale's log-uniform prior
 LOG_2PI = math.log(2.0 * math.pi)
-
-
-@dataclass(frozen=True)
-class ForceEstimate:
-    """The missing force at a place, as the posterior at the basis pulses' centres, and its evidence."""
-
-    place: str
-    times: np.ndarray  # the basis pulses' centres [s]
-    mean: np.ndarray  # posterior mean of the force there (N·m on a torsional place, N on a lateral one)
-    sd: np.ndarray  # posterior standard deviation
-    scale: float  # the prior scale s of highest posterior weight
-    log_evidence: float  # log p(r | a force at the place), s marginalized; in the residual's units
-    log_bayes_factor: float  # against no missing force
-    chi2_before: float  # reduced χ² of the residual
-    chi2_after: float  # reduced χ² of the residual less the posterior mean force's response
 
 
 def _whitened(residual: np.ndarray, sigma: np.ndarray, sensitivity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -105,6 +90,15 @@ def regress(residual: np.ndarray, sigma: np.ndarray, sensitivity: np.ndarray, sc
     )
 
 
+@dataclass(frozen=True)
+class ForceEstimate(Regression):
+    """The missing force at a place: the regression on pulses, its coefficients the force at their centres
+    (N·m on a torsional place, N on a lateral one)."""
+
+    place: str
+    times: np.ndarray  # the basis pulses' centres [s]
+
+
 def estimate(
     place: str,
     residual: np.ndarray,
@@ -122,8 +116,4 @@ def estimate(
     if np.shape(times) != (np.shape(sensitivity)[-1],):
         raise ValueError(f"times must give the centres of the {np.shape(sensitivity)[-1]} basis pulses, got shape {np.shape(times)}")
     fit = regress(residual, sigma, sensitivity, scale_range)
-    return ForceEstimate(
-        place=place, times=np.asarray(times, dtype=float), mean=fit.mean, sd=fit.sd, scale=fit.scale,
-        log_evidence=fit.log_evidence, log_bayes_factor=fit.log_bayes_factor, chi2_before=fit.chi2_before,
-        chi2_after=fit.chi2_after,
-    )
+    return ForceEstimate(**{f.name: getattr(fit, f.name) for f in fields(fit)}, place=place, times=np.asarray(times, dtype=float))
