@@ -236,3 +236,18 @@ def test_effect_mcmc_rounds_default_to_the_calibrations_and_can_be_set_apart():
     assert SETTINGS.mcmc["max_rounds"] == CONFIG["calibration"]["mcmc"]["max_rounds"]
     config = {**CONFIG, "diagnosis": {**CONFIG["diagnosis"], "mcmc": {**CONFIG["diagnosis"]["mcmc"], "max_rounds": 5}}}
     assert sampling.MCMCSettings.from_config(diagnosis.Settings.from_config(config).mcmc).max_rounds == 5
+
+
+def test_the_fault_mcmc_takes_one_round_only_behind_a_discovered_term_that_explains_where_the_library_does_not():
+    def fit(name, kind, chi2, log_evidence):
+        return hypotheses.Fit(hypotheses.Hypothesis(name, kind), {}, np.zeros((1, 1)), 0.0, chi2, log_evidence, 1)
+
+    discovered = fit("discovered_order_load", "discovered_order_load", 0.99, -10.0)
+    fits = {"healthy": fit("healthy", "healthy", 9.0, -900.0), "stick_slip": fit("stick_slip", "stick_slip", 6.2, -400.0)}
+    assert diagnosis._explaining_ahead(fits, {}, "stick_slip", 1.1) is None
+    assert diagnosis._explaining_ahead(fits, {}, "stick_slip", 1.1, discovered) == "the discovered discovered_order_load"
+    assert diagnosis._explaining_ahead(fits, {}, "stick_slip", 1.1, replace(discovered, chi2_red=1.5)) is None
+    assert diagnosis._explaining_ahead(fits, {}, "stick_slip", 1.1, replace(discovered, log_evidence=-500.0)) is None
+    # A library fault that explains the data keeps its MCMC to convergence, whatever discovery found on request.
+    explained = {**fits, "stick_slip": replace(fits["stick_slip"], chi2_red=1.0)}
+    assert diagnosis._explaining_ahead(explained, {}, "stick_slip", 1.1, discovered) is None

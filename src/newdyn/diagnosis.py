@@ -242,16 +242,11 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
         stage(f"fit of {kind} ({fits[kind].n_simulations} simulations, chi2 {fits[kind].chi2_red:.4g})")
 
     best_fault = max(settings.fault_ranges, key=lambda kind: fits[kind].log_evidence)
-    ahead = _explaining_ahead(fits, calibrations, best_fault, settings.chi2_max)
-    library_explains = any(_explains(fit, calibrations, settings.chi2_max) for fit in fits.values())
     discovery = None
-    if not library_explains or settings.discovery == "always":
+    if settings.discovery == "always" or not any(_explains(fit, calibrations, settings.chi2_max) for fit in fits.values()):
         discovery = discover_term(measurement.name, fits[_best_of(fits, "parameter_change")], data, sigma, values, sampling, settings)
         stage(f"discovery ({len(discovery[0]['candidates'])} candidates)")
-        term_fit = discovery[2]
-        if (ahead is None and not library_explains and term_fit is not None and term_fit.chi2_red <= settings.chi2_max
-                and term_fit.log_evidence > fits[best_fault].log_evidence):
-            ahead = f"the discovered {term_fit.hypothesis.effect}"
+    ahead = _explaining_ahead(fits, calibrations, best_fault, settings.chi2_max, discovery and discovery[2])
     if ahead is None:
         effect_mcmc, fits[best_fault] = _sample_and_polish(fits[best_fault], data, sigma, values, sampling, channels, settings)
     else:
@@ -478,12 +473,18 @@ def _explains(fit: hypotheses.Fit, calibrations, chi2_max: float) -> bool:
     return fit.chi2_red <= chi2_max and consistent
 
 
-def _explaining_ahead(fits, calibrations, fault: str, chi2_max: float) -> str | None:
-    """The best-evidence hypothesis without a fault (healthy or a drift) that explains the data with more
-    evidence than ``fault``'s fit, else None."""
+def _explaining_ahead(fits, calibrations, fault: str, chi2_max: float, discovered: hypotheses.Fit | None = None) -> str | None:
+    """What explains the data with more evidence than ``fault``'s fit, so that the verdict does not rest on its
+    MCMC: the best hypothesis without a fault (healthy or a drift) that does, else — when no fit of the library
+    explains the data — the ``discovered`` term if it does, else None."""
     ahead = [name for name, fit in fits.items() if _class(fit.hypothesis) != "new_dynamics"
              and fit.log_evidence > fits[fault].log_evidence and _explains(fit, calibrations, chi2_max)]
-    return max(ahead, key=lambda name: fits[name].log_evidence, default=None)
+    if ahead:
+        return max(ahead, key=lambda name: fits[name].log_evidence)
+    if (discovered is not None and discovered.chi2_red <= chi2_max and discovered.log_evidence > fits[fault].log_evidence
+            and not any(_explains(fit, calibrations, chi2_max) for fit in fits.values())):
+        return f"the discovered {discovered.hypothesis.effect}"
+    return None
 
 
 def _verdict(fits, calibrations, signatures, settings: Settings, values, sampling, data, sigma) -> dict:
