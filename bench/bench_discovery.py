@@ -18,6 +18,7 @@ import numba
 import yaml
 
 from newdyn import diagnosis, effects, hypotheses, io, model, noise, simulation
+from newdyn.discovery import verify
 
 GOAL_SECONDS = 120.0
 ROOT = Path(__file__).resolve().parents[1]
@@ -43,7 +44,7 @@ def main() -> None:
     print(f"{'run':10s} {'time':>8s} {'vs goal':>8s}   best form")
     for run in ("first", "second"):
         start = time.perf_counter()
-        section, _, fit, _ = diagnosis.discover_term(measurement.name, nominal, y, sigma, values, sampling, settings)
+        section, _, fit, _ = verify.discover(measurement.name, nominal, y, sigma, values, sampling, settings)
         seconds = time.perf_counter() - start
         best = section["candidates"][0]
         print(f"{run:10s} {seconds:7.1f}s {seconds / GOAL_SECONDS:7.2f}x   {best['term']} on {best['acts_on']} ({best['shape']}), "

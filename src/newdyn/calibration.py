@@ -72,7 +72,7 @@ class Calibration:
         return explanation_verdict(self.chi2_red, self.chi2_max, self.posterior.consistent(), converged=True)
 
     def summary(self) -> dict[str, float | int | str]:
-        low, high = self.posterior.hdi(0.94)
+        low, high = self.posterior.hdi()
         return {
             "map": self.posterior.map,
             "mean": self.posterior.mean,

@@ -34,21 +34,14 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import xarray as xr
 from scipy.integrate import trapezoid
-from scipy.special import erfinv, logsumexp
+from scipy.special import logsumexp
 
 from . import calibration, comparison, effects, hypotheses, io, likelihood, mcmc_calibration, model, noise, residuals, simulation
+from .discovery import verify
 from .hypotheses import HEALTHY, PARAMETER_CHANGE
 
 log = logging.getLogger("newdyn")
 VERDICTS = ("healthy", "parameter_change", "new_dynamics", "unexplained")
-HDI_PROB = 0.94
-# Discovery fits on the full simulator the best DISCOVERY_FULL_FIT_PLACES places of each of the best
-# DISCOVERY_FULL_FIT_TERMS terms whose linearized log Bayes factor is at least DISCOVERY_FULL_FIT_SHARE of the
-# best's: the linearized ranking of a term that depends on the motion is first order only (a strong dry friction
-# across the coupling ranked behind a line at its resonance, and behind itself across the motor shaft).
-DISCOVERY_FULL_FIT_TERMS = 2
-DISCOVERY_FULL_FIT_PLACES = 2
-DISCOVERY_FULL_FIT_SHARE = 0.5
 SIGNATURE_REFINE_POINTS = 21  # refined runs per likelihood maximum of a signature (the measurement's use the config's)
 
 
@@ -244,7 +237,7 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
     best_fault = max(settings.fault_ranges, key=lambda kind: fits[kind].log_evidence)
     discovery = None
     if settings.discovery == "always" or not any(_explains(fit, calibrations, settings.chi2_max) for fit in fits.values()):
-        discovery = discover_term(measurement.name, fits[_best_of(fits, "parameter_change")], data, sigma, values, sampling, settings)
+        discovery = verify.discover(measurement.name, fits[_best_of(fits, "parameter_change")], data, sigma, values, sampling, settings)
         stage(f"discovery ({len(discovery[0]['candidates'])} candidates)")
     ahead = _explaining_ahead(fits, calibrations, best_fault, settings.chi2_max, discovery and discovery[2])
     if ahead is None:
@@ -312,110 +305,13 @@ def _compare_versions(verdict, fits, calibrations, effect_mcmc, discovered, data
     idata = model_comparison.evaluate_versions(evaluators, data, sigma, cycle, settings.channels)
     if discovered is not None:
         low, high = np.array([[p.low, p.high] for p in discovered.hypothesis.priors]).T
-        with effects.including(_generic_path(discovered.hypothesis.effect)):
+        with effects.including(verify.generic_path(discovered.hypothesis.effect)):
             idata.update(model_comparison.evaluate_versions(
                 {"discovered": (simulate(discovered), model_comparison.draws(discovered.theta, discovered.covariance, low, high, rng),
                                 discovered.hypothesis.parameters)}, data, sigma, cycle, settings.channels))
     pointwise = xr.concat([d.log_likelihood["y"].isel(chain=0, drop=True) for d in idata.values()],
                           dim=xr.Variable("comparison_version", list(idata)))
     return model_comparison.compare(idata), pointwise.rename({"draw": "comparison_draw", "cycle": "load_cycle"})
-
-
-def discover_term(name: str, calibrated: hypotheses.Fit, data, sigma, values, sampling, settings: Settings):
-    """The discovery section of the verdict, the best candidate's effect file (name, content), its fit on the
-    full simulator (both None when the search found no candidate) and the force estimated at each place.
-
-    The leading candidates (see :data:`DISCOVERY_FULL_FIT_TERMS`) are fitted on the full simulator with the drift
-    parameters, from their linearized fits (each through its form's generic effect file, whose kernel compiles
-    once per machine); these are ranked by that fit's evidence, the others follow on the linearized model's."""
-    from .discovery import effect_file, search
-
-    base = {**values, **calibrated.values}
-    found = search.discover(data - calibrated.model, sigma, base, sampling, settings.channels, settings.max_step)
-    top = search.log_bayes_factor(found.candidates[0], found) if found.candidates else 0.0
-    leading = [c for c in found.candidates if search.log_bayes_factor(c, found) >= DISCOVERY_FULL_FIT_SHARE * top]
-    terms = list(dict.fromkeys(c.term for c in leading))[:DISCOVERY_FULL_FIT_TERMS]
-    tried = [c for term in terms for c in [c for c in leading if c.term == term][:DISCOVERY_FULL_FIT_PLACES]]
-    full = {id(c): _full_fit(c, data, sigma, values, calibrated, sampling, settings) for c in tried}
-    ranked = sorted(tried, key=lambda c: -full[id(c)].log_evidence) + [c for c in found.candidates if id(c) not in full]
-
-    def row(c):
-        summary = {**c.summary(), "log_bayes_factor": search.log_bayes_factor(c, found)}
-        if id(c) in full:
-            fit = full[id(c)]
-            summary.update(chi2_after=fit.chi2_red, log_evidence=fit.log_evidence, method="full simulator",
-                           parameters=_merged(c.parameters, _laplace_parameters(fit)))
-        return summary
-
-    equal = search.equivalent(found, settings.evidence_margin)
-    section = {"from": calibrated.hypothesis.name, "peaks_hz": list(found.peaks.frequencies), "chi2_before": found.chi2_before,
-               "candidates": [row(c) for c in ranked],
-               "equivalent": [f"{c.term} on {c.acts_on}" for c in equal],
-               "equivalent_margin": settings.evidence_margin,
-               "places": {p: {"log_bayes_factor": f.log_bayes_factor, "chi2_after": f.chi2_after}
-                          for p, f in sorted(found.forces.items(), key=lambda item: -item[1].log_bayes_factor)}}
-    others = [c for c in model.CHANNELS if c not in settings.channels]
-    if len(equal) > 1 and others:
-        # σ of each unmeasured channel at the measurement's SNR, as for the library's equivalent hypotheses.
-        noise_sd = _noise_at_measured_snr(data, sigma, simulation.simulate(base, sampling, others, settings.max_step))[1]
-        section["separating_channels"] = search.separating_channels(equal, found, dict(zip(others, noise_sd.tolist())))
-    forces = _force_dataset(found)
-    if not ranked:
-        return section, None, None, forces
-    best, fit = ranked[0], full[id(ranked[0])]
-    refit = replace(best, parameters=_merged(best.parameters, _laplace_parameters(fit)))
-    effect_name, content = effect_file.render(refit, name)
-    section["effect_file"] = f"{effect_name}.py"
-    section["fit"] = {"effect": effect_name, "chi2_after": fit.chi2_red, "log_evidence": fit.log_evidence,
-                      "explains": fit.chi2_red <= settings.chi2_max, "parameters": _laplace_parameters(fit)}
-    return section, (effect_name, content), fit, forces
-
-
-def _force_dataset(found) -> xr.Dataset:
-    """The force estimated at each place (posterior mean and sd at the pulses' centres) and the imbalance
-    disks' angles there, for the figures."""
-    places = list(found.forces)
-    times = found.forces[places[0]].times
-    at = np.rint(times * found.linear.fs).astype(int)
-    return xr.Dataset(
-        {"force_mean": (("place", "pulse_time"), np.stack([found.forces[p].mean for p in places])),
-         "force_sd": (("place", "pulse_time"), np.stack([found.forces[p].sd for p in places])),
-         "force_log_bayes_factor": ("place", [found.forces[p].log_bayes_factor for p in places]),
-         "theta1_at_pulse": ("pulse_time", found.trajectory.theta["1"][at]),
-         "theta4_at_pulse": ("pulse_time", found.trajectory.theta["4"][at])},
-        coords={"place": places, "pulse_time": times},
-    )
-
-
-def _generic_path(effect_name: str):
-    """Where a form's generic effect file lives: beside the compiled kernels, which it shares across studies."""
-    from . import kernels
-
-    return kernels.cache_folder() / "discovery" / f"{effect_name}.py"
-
-
-def _full_fit(candidate, data, sigma, values, calibrated: hypotheses.Fit, sampling, settings: Settings) -> hypotheses.Fit:
-    """``candidate`` (its form's generic effect file) and the drift parameters fitted on the full simulator,
-    within :func:`newdyn.discovery.effect_file.prior_range` of its linearized fit."""
-    from pathlib import Path
-
-    from .discovery import effect_file
-
-    effect_name, content = effect_file.render_generic(candidate.term, candidate.acts_on, candidate.shape)
-    path = _generic_path(effect_name)
-    if not path.is_file() or path.read_text(encoding="utf-8") != content:
-        io.atomic_write(path, lambda tmp: Path(tmp).write_text(content, encoding="utf-8"))
-    with effects.including(path) as effect:
-        ranges = {effect.name: {key: effect_file.prior_range(key, row)[:2] for key, row in candidate.parameters.items()}}
-        hypothesis = hypotheses.library(settings.calibration_priors(), ranges, settings.drift)[-1]
-        start = {**{key: float(row["value"]) for key, row in candidate.parameters.items()}, **calibrated.values}
-        return hypotheses.fit(hypothesis, data, sigma, values, sampling, settings.channels, [start], settings.max_step, search=False)
-
-
-def _merged(linearized: Mapping, full: Mapping) -> dict:
-    """The candidate's parameters with their full-simulator fit's values where it has them (units kept)."""
-    return {key: ({**row, **{k: full[key][k] for k in ("mean", "sd", "hdi_low", "hdi_high")}, "value": full[key]["map"]}
-                  if key in full else dict(row)) for key, row in linearized.items()}
 
 
 def _signature_distances(settings: Settings, hyps, values, calibrations, calibrate_all, sampling, channels) -> xr.DataArray:
@@ -558,20 +454,7 @@ def statement(verdict: Mapping, chi2_max: float) -> str:
     where = "; ".join(_finding(f) for f in verdict["remaining"][:3]) or "no single band or load phase"
     return (f"unexplained: no hypothesis of the library brings reduced chi2 to {chi2_max:g} or below; the closest, "
             f"{verdict['models']['after']}, leaves {after:.3g}, above the noise in {where}"
-            + (f"; {_discovered(verdict['discovery'], before)}" if verdict.get("discovery", {}).get("candidates") else ""))
-
-
-def _discovered(section: Mapping, before: float) -> str:
-    """What discovery found, in words: the best candidate, and whether its fit on the full simulator explains the data."""
-    best = section["candidates"][0]
-    values = ", ".join(f"{name} {row['value']:.4g} {row['unit']}".rstrip(" -") for name, row in best["parameters"].items())
-    article = "an" if best["term"][0] in "aeiou" else "a"
-    found = f"discovered: {article} {best['term']} term on {best['acts_on']} ({best['shape']}; {values})"
-    fit = section.get("fit")
-    if fit is None:
-        return found
-    return (f"{found} {'explains' if fit['explains'] else 'does not explain'} the data: reduced chi2 {before:.3g} -> "
-            f"{fit['chi2_after']:.3g} on the full model (effect file {section['effect_file']})")
+            + (f"; {verify.in_words(verdict['discovery'], before)}" if verdict.get("discovery", {}).get("candidates") else ""))
 
 
 def _finding(finding: Mapping) -> str:
@@ -602,20 +485,10 @@ def _fit_parameters(fit: hypotheses.Fit, calibrations) -> dict:
     Laplace approximation's for a fault model (its MCMC replaces it where the verdict names it)."""
     if fit.hypothesis.kind == PARAMETER_CHANGE:
         posterior = calibrations[fit.hypothesis.effect].posterior
-        low, high = posterior.hdi(HDI_PROB)
+        low, high = posterior.hdi()
         return {fit.hypothesis.effect: {"map": posterior.map, "mean": posterior.mean, "sd": posterior.sd,
                                         "hdi_low": low, "hdi_high": high, "method": "grid"}}
-    return _laplace_parameters(fit)
-
-
-def _laplace_parameters(fit: hypotheses.Fit) -> dict:
-    """Best fit ± the Laplace approximation (Normal, central 94 % interval)."""
-    if fit.covariance is None:
-        return {}
-    sd = np.sqrt(np.diag(fit.covariance))
-    z = float(np.sqrt(2) * erfinv(HDI_PROB))  # the Normal's central HDI_PROB interval is mean ± z·sd
-    return {name: {"map": v, "mean": v, "sd": float(s), "hdi_low": v - z * float(s), "hdi_high": v + z * float(s), "method": "laplace"}
-            for (name, v), s in zip(fit.values.items(), sd)}
+    return fit.laplace_parameters()
 
 
 def _separating_channels(equivalent: Sequence[hypotheses.Fit], values, sampling, data, sigma, settings: Settings) -> list[dict]:
@@ -625,20 +498,13 @@ def _separating_channels(equivalent: Sequence[hypotheses.Fit], values, sampling,
     if not others:
         return []
     outputs = [hypotheses.evaluate(f.hypothesis, f.theta[None], values, sampling, others, settings.max_step)[0] for f in equivalent]
-    snr_db, noise_sd = _noise_at_measured_snr(data, sigma, outputs[0])
+    snr_db, noise_sd = noise.at_measured_snr(data, sigma, outputs[0])
     rows = []
     for i, channel in enumerate(others):
         pair = min(0.5 * np.sum(((a[i] - b[i]) / noise_sd[i]) ** 2)
                    for j, a in enumerate(outputs) for b in outputs[j + 1:])
         rows.append({"channel": channel, "expected_log_bayes_factor": float(pair), "snr_db": snr_db})
     return sorted(rows, key=lambda r: -r["expected_log_bayes_factor"])
-
-
-def _noise_at_measured_snr(data, sigma, signals) -> tuple[float, np.ndarray]:
-    """(the measured channels' mean SNR [dB], the noise σ of ``signals`` (channel, time) at that SNR): what
-    an unmeasured channel would show, measured as well as the others."""
-    snr_db = float(np.mean(20 * np.log10(np.sqrt(np.maximum(np.var(data, axis=-1) - sigma**2, 0)) / sigma)))
-    return snr_db, np.std(signals, axis=-1) * 10 ** (-snr_db / 20)
 
 
 def _sample_effect(fit: hypotheses.Fit, data, sigma, values, sampling, channels, settings: Settings):
@@ -684,7 +550,7 @@ def _mcmc_parameters(idata, names) -> dict:
     rows = {}
     for name, b in zip(names, best):
         draws = idata.posterior[name].values.ravel()
-        low, high = az.hdi(draws, hdi_prob=HDI_PROB)
+        low, high = az.hdi(draws, hdi_prob=likelihood.HDI_PROB)
         rows[name] = {"map": float(b), "mean": float(draws.mean()), "sd": float(draws.std(ddof=1)),
                       "hdi_low": float(low), "hdi_high": float(high), "method": "mcmc"}
     return rows

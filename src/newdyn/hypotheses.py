@@ -16,6 +16,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy import optimize
+from scipy.special import erfinv
 
 from . import effects, faults, likelihood, model, simulation
 
@@ -176,6 +177,16 @@ class Fit:
     @property
     def theta(self) -> np.ndarray:
         return np.array([self.values[name] for name in self.hypothesis.parameters])
+
+    def laplace_parameters(self) -> dict:
+        """Each fitted value ± its Laplace approximation (Normal: MAP = mean, central 94 % interval); empty
+        without a covariance."""
+        if self.covariance is None:
+            return {}
+        sd = np.sqrt(np.diag(self.covariance))
+        z = float(np.sqrt(2) * erfinv(likelihood.HDI_PROB))  # the Normal's central interval is mean ± z·sd
+        return {name: {"map": v, "mean": v, "sd": float(s), "hdi_low": v - z * float(s), "hdi_high": v + z * float(s),
+                       "method": "laplace"} for (name, v), s in zip(self.values.items(), sd)}
 
     def summary(self) -> dict:
         return {

@@ -16,6 +16,8 @@ import numpy as np
 from scipy import signal, stats
 from scipy.integrate import cumulative_trapezoid, trapezoid
 
+HDI_PROB = 0.94  # the credible intervals newdyn reports: ArviZ's default, 94 % highest density
+
 
 def _standardized_residuals(data: np.ndarray, model: np.ndarray, sigma: np.ndarray) -> np.ndarray:
     """(y − m)/σ_c with shape checks; ``model`` and ``sigma`` may carry leading axes that broadcast
@@ -125,7 +127,7 @@ class GridPosterior:
         """Posterior probability of φ ≤ grid_i, by cumulative trapezoid (0 at the first point, 1 at the last)."""
         return cumulative_trapezoid(self.density, self.grid, initial=0.0)
 
-    def hdi(self, prob: float = 0.94) -> tuple[float, float]:
+    def hdi(self, prob: float = HDI_PROB) -> tuple[float, float]:
         """(low, high) grid points bounding the highest-density region holding at least ``prob``.
 
         Grid points are taken in order of decreasing density, each carrying the mass of its trapezoid

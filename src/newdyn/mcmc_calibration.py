@@ -448,7 +448,7 @@ def draws_summary(draws: np.ndarray, map_value: float, prior_sd: float) -> dict:
     """MAP, mean, sd, 94% HDI and posterior-to-prior sd ratio of one variable's draws."""
     import arviz as az
 
-    low, high = az.hdi(draws, hdi_prob=0.94)
+    low, high = az.hdi(draws, hdi_prob=likelihood.HDI_PROB)
     sd = float(draws.std(ddof=1))
     return {"map": float(map_value), "mean": float(draws.mean()), "sd": sd, "hdi_low": float(low),
             "hdi_high": float(high), "sd_ratio": sd / prior_sd}

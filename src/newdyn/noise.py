@@ -105,3 +105,10 @@ def _floor_relative_variance(n_samples: int, nperseg: int, bins: np.ndarray) -> 
 def _pair_covariance(a: np.ndarray, b: np.ndarray) -> float:
     """Σ_ij cov(|X_i|², |Y_j|²)/σ⁴ for X = a·x and Y = b·x over the same unit white samples x."""
     return float(np.sum(np.abs(a @ b.conj().T) ** 2) + np.sum(np.abs(a @ b.T) ** 2))
+
+
+def at_measured_snr(data: np.ndarray, sigma: np.ndarray, signals: np.ndarray) -> tuple[float, np.ndarray]:
+    """(the measured channels' mean SNR [dB], the noise σ of ``signals`` (channel, time) at that SNR): what
+    an unmeasured channel would show, measured as well as the others."""
+    snr_db = float(np.mean(20 * np.log10(np.sqrt(np.maximum(np.var(data, axis=-1) - sigma**2, 0)) / sigma)))
+    return snr_db, np.std(signals, axis=-1) * 10 ** (-snr_db / 20)

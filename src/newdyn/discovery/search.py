@@ -25,13 +25,12 @@ import numpy as np
 from scipy import signal, stats
 from scipy.special import logsumexp
 
-from .. import model
+from .. import likelihood, model
 from ..effects.base import TORSIONAL_PLACES
 from . import force
 from .forms import ESTIMABLE_PLACES, FORMS, Form, Peaks, Shape, Trajectory
 from .linear import LinearRig
 
-HDI_PROB = 0.94
 PEAKS = 3  # spectral peaks tried as frequencies
 PEAK_POWER = 25.0  # a peak's whitened power (noise: mean 1, exponential) to count as a line
 ZERO_PADDING = 4
@@ -195,7 +194,7 @@ def _posterior(form: type[Form], fit: force.Regression, scale: np.ndarray, shape
 def _hdi(samples: np.ndarray, circular: bool) -> tuple[float, float]:
     import arviz as az
 
-    low, high = az.hdi(np.asarray(samples, dtype=float), hdi_prob=HDI_PROB, circular=circular)
+    low, high = az.hdi(np.asarray(samples, dtype=float), hdi_prob=likelihood.HDI_PROB, circular=circular)
     return float(low), float(high)
 
 

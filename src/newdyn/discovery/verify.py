@@ -1,0 +1,128 @@
+"""Discovery inside a diagnosis: search the calibrated model's residual, fit the leading candidates on the full
+simulator, and say what was found — the verdict's ``discovery`` section and the best candidate's effect file.
+
+The linearized ranking of a term that depends on the motion is first order only (a strong dry friction across
+the coupling ranked behind a line at its resonance, and behind itself across the motor shaft), so the best
+:data:`FULL_FIT_PLACES` places of each of the best :data:`FULL_FIT_TERMS` terms whose linearized log Bayes
+factor is at least :data:`FULL_FIT_SHARE` of the best's are fitted on the full simulator with the drift
+parameters, and ranked by that fit's Laplace evidence, as the library's hypotheses are.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import replace
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+import xarray as xr
+
+from .. import effects, hypotheses, io, kernels, model, noise, simulation
+from . import effect_file, search
+
+if TYPE_CHECKING:
+    from ..diagnosis import Settings
+
+FULL_FIT_TERMS = 2
+FULL_FIT_PLACES = 2
+FULL_FIT_SHARE = 0.5
+
+
+def discover(name: str, calibrated: hypotheses.Fit, data, sigma, values, sampling, settings: Settings):
+    """The discovery section of the verdict, the best candidate's effect file (name, content) and its fit on the
+    full simulator (both None when the search found no candidate), and the force estimated at each place."""
+    base = {**values, **calibrated.values}
+    found = search.discover(data - calibrated.model, sigma, base, sampling, settings.channels, settings.max_step)
+    top = search.log_bayes_factor(found.candidates[0], found) if found.candidates else 0.0
+    leading = [c for c in found.candidates if search.log_bayes_factor(c, found) >= FULL_FIT_SHARE * top]
+    terms = list(dict.fromkeys(c.term for c in leading))[:FULL_FIT_TERMS]
+    tried = [c for term in terms for c in [c for c in leading if c.term == term][:FULL_FIT_PLACES]]
+    full = {id(c): _full_fit(c, data, sigma, values, calibrated, sampling, settings) for c in tried}
+    ranked = sorted(tried, key=lambda c: -full[id(c)].log_evidence) + [c for c in found.candidates if id(c) not in full]
+
+    def row(c):
+        summary = {**c.summary(), "log_bayes_factor": search.log_bayes_factor(c, found)}
+        if id(c) in full:
+            fit = full[id(c)]
+            summary.update(chi2_after=fit.chi2_red, log_evidence=fit.log_evidence, method="full simulator",
+                           parameters=_merged(c.parameters, fit.laplace_parameters()))
+        return summary
+
+    equal = search.equivalent(found, settings.evidence_margin)
+    section = {"from": calibrated.hypothesis.name, "peaks_hz": list(found.peaks.frequencies), "chi2_before": found.chi2_before,
+               "candidates": [row(c) for c in ranked],
+               "equivalent": [f"{c.term} on {c.acts_on}" for c in equal],
+               "equivalent_margin": settings.evidence_margin,
+               "places": {p: {"log_bayes_factor": f.log_bayes_factor, "chi2_after": f.chi2_after}
+                          for p, f in sorted(found.forces.items(), key=lambda item: -item[1].log_bayes_factor)}}
+    others = [c for c in model.CHANNELS if c not in settings.channels]
+    if len(equal) > 1 and others:
+        # σ of each unmeasured channel at the measurement's SNR, as for the library's equivalent hypotheses.
+        noise_sd = noise.at_measured_snr(data, sigma, simulation.simulate(base, sampling, others, settings.max_step))[1]
+        section["separating_channels"] = search.separating_channels(equal, found, dict(zip(others, noise_sd.tolist())))
+    forces = _force_dataset(found)
+    if not ranked:
+        return section, None, None, forces
+    best, fit = ranked[0], full[id(ranked[0])]
+    refit = replace(best, parameters=_merged(best.parameters, fit.laplace_parameters()))
+    effect_name, content = effect_file.render(refit, name)
+    section["effect_file"] = f"{effect_name}.py"
+    section["fit"] = {"effect": effect_name, "chi2_after": fit.chi2_red, "log_evidence": fit.log_evidence,
+                      "explains": fit.chi2_red <= settings.chi2_max, "parameters": fit.laplace_parameters()}
+    return section, (effect_name, content), fit, forces
+
+
+def in_words(section: Mapping, before: float) -> str:
+    """What discovery found, in words: the best candidate, and whether its fit on the full simulator explains the data."""
+    best = section["candidates"][0]
+    values = ", ".join(f"{name} {row['value']:.4g} {row['unit']}".rstrip(" -") for name, row in best["parameters"].items())
+    article = "an" if best["term"][0] in "aeiou" else "a"
+    found = f"discovered: {article} {best['term']} term on {best['acts_on']} ({best['shape']}; {values})"
+    fit = section.get("fit")
+    if fit is None:
+        return found
+    return (f"{found} {'explains' if fit['explains'] else 'does not explain'} the data: reduced chi2 {before:.3g} -> "
+            f"{fit['chi2_after']:.3g} on the full model (effect file {section['effect_file']})")
+
+
+def generic_path(effect_name: str) -> Path:
+    """Where a form's generic effect file lives: beside the compiled kernels, which it shares across studies."""
+    return kernels.cache_folder() / "discovery" / f"{effect_name}.py"
+
+
+def _force_dataset(found: search.Discovery) -> xr.Dataset:
+    """The force estimated at each place (posterior mean and sd at the pulses' centres) and the imbalance
+    disks' angles there, for the figures."""
+    places = list(found.forces)
+    times = found.forces[places[0]].times
+    at = np.rint(times * found.linear.fs).astype(int)
+    return xr.Dataset(
+        {"force_mean": (("place", "pulse_time"), np.stack([found.forces[p].mean for p in places])),
+         "force_sd": (("place", "pulse_time"), np.stack([found.forces[p].sd for p in places])),
+         "force_log_bayes_factor": ("place", [found.forces[p].log_bayes_factor for p in places]),
+         "theta1_at_pulse": ("pulse_time", found.trajectory.theta["1"][at]),
+         "theta4_at_pulse": ("pulse_time", found.trajectory.theta["4"][at])},
+        coords={"place": places, "pulse_time": times},
+    )
+
+
+def _full_fit(candidate: search.Candidate, data, sigma, values, calibrated: hypotheses.Fit, sampling,
+              settings: Settings) -> hypotheses.Fit:
+    """``candidate`` (its form's generic effect file) and the drift parameters fitted on the full simulator,
+    within :func:`newdyn.discovery.effect_file.prior_range` of its linearized fit."""
+    effect_name, content = effect_file.render_generic(candidate.term, candidate.acts_on, candidate.shape)
+    path = generic_path(effect_name)
+    if not path.is_file() or path.read_text(encoding="utf-8") != content:
+        io.atomic_write(path, lambda tmp: Path(tmp).write_text(content, encoding="utf-8"))
+    with effects.including(path) as effect:
+        ranges = {effect.name: {key: effect_file.prior_range(key, row)[:2] for key, row in candidate.parameters.items()}}
+        hypothesis = hypotheses.library(settings.calibration_priors(), ranges, settings.drift)[-1]
+        start = {**{key: float(row["value"]) for key, row in candidate.parameters.items()}, **calibrated.values}
+        return hypotheses.fit(hypothesis, data, sigma, values, sampling, settings.channels, [start], settings.max_step, search=False)
+
+
+def _merged(linearized: Mapping, full: Mapping) -> dict:
+    """The candidate's parameters with their full-simulator fit's values where it has them (units kept)."""
+    return {key: ({**row, **{k: full[key][k] for k in ("mean", "sd", "hdi_low", "hdi_high")}, "value": full[key]["map"]}
+                  if key in full else dict(row)) for key, row in linearized.items()}
