@@ -91,6 +91,7 @@ class Discovery:
     """Candidates ranked by evidence, the force estimated at each place, and what the search saw."""
 
     candidates: list[Candidate]
+    scores: tuple[tuple[str, str, float], ...]  # (term, place, log-evidence) of every form scored, best first
     forces: dict[str, force.ForceEstimate]
     peaks: Peaks
     log_evidence_without: float
@@ -135,7 +136,8 @@ def discover(residual: np.ndarray, sigma: np.ndarray, values: Mapping[str, float
         if seen[entry[1].term] <= PLACES_PER_TERM:
             candidates.append(_candidate(*entry, trajectory))
     r = residual / sigma[:, None]
-    return Discovery(candidates, forces, peaks, force.log_evidence_without_force(residual, sigma), float(np.mean(r**2)),
+    scores = tuple((form.term, place, log_evidence) for log_evidence, form, place, *_ in scored)
+    return Discovery(candidates, scores, forces, peaks, force.log_evidence_without_force(residual, sigma), float(np.mean(r**2)),
                      trajectory, linear, first)
 
 
@@ -218,7 +220,11 @@ def log_bayes_factor(candidate: Candidate, discovery: Discovery) -> float:
     return candidate.log_evidence - discovery.log_evidence_without
 
 
-def equivalent(discovery: Discovery, margin: float) -> list[Candidate]:
-    """The candidates whose evidence is within ``margin`` of the best's."""
-    top = discovery.candidates[0].log_evidence if discovery.candidates else math.nan
-    return [c for c in discovery.candidates if top - c.log_evidence <= margin]
+def equivalent(discovery: Discovery, margin: float, to: tuple[str, str] | None = None) -> list[tuple[str, str]]:
+    """(term, place) of every form scored whose evidence is within ``margin`` of the best's (or of the form and
+    place ``to``), candidate or not: a line at one frequency, say, is fitted as well at any place whose response
+    reaches the measured channels."""
+    if not discovery.scores:
+        return []
+    top = max(log_evidence for term, place, log_evidence in discovery.scores if to is None or (term, place) == to)
+    return [(term, place) for term, place, log_evidence in discovery.scores if top - log_evidence <= margin]

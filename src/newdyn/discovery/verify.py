@@ -49,18 +49,19 @@ def discover(name: str, calibrated: hypotheses.Fit, data, sigma, values, samplin
                            parameters=_merged(c.parameters, fit.laplace_parameters()))
         return summary
 
-    equal = search.equivalent(found, settings.evidence_margin)
+    equal = _equivalent(found, {(c.term, c.acts_on): full[id(c)].log_evidence for c in tried}, settings.evidence_margin)
     section = {"from": calibrated.hypothesis.name, "peaks_hz": list(found.peaks.frequencies), "chi2_before": found.chi2_before,
                "candidates": [row(c) for c in ranked],
-               "equivalent": [f"{c.term} on {c.acts_on}" for c in equal],
+               "equivalent": [f"{term} on {place}" for term, place in equal],
                "equivalent_margin": settings.evidence_margin,
                "places": {p: {"log_bayes_factor": f.log_bayes_factor, "chi2_after": f.chi2_after}
                           for p, f in sorted(found.forces.items(), key=lambda item: -item[1].log_bayes_factor)}}
     others = [c for c in model.CHANNELS if c not in settings.channels]
-    if len(equal) > 1 and others:
+    separable = [c for c in found.candidates if (c.term, c.acts_on) in equal]  # those whose fitted force is at hand
+    if len(separable) > 1 and others:
         # σ of each unmeasured channel at the measurement's SNR, as for the library's equivalent hypotheses.
         noise_sd = noise.at_measured_snr(data, sigma, simulation.simulate(base, sampling, others, settings.max_step))[1]
-        section["separating_channels"] = search.separating_channels(equal, found, dict(zip(others, noise_sd.tolist())))
+        section["separating_channels"] = search.separating_channels(separable, found, dict(zip(others, noise_sd.tolist())))
     forces = _force_dataset(found)
     if not ranked:
         return section, None, None, forces
@@ -71,6 +72,17 @@ def discover(name: str, calibrated: hypotheses.Fit, data, sigma, values, samplin
     section["fit"] = {"effect": effect_name, "chi2_after": fit.chi2_red, "log_evidence": fit.log_evidence,
                       "explains": fit.chi2_red <= settings.chi2_max, "parameters": fit.laplace_parameters()}
     return section, (effect_name, content), fit, forces
+
+
+def _equivalent(found: search.Discovery, fitted: Mapping[tuple[str, str], float], margin: float) -> list[tuple[str, str]]:
+    """(term, place) of what explains the data as well as the best: the full fits within ``margin`` of the best's
+    evidence, and the best's form at the places scored only on the linearized model within ``margin`` of the best's
+    score there (the linearization's error is much the same for one form at two places; it is not across forms)."""
+    if not fitted:
+        return []
+    best = max(fitted, key=fitted.get)
+    full = [pair for pair, log_evidence in sorted(fitted.items(), key=lambda item: -item[1]) if fitted[best] - log_evidence <= margin]
+    return full + [pair for pair in search.equivalent(found, margin, to=best) if pair not in fitted and pair[0] == best[0]]
 
 
 def in_words(section: Mapping, before: float) -> str:
