@@ -272,8 +272,8 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
             versions["discovered"] = discovered.model
             verdict["models"]["discovered"] = discovered.hypothesis.name
             verdict["model_versions"].append(_version_row("+ discovered", discovered, data, channels))
-    verdict["model_comparison"], pointwise = _compare_versions(verdict, fits, calibrations, effect_mcmc, discovered, data, sigma, values, sampling,
-                                                               settings)
+    verdict["model_comparison"], pointwise = _compare_versions(verdict, fits, calibrations, effect_mcmc, discovered, data, sigma,
+                                                               values, sampling, settings)
     stage("model versions compared by PSIS-LOO")
     verdict["statement"] = statement(verdict, settings.chi2_max)
     return Diagnosis(measurement, channels, data, sigma, noise_source, calibrations, fits, signatures, verdict,

@@ -65,7 +65,8 @@ def render(candidate, measurement: str) -> tuple[str, str]:
     """(effect name, content) of the found file of ``candidate`` (a :class:`.search.Candidate`) in ``measurement``."""
     name = effect_name(candidate.term, candidate.acts_on, candidate.shape, measurement)
     declared = {key: (float(row["value"]), row["unit"], prior_range(key, row)) for key, row in candidate.parameters.items()}
-    found = ", ".join(f"{key} = {row['value']:.6g} {row['unit']} (sd {row['sd']:.3g})" for key, row in candidate.parameters.items())
+    found = ", ".join(f"{key} = {row['value']:.6g}{'' if row['unit'] == '-' else ' ' + row['unit']} (sd {row['sd']:.3g})"
+                      for key, row in candidate.parameters.items())
     return name, _content(name, candidate.term, candidate.acts_on, candidate.shape, declared,
                           f"Found by newdyn's discovery in the measurement {measurement}: {found}.  Add it to a study by\n"
                           f"copying this file into its effects folder and naming it in the config (``effects: [{name}]``).",
