@@ -172,6 +172,8 @@ BAD = {
     "empty diagnosis override": (_set("diagnosis.faults.stick_slip", {}), "diagnosis.faults.stick_slip", "at least 1"),
     "not a range": (_set("diagnosis.faults.cubic_coupling.gamma", [0.0, 1.0, 2.0]), "diagnosis.faults.cubic_coupling.gamma"),
     "drift not calibrated": (_set("diagnosis.drift", ["k_s"]), "diagnosis.drift[0]", "not one of calibration.parameters"),
+    "negative sensor spread": (_set("diagnosis.sensors.b1_x.offset_sd", -1e-8), "diagnosis.sensors.b1_x.offset_sd", "≥ 0"),
+    "sensor of no channel": (_set("diagnosis.sensors.b9_x.gain_sd", 0.01), "diagnosis.sensors.b9_x", "unknown name"),
     # stick_slip, the largest effect, has 3 parameters; with the drift kT1 4: the KDE move needs 2·4 + 2
     "too few diagnosis walkers": (_set("diagnosis.mcmc.walkers", 8), "diagnosis.mcmc.walkers", "at least 10",
                                   "the 4 parameters"),

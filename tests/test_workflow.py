@@ -212,6 +212,7 @@ DRAWN = {"truth.json", "demo_01.nc"}  # the demo's hidden case
         ("kernels.py", SIMULATED | CALIBRATED | GRIDS | COMPARED | DIAGNOSED | DRAWN, True),
         ("noise.py", SIMULATED - {"clean.nc"} | CALIBRATED | COMPARED | DIAGNOSED | DRAWN, True),
         ("likelihood.py", CALIBRATED | GRIDS | COMPARED | DIAGNOSED, True),
+        ("sensors.py", CALIBRATED | GRIDS | COMPARED | DIAGNOSED, True),
         ("sampling.py", {"snr40_seed1_mcmc.nc", "summary.csv"} | DIAGNOSED, True),
         ("mcmc_calibration.py", {"snr40_seed1_mcmc.nc", "summary.csv"} | DIAGNOSED, True),
         ("hypotheses.py", DIAGNOSED, True),

@@ -151,18 +151,20 @@ def calibrate(
     refine_points: int,
     chi2_max: float,
     max_step: float = simulation.DEFAULT_MAX_STEP,
+    sensor_scale: np.ndarray | None = None,
 ) -> Calibration:
-    """Grid posterior of ``spec.parameter`` given ``data`` (channel, time) with known noise ``sigma``.
+    """Grid posterior of ``spec.parameter`` given ``data`` (channel, time) with known noise ``sigma`` (and the
+    instruments' offsets and gains integrated out, with ``sensor_scale``: :mod:`newdyn.sensors`)
 
     ``coarse_models`` are :func:`simulate_grid`'s outputs on ``spec.axis`` for the model ``values``
     (the healthy rig at the measurement's operating condition and sampling).
     """
     def run(points):
         models = simulate_grid(values, spec.parameter, points, sampling, channels, max_step)
-        return models, likelihood.log_likelihood(data, models, sigma)
+        return models, likelihood.log_likelihood(data, models, sigma, sensor_scale=sensor_scale)
 
     coarse = spec.axis
-    coarse_ll = likelihood.log_likelihood(data, coarse_models, sigma)
+    coarse_ll = likelihood.log_likelihood(data, coarse_models, sigma, sensor_scale=sensor_scale)
     grids, all_models, all_ll = [coarse], [coarse_models], [coarse_ll]
     for i in _highest_maxima(coarse_ll):
         # Pass 1 finds the peak inside its coarse cells; pass 2 covers ±SPAN_SD widths of it, so that
@@ -180,7 +182,7 @@ def calibrate(
     ll = np.concatenate(all_ll)[unique]
     posterior = likelihood.grid_posterior(grid, ll, prior.log_pdf(grid))
     best = models[np.argmax(ll)]
-    chi2 = float(likelihood.reduced_chi2(data, best, sigma, n_fitted=1))
+    chi2 = float(likelihood.reduced_chi2(data, best, sigma, n_fitted=1, sensor_scale=sensor_scale))
     return Calibration(posterior, prior.sd, chi2, best, chi2_max)
 
 

@@ -37,6 +37,7 @@ from scipy.integrate import trapezoid
 from scipy.special import logsumexp
 
 from . import calibration, comparison, effects, hypotheses, io, likelihood, mcmc_calibration, model, noise, residuals, simulation
+from . import sensors as sensors_module
 from .discovery import verify
 from .hypotheses import HEALTHY, PARAMETER_CHANGE
 
@@ -64,6 +65,7 @@ class Settings:
     max_step: float
     mcmc: Mapping[str, float | int | str] = field(default_factory=dict)
     discovery: str = "unexplained"  # or "always"
+    sensors: Mapping[str, sensors_module.Sensor] = field(default_factory=dict)  # instrument errors per channel
 
     @classmethod
     def from_config(cls, config: Mapping) -> Settings:
@@ -89,7 +91,13 @@ class Settings:
             max_step=float(config["simulation"]["max_step"]),
             mcmc={**{k: c["mcmc"][k] for k in ("rhat_max", "ess_min", "move", "max_rounds")}, **d["mcmc"]},
             discovery=d.get("discovery", "unexplained"),
+            sensors={c: sensors_module.Sensor(**spec) for c, spec in d.get("sensors", {}).items()},
         )
+
+    @property
+    def sensor_scale(self) -> np.ndarray:
+        """(channel, 2) prior scales of the diagnosis channels' instrument offset and gain."""
+        return sensors_module.scales(self.sensors, self.channels)
 
     def calibration_priors(self) -> dict[str, hypotheses.Prior]:
         return {
@@ -201,7 +209,7 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
         return {
             p: calibration.calibrate(
                 y, sigma, spec, settings.priors[p], coarse[p], values, sampling, channels, refine_points,
-                settings.chi2_max, settings.max_step,
+                settings.chi2_max, settings.max_step, settings.sensor_scale,
             )
             for p, spec in settings.grids.items()
         }
@@ -225,13 +233,15 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
     stage(f"{signatures.sizes['signature']} signatures")
 
     # Fits: healthy as it is, drifts from their grids (exact), faults from their closest signature and a global search.
-    fits = {HEALTHY: hypotheses.fit(hyps[HEALTHY], data, sigma, values, sampling, channels, max_step=settings.max_step)}
+    fits = {HEALTHY: hypotheses.fit(hyps[HEALTHY], data, sigma, values, sampling, channels, max_step=settings.max_step,
+                                    sensor_scale=settings.sensor_scale)}
     fits.update({f"{PARAMETER_CHANGE}:{p}": _drift_fit(hyps[f"{PARAMETER_CHANGE}:{p}"], cal) for p, cal in calibrations.items()})
     closest = signatures.mean("parameter")
     for kind in settings.fault_ranges:
         mine = closest.where(signatures["hypothesis"] == kind, drop=True)
         start = json.loads(str(mine["values"].values[int(np.argmin(mine.values))]))
-        fits[kind] = hypotheses.fit(hyps[kind], data, sigma, values, sampling, channels, [start], settings.max_step)
+        fits[kind] = hypotheses.fit(hyps[kind], data, sigma, values, sampling, channels, [start], settings.max_step,
+                                    sensor_scale=settings.sensor_scale)
         stage(f"fit of {kind} ({fits[kind].n_simulations} simulations, chi2 {fits[kind].chi2_red:.4g})")
 
     best_fault = max(settings.fault_ranges, key=lambda kind: fits[kind].log_evidence)
@@ -264,6 +274,9 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
         verdict[key] = residuals.where_it_fails(data - versions[version], sigma, channels, sampling.times,
                                                 sampling.fs, values["load_freq"])
     verdict["noise"] = {"sigma": dict(zip(channels, sigma.tolist())), "source": noise_source}
+    if settings.sensors:
+        found = sensors_module.estimate(data, versions["after"], sigma, settings.sensor_scale)
+        verdict["sensors"] = {c: {key: float(found[key][i]) for key in found} for i, c in enumerate(channels) if c in settings.sensors}
     effect_file = discovered = forces = None
     # Discovery ran before the MCMC; a library fault whose polish explained the data after all drops it.
     if discovery is not None and (verdict["verdict"] == "unexplained" or settings.discovery == "always"):
@@ -302,13 +315,13 @@ def _compare_versions(verdict, fits, calibrations, effect_mcmc, discovered, data
     stacked = np.column_stack([effect_mcmc.posterior[name].values.ravel() for name in effect.hypothesis.parameters])
     evaluators["effect"] = (simulate(effect), stacked[rng.choice(len(stacked), n, replace=len(stacked) < n)], effect.hypothesis.parameters)
     cycle = model_comparison.cycles(sampling.times, values["load_freq"])
-    idata = model_comparison.evaluate_versions(evaluators, data, sigma, cycle, settings.channels)
+    idata = model_comparison.evaluate_versions(evaluators, data, sigma, cycle, settings.channels, settings.sensor_scale)
     if discovered is not None:
         low, high = np.array([[p.low, p.high] for p in discovered.hypothesis.priors]).T
         with effects.including(verify.generic_path(discovered.hypothesis.effect)):
             idata.update(model_comparison.evaluate_versions(
                 {"discovered": (simulate(discovered), model_comparison.draws(discovered.theta, discovered.covariance, low, high, rng),
-                                discovered.hypothesis.parameters)}, data, sigma, cycle, settings.channels))
+                                discovered.hypothesis.parameters)}, data, sigma, cycle, settings.channels, settings.sensor_scale))
     pointwise = xr.concat([d.log_likelihood["y"].isel(chain=0, drop=True) for d in idata.values()],
                           dim=xr.Variable("comparison_version", list(idata)))
     return model_comparison.compare(idata), pointwise.rename({"draw": "comparison_draw", "cycle": "load_cycle"})
@@ -353,7 +366,8 @@ def _sample_and_polish(fit: hypotheses.Fit, data, sigma, values, sampling, chann
     best = _best_draw(idata, hypothesis.parameters)
     if float(idata.sample_stats["log_likelihood"].max()) > fit.log_likelihood:
         polished = hypotheses.fit(hypothesis, data, sigma, values, sampling, channels,
-                                  [dict(zip(hypothesis.parameters, best))], settings.max_step, search=False)
+                                  [dict(zip(hypothesis.parameters, best))], settings.max_step, search=False,
+                                  sensor_scale=settings.sensor_scale)
         if polished.log_likelihood > fit.log_likelihood:
             return idata, polished
     return idata, fit
@@ -522,7 +536,8 @@ def _sample_effect(fit: hypotheses.Fit, data, sigma, values, sampling, channels,
     ]
 
     def log_likelihood(rows):
-        ll = likelihood.log_likelihood(data, hypotheses.evaluate(hypothesis, rows, values, sampling, channels, settings.max_step), sigma)
+        ll = likelihood.log_likelihood(data, hypotheses.evaluate(hypothesis, rows, values, sampling, channels, settings.max_step), sigma,
+                                       sensor_scale=settings.sensor_scale)
         return np.where(np.isnan(ll), -np.inf, ll)
 
     rng = np.random.default_rng(mcmc.seed)

@@ -5,7 +5,8 @@ with a posterior of its parameters.  The Gaussian log-likelihood of the data, su
 one channel over one load cycle, is evaluated at draws of that posterior: blocks small enough to keep
 and many enough for leave-one-out, a block being what a new load cycle of one sensor would bring.
 ``az.loo`` per version and ``az.compare`` across them then rank the versions by expected log predictive
-density, leaving one load cycle of one channel out.
+density, leaving one load cycle of one channel out.  With instrument errors (:mod:`newdyn.sensors`) each draw's
+outputs are read through the instruments' offsets and gains at their posterior means given that draw.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
 
-from . import likelihood
+from . import likelihood, sensors
 
 DRAWS = 128  # posterior draws per model version
 
@@ -24,9 +25,11 @@ def cycles(times: np.ndarray, load_freq: float) -> np.ndarray:
     return np.floor((times - times[0]) * load_freq + 1e-9).astype(int)
 
 
-def pointwise(data: np.ndarray, sigma: np.ndarray, outputs: np.ndarray, cycle: np.ndarray) -> np.ndarray:
+def pointwise(data: np.ndarray, sigma: np.ndarray, outputs: np.ndarray, cycle: np.ndarray, sensor_scale=None) -> np.ndarray:
     """Log-likelihood (draw, channel, cycle) of ``data`` (channel, time) under model ``outputs`` (draw,
     channel, time), summed over the samples of each channel within each load cycle."""
+    if sensor_scale is not None:
+        outputs = sensors.reading(data, outputs, sigma, np.asarray(sensor_scale, dtype=float))
     return np.stack([likelihood.log_likelihood(data[:, cycle == c], outputs[..., cycle == c], sigma, per_channel=True)
                      for c in range(int(cycle.max()) + 1)], axis=-1)
 
@@ -69,7 +72,7 @@ def compare(versions: Mapping[str, object]) -> list[dict]:
 
 
 def evaluate_versions(evaluators: Mapping[str, tuple[Callable[[np.ndarray], np.ndarray], np.ndarray, Sequence[str]]],
-                      data: np.ndarray, sigma: np.ndarray, cycle: np.ndarray, channels: Sequence[str]) -> dict:
+                      data: np.ndarray, sigma: np.ndarray, cycle: np.ndarray, channels: Sequence[str], sensor_scale=None) -> dict:
     """InferenceData per version from (simulate(draws) -> outputs, draws (n, k), parameter names)."""
-    return {name: inference_data(pointwise(data, sigma, simulate(theta), cycle), dict(zip(names, theta.T)), channels)
+    return {name: inference_data(pointwise(data, sigma, simulate(theta), cycle, sensor_scale), dict(zip(names, theta.T)), channels)
             for name, (simulate, theta, names) in evaluators.items()}

@@ -35,9 +35,9 @@ SIMULATOR = (
 )
 SIMULATION_CODE = newdyn.provenance.source_hash(*SIMULATOR, "io")
 NOISE_CODE = newdyn.provenance.source_hash("noise", "io")
-CALIBRATION_CODE = newdyn.provenance.source_hash(*SIMULATOR, "io", "likelihood", "calibration")
+CALIBRATION_CODE = newdyn.provenance.source_hash(*SIMULATOR, "io", "likelihood", "sensors", "calibration")
 MCMC_CODE = newdyn.provenance.source_hash(
-    *SIMULATOR, "io", "likelihood", "calibration", "mcmc_calibration", "sampling", "comparison"
+    *SIMULATOR, "io", "likelihood", "sensors", "calibration", "mcmc_calibration", "sampling", "comparison"
 )
 SUMMARY_CODE = newdyn.provenance.source_hash("calibration", "comparison", "sampling")
 COMPARISON_CODE = newdyn.provenance.source_hash("comparison")
@@ -258,6 +258,7 @@ DIAGNOSIS_CODE = newdyn.provenance.source_hash(
     "io",
     "noise",
     "likelihood",
+    "sensors",
     "calibration",
     "mcmc_calibration",
     "sampling",

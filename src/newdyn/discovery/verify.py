@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import xarray as xr
 
-from .. import effects, hypotheses, io, kernels, model, noise, simulation
+from .. import effects, hypotheses, io, kernels, model, noise, sensors, simulation
 from . import effect_file, search
 
 if TYPE_CHECKING:
@@ -33,7 +33,8 @@ def discover(name: str, calibrated: hypotheses.Fit, data, sigma, values, samplin
     """The discovery section of the verdict, the best candidate's effect file (name, content) and its fit on the
     full simulator (both None when the search found no candidate), and the force estimated at each place."""
     base = {**values, **calibrated.values}
-    found = search.discover(data - calibrated.model, sigma, base, sampling, settings.channels, settings.max_step)
+    read = sensors.reading(data, calibrated.model, sigma, settings.sensor_scale)  # the instruments' offsets and gains taken out
+    found = search.discover(data - read, sigma, base, sampling, settings.channels, settings.max_step)
     top = search.log_bayes_factor(found.candidates[0], found) if found.candidates else 0.0
     leading = [c for c in found.candidates if search.log_bayes_factor(c, found) >= FULL_FIT_SHARE * top]
     terms = list(dict.fromkeys(c.term for c in leading))[:FULL_FIT_TERMS]
@@ -131,7 +132,8 @@ def _full_fit(candidate: search.Candidate, data, sigma, values, calibrated: hypo
         ranges = {effect.name: {key: effect_file.prior_range(key, row)[:2] for key, row in candidate.parameters.items()}}
         hypothesis = hypotheses.library(settings.calibration_priors(), ranges, settings.drift)[-1]
         start = {**{key: float(row["value"]) for key, row in candidate.parameters.items()}, **calibrated.values}
-        return hypotheses.fit(hypothesis, data, sigma, values, sampling, settings.channels, [start], settings.max_step, search=False)
+        return hypotheses.fit(hypothesis, data, sigma, values, sampling, settings.channels, [start], settings.max_step, search=False,
+                              sensor_scale=settings.sensor_scale)
 
 
 def _merged(linearized: Mapping, full: Mapping) -> dict:
