@@ -269,22 +269,22 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
     if verdict["verdict"] == "new_dynamics" and verdict["effect"] == best_fault:
         verdict["parameters"] = verdict["effect_fit"]["parameters"]
         verdict["converged"] = bool(verdict["effect_fit"]["converged"])
-    versions = {name: fits[hypothesis].model for name, hypothesis in verdict["models"].items()}
+    versions = {name: _shown(fits[hypothesis], data, sigma, settings) for name, hypothesis in verdict["models"].items()}
     for key, version in (("where_nominal_fails", "nominal"), ("where_it_fails", "calibrated"), ("remaining", "after")):
         verdict[key] = residuals.where_it_fails(data - versions[version], sigma, channels, sampling.times,
                                                 sampling.fs, values["load_freq"])
     verdict["noise"] = {"sigma": dict(zip(channels, sigma.tolist())), "source": noise_source}
     if settings.sensors:
-        found = sensors_module.estimate(data, versions["after"], sigma, settings.sensor_scale)
+        found = sensors_module.estimate(data, fits[verdict["models"]["after"]].model, sigma, settings.sensor_scale)
         verdict["sensors"] = {c: {key: float(found[key][i]) for key in found} for i, c in enumerate(channels) if c in settings.sensors}
     effect_file = discovered = forces = None
     # Discovery ran before the MCMC; a library fault whose polish explained the data after all drops it.
     if discovery is not None and (verdict["verdict"] == "unexplained" or settings.discovery == "always"):
         verdict["discovery"], effect_file, discovered, forces = discovery
         if discovered is not None:
-            versions["discovered"] = discovered.model
+            versions["discovered"] = _shown(discovered, data, sigma, settings)
             verdict["models"]["discovered"] = discovered.hypothesis.name
-            verdict["model_versions"].append(_version_row("+ discovered", discovered, data, channels))
+            verdict["model_versions"].append(_version_row("+ discovered", discovered, versions["discovered"], data, channels))
     verdict["model_comparison"], pointwise = _compare_versions(verdict, fits, calibrations, effect_mcmc, discovered, data, sigma,
                                                                values, sampling, settings)
     stage("model versions compared by PSIS-LOO")
@@ -428,11 +428,12 @@ def _verdict(fits, calibrations, signatures, settings: Settings, values, samplin
     result = {
         "verdict": verdict, "effect": effect, "equivalent": [e for e in equivalent if e is not None],
         "ranking": ranking, "models": versions,
-        "model_versions": [_version_row(label, fits[versions[key]], data, settings.channels) for key, label in
-                           (("nominal", "nominal"), ("calibrated", "calibrated"), ("effect", "+ effect"))],
+        "model_versions": [_version_row(label, fits[versions[key]], _shown(fits[versions[key]], data, sigma, settings), data,
+                                        settings.channels)
+                           for key, label in (("nominal", "nominal"), ("calibrated", "calibrated"), ("effect", "+ effect"))],
         "chi2_before": fits[HEALTHY].chi2_red, "chi2_after": fits[after].chi2_red,
-        "rmse_before": _rmse(data, fits[HEALTHY].model, settings.channels),
-        "rmse_after": _rmse(data, fits[after].model, settings.channels),
+        "rmse_before": _rmse(data, _shown(fits[HEALTHY], data, sigma, settings), settings.channels),
+        "rmse_after": _rmse(data, _shown(fits[after], data, sigma, settings), settings.channels),
         "parameters": _fit_parameters(fits[after], calibrations),
     }
     if len(result["equivalent"]) > 1:
@@ -484,10 +485,16 @@ def _best_of(fits, cls: str) -> str:
     return max((n for n in fits if _class(fits[n].hypothesis) == cls), key=lambda n: fits[n].log_evidence)
 
 
-def _version_row(label: str, fit: hypotheses.Fit, data, channels) -> dict:
+def _shown(fit: hypotheses.Fit, data, sigma, settings: Settings) -> np.ndarray:
+    """What the instruments most probably show of ``fit``'s outputs (its outputs with exact instruments): what
+    the residuals, the error fall and the figures compare with the data."""
+    return sensors_module.reading(data, fit.model, sigma, settings.sensor_scale)
+
+
+def _version_row(label: str, fit: hypotheses.Fit, shown, data, channels) -> dict:
     name = label if label == "nominal" else f"{label} ({fit.hypothesis.effect})"
     return {"name": name, "hypothesis": fit.hypothesis.name, "chi2": fit.chi2_red, "log_evidence": fit.log_evidence,
-            "log_likelihood": fit.log_likelihood, "rmse": _rmse(data, fit.model, channels), "values": fit.values}
+            "log_likelihood": fit.log_likelihood, "rmse": _rmse(data, shown, channels), "values": fit.values}
 
 
 def _rmse(data, fit_model, channels) -> dict[str, float]:
