@@ -46,13 +46,22 @@ def scales(sensors: Mapping[str, Sensor], channels: Sequence[str]) -> np.ndarray
 
 def _integrated(data: np.ndarray, model: np.ndarray, sigma: np.ndarray, scale: np.ndarray):
     """(z (..., C, n + 2), ĉ (..., C, 2), BᵀB/σ² + I (..., C, 2, 2)): the misfit left after the most probable
-    offset and gain in σ followed by those two in their prior's sd, whose squares sum to rᵀC⁻¹r, and the rest."""
+    offset and gain in σ followed by those two in their prior's sd, whose squares sum to rᵀC⁻¹r, and the rest.
+    B's columns are s_o·1 and s_g·m, so its Gram matrix and Bᵀr take sums over time only."""
     residual = data - model
-    design = np.stack([np.broadcast_to(scale[:, :1], model.shape), scale[:, 1:] * model], axis=-1)
-    gram = np.einsum("...ni,...nj->...ij", design, design) / (sigma**2)[..., None, None] + np.eye(2)
-    projection = np.einsum("...ni,...n->...i", design, residual) / (sigma**2)[..., None]
-    c_hat = np.linalg.solve(gram, projection[..., None])[..., 0]
-    left = (residual - np.einsum("...ni,...i->...n", design, c_hat)) / sigma[..., None]
+    s_o, s_g, variance = scale[:, 0, None], scale[:, 1, None], (sigma**2)[..., None]
+    n = model.shape[-1]
+    sum_m, sum_mm = model.sum(axis=-1), np.einsum("...n,...n->...", model, model)
+    g00 = 1.0 + n * s_o[..., 0] ** 2 / variance[..., 0]
+    g01 = s_o[..., 0] * s_g[..., 0] * sum_m / variance[..., 0]
+    g11 = 1.0 + s_g[..., 0] ** 2 * sum_mm / variance[..., 0]
+    g00 = np.broadcast_to(g00, g11.shape)  # the offset's term has no model in it
+    p0 = s_o[..., 0] * residual.sum(axis=-1) / variance[..., 0]
+    p1 = s_g[..., 0] * np.einsum("...n,...n->...", model, residual) / variance[..., 0]
+    det = g00 * g11 - g01**2
+    c_hat = np.stack([(g11 * p0 - g01 * p1) / det, (g00 * p1 - g01 * p0) / det], axis=-1)
+    left = (residual - s_o * c_hat[..., :1] - s_g * model * c_hat[..., 1:]) / np.sqrt(variance)
+    gram = np.stack([np.stack([g00, g01], axis=-1), np.stack([g01, g11], axis=-1)], axis=-2)
     return np.concatenate([left, c_hat], axis=-1), c_hat, gram
 
 

@@ -1,0 +1,65 @@
+"""What integrating the instruments' offsets and gains out of the likelihood costs (goal: at most 20 % more
+diagnosis time), side by side with exact instruments on the stages that evaluate it most: a drift's grid
+calibration, a fault's fit (breathing crack with the drift, least squares through the windows) and the
+likelihood of an MCMC batch.  Default record (1 s at 40 dB, b1_x and w1), a healthy rig whose b1_x reads
+0.2 of its std high; the sensor model is the README's (b1_x offset sd 100 nm, gain sd 2 %; w1 0.01 rad/s, 0.1 %).
+
+Run: python bench/bench_sensors.py
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numba
+import numpy as np
+import yaml
+
+from newdyn import calibration, diagnosis, hypotheses, likelihood, model, noise, sensors, simulation
+
+ROOT = Path(__file__).resolve().parents[1]
+GOAL = 1.2
+SENSORS = {"b1_x": sensors.Sensor(offset_sd=1e-7, gain_sd=0.02), "w1": sensors.Sensor(offset_sd=0.01, gain_sd=0.001)}
+
+
+def timed(stage, scale, repeat=3) -> float:
+    """Best of ``repeat`` wall times of ``stage(scale)``."""
+    best = float("inf")
+    for _ in range(repeat):
+        start = time.perf_counter()
+        stage(scale)
+        best = min(best, time.perf_counter() - start)
+    return best
+
+
+def main() -> None:
+    numba.set_num_threads(2)
+    settings = diagnosis.Settings.from_config(yaml.safe_load((ROOT / "config" / "config.yaml").read_text()))
+    sampling, channels = model.Sampling(), settings.channels
+    values = model.complete(settings.rig)
+    clean = simulation.simulate(values, sampling, channels)
+    data, sigma = noise.add_noise(clean, channels, 40.0, 3)
+    data[0] += 0.2 * np.std(clean[0])
+    scale = sensors.scales(SENSORS, channels)
+    spec, prior = settings.grids["kT1"], settings.priors["kT1"]
+    coarse = calibration.coarse_models(None, spec, values, sampling, channels, settings.max_step)
+    crack = next(h for h in settings.hypotheses() if h.name == "breathing_crack")
+    batch = simulation.simulate_batch(np.repeat(crack.parameter_rows(np.array([[0.1, 3.0e6]]), values), 16, axis=0),
+                                      sampling, channels, settings.max_step)
+    stages = {
+        "grid calibration of kT1": lambda s: calibration.calibrate(data, sigma, spec, prior, coarse, values, sampling, channels,
+                                                                   settings.refine_points, settings.chi2_max, settings.max_step, s),
+        "fit of breathing_crack + kT1": lambda s: hypotheses.fit(crack, data, sigma, values, sampling, channels,
+                                                                 [{"alpha": 0.1}], settings.max_step, search=False, sensor_scale=s),
+        "likelihood of 16 walkers": lambda s: likelihood.log_likelihood(data, batch, sigma, sensor_scale=s),
+    }
+    print("healthy rig, b1_x offset by 0.2 std, 1-s record at 40 dB (b1_x, w1), 2 cores; best of 3")
+    print(f"{'stage':32s} {'exact':>10s} {'sensors':>10s} {'ratio':>7s}   goal <= {GOAL:.1f}x")
+    for name, stage in stages.items():
+        exact, with_sensors = timed(stage, None), timed(stage, scale)
+        print(f"{name:32s} {exact * 1e3:8.1f}ms {with_sensors * 1e3:8.1f}ms {with_sensors / exact:6.2f}x")
+
+
+if __name__ == "__main__":
+    main()
