@@ -87,6 +87,9 @@ def estimate(data: np.ndarray, model: np.ndarray, sigma: np.ndarray, scale: np.n
 
 
 def reading(data: np.ndarray, model: np.ndarray, sigma: np.ndarray, scale: np.ndarray) -> np.ndarray:
-    """What the instruments most probably show of ``model`` (..., C, n): o + g·m at the posterior means."""
+    """What the instruments most probably show of ``model`` (..., C, n): o + g·m at the posterior means; the
+    model itself when no channel has instrument errors."""
+    if not np.any(scale > 0):
+        return model
     found = estimate(data, model, sigma, scale)
     return found["offset"][..., None] + found["gain"][..., None] * model
