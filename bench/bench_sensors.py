@@ -1,8 +1,9 @@
-"""What integrating the instruments' offsets and gains out of the likelihood costs (goal: at most 20 % more
-diagnosis time), side by side with exact instruments on the stages that evaluate it most: a drift's grid
+"""What integrating the instruments' offsets, gains and delays out of the likelihood costs (goal: at most 20 %
+more diagnosis time), side by side with exact instruments on the stages that evaluate it most: a drift's grid
 calibration, a fault's fit (breathing crack with the drift, least squares through the windows) and the
 likelihood of an MCMC batch.  Default record (1 s at 40 dB, b1_x and w1), a healthy rig whose b1_x reads
-0.2 of its std high; the sensor model is the README's (b1_x offset sd 100 nm, gain sd 2 %; w1 0.01 rad/s, 0.1 %).
+0.2 of its std high; the sensor model is the README's (b1_x offset sd 100 nm, gain sd 2 %; w1 0.01 rad/s, 0.1 %),
+then the same with a delay sd of 0.2 ms on both.
 
 Run: python bench/bench_sensors.py
 """
@@ -21,6 +22,7 @@ from newdyn import calibration, diagnosis, hypotheses, likelihood, model, noise,
 ROOT = Path(__file__).resolve().parents[1]
 GOAL = 1.2
 SENSORS = {"b1_x": sensors.Sensor(offset_sd=1e-7, gain_sd=0.02), "w1": sensors.Sensor(offset_sd=0.01, gain_sd=0.001)}
+DELAYED = {c: sensors.Sensor(s.offset_sd, s.gain_sd, delay_sd=2e-4) for c, s in SENSORS.items()}
 
 
 def timed(stage, scale, repeat=3) -> float:
@@ -41,7 +43,8 @@ def main() -> None:
     clean = simulation.simulate(values, sampling, channels)
     data, sigma = noise.add_noise(clean, channels, 40.0, 3)
     data[0] += 0.2 * np.std(clean[0])
-    scale = sensors.scales(SENSORS, channels)
+    instruments = {"offset, gain": sensors.Instruments.of(SENSORS, channels, sampling.fs),
+                   "+ delay": sensors.Instruments.of(DELAYED, channels, sampling.fs)}
     spec, prior = settings.grids["kT1"], settings.priors["kT1"]
     coarse = calibration.coarse_models(None, spec, values, sampling, channels, settings.max_step)
     crack = next(h for h in settings.hypotheses() if h.name == "breathing_crack")
@@ -51,14 +54,15 @@ def main() -> None:
         "grid calibration of kT1": lambda s: calibration.calibrate(data, sigma, spec, prior, coarse, values, sampling, channels,
                                                                    settings.refine_points, settings.chi2_max, settings.max_step, s),
         "fit of breathing_crack + kT1": lambda s: hypotheses.fit(crack, data, sigma, values, sampling, channels,
-                                                                 [{"alpha": 0.1}], settings.max_step, search=False, sensor_scale=s),
-        "likelihood of 16 walkers": lambda s: likelihood.log_likelihood(data, batch, sigma, sensor_scale=s),
+                                                                 [{"alpha": 0.1}], settings.max_step, search=False, instruments=s),
+        "likelihood of 16 walkers": lambda s: likelihood.log_likelihood(data, batch, sigma, instruments=s),
     }
     print("healthy rig, b1_x offset by 0.2 std, 1-s record at 40 dB (b1_x, w1), 2 cores; best of 3")
-    print(f"{'stage':32s} {'exact':>10s} {'sensors':>10s} {'ratio':>7s}   goal <= {GOAL:.1f}x")
+    print(f"{'stage':32s} {'exact':>10s}" + "".join(f" {name:>14s} {'ratio':>6s}" for name in instruments) + f"   goal <= {GOAL:.1f}x")
     for name, stage in stages.items():
-        exact, with_sensors = timed(stage, None), timed(stage, scale)
-        print(f"{name:32s} {exact * 1e3:8.1f}ms {with_sensors * 1e3:8.1f}ms {with_sensors / exact:6.2f}x")
+        exact = timed(stage, None)
+        row = "".join(f" {t * 1e3:12.1f}ms {t / exact:5.2f}x" for t in (timed(stage, s) for s in instruments.values()))
+        print(f"{name:32s} {exact * 1e3:8.1f}ms" + row)
 
 
 if __name__ == "__main__":

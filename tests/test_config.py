@@ -76,6 +76,25 @@ def test_default_schema_path_is_the_repository_schema(default_config):
     cfg.check(copy.deepcopy(default_config), SOURCE)  # default schema_path
 
 
+def test_the_schemas_channels_and_sensor_model_are_the_packages():
+    """The schema writes out the channel list wherever a channel is named, and each instrument's quantities:
+    they must be model.CHANNELS and the fields of sensors.Sensor."""
+    from newdyn import sensors
+
+    def enums(node):
+        if isinstance(node, dict):
+            yield from ([node["enum"]] if "enum" in node else [])
+            yield from (e for value in node.values() for e in enums(value))
+        elif isinstance(node, list):
+            yield from (e for value in node for e in enums(value))
+
+    schema = yaml.safe_load(SCHEMA.read_text())
+    channel_lists = [e for e in enums(schema) if model.CHANNELS[0] in e]
+    assert len(channel_lists) >= 5 and all(e == list(model.CHANNELS) for e in channel_lists)
+    instrument = schema["properties"]["diagnosis"]["properties"]["sensors"]["additionalProperties"]
+    assert list(instrument["properties"]) == [f.name for f in dataclasses.fields(sensors.Sensor)]
+
+
 def test_default_config_is_rig_md(default_config):
     for name in model.RIG_PARAMETERS + model.OPERATING_PARAMETERS:
         assert cfg.base_values(default_config)[name] == pytest.approx(model.DEFAULTS[name], rel=1e-12), name

@@ -1,4 +1,5 @@
-"""Instrument offsets and gains integrated out: against the multivariate Normal they define."""
+"""Instrument offsets, gains and delays integrated out: against the multivariate Normal they define and
+quadrature over the delay."""
 
 import numpy as np
 import pytest
@@ -10,7 +11,9 @@ RNG = np.random.default_rng(11)
 N = 60
 MODEL = np.stack([np.sin(np.linspace(0, 7, N)) * 3e-6 + 1e-6, 50.0 + np.cos(np.linspace(0, 5, N))])  # a probe [m], a speed [rad/s]
 SIGMA = np.array([2e-8, 0.05])
-SCALE = np.array([[5e-8, 0.01], [0.0, 0.002]])  # the speed sensor: a gain error only
+FS = 5000.0
+SCALE = np.array([[5e-8, 0.01, 0.0], [0.0, 0.002, 0.0]])  # the speed sensor: a gain error only
+INSTRUMENTS = sensors.Instruments(SCALE, FS)
 
 
 def readings(offset, gain):
@@ -26,27 +29,28 @@ def test_the_marginal_likelihood_is_the_normal_density_with_the_instruments_cova
         expected.append(stats.multivariate_normal(MODEL[c], covariance).logpdf(data[c]))
         residual = data[c] - MODEL[c]
         quadratic.append(residual @ np.linalg.solve(covariance, residual))
-    assert sensors.log_likelihood(data, MODEL, SIGMA, SCALE, per_channel=True) == pytest.approx(expected, rel=1e-10)
+    assert sensors.log_likelihood(data, MODEL, SIGMA, INSTRUMENTS, per_channel=True) == pytest.approx(expected, rel=1e-10)
     # What least squares minimizes: n + 2 numbers per channel whose squares sum to rᵀC⁻¹r.
-    z = sensors.standardized_residuals(data, MODEL, SIGMA, SCALE)
-    assert z.shape == (2, N + 2) and np.sum(z**2, axis=-1) == pytest.approx(quadratic, rel=1e-9)
+    z = sensors.standardized_residuals(data, MODEL, SIGMA, INSTRUMENTS)
+    assert z.shape == (2, N + 3) and np.sum(z**2, axis=-1) == pytest.approx(quadratic, rel=1e-9)
 
 
 def test_without_instrument_errors_it_is_the_plain_gaussian_likelihood():
     data = readings(np.zeros(2), np.ones(2))
     plain = likelihood.log_likelihood(data, MODEL, SIGMA, per_channel=True)
-    assert sensors.log_likelihood(data, MODEL, SIGMA, np.zeros((2, 2)), per_channel=True) == pytest.approx(plain, rel=1e-13)
+    assert sensors.log_likelihood(data, MODEL, SIGMA, sensors.Instruments(np.zeros((2, 3)), FS), per_channel=True) == pytest.approx(plain, rel=1e-13)
+    assert sensors.Instruments.of({}, ("b1_x", "w1"), FS) is None and sensors.reading(data, MODEL, SIGMA, None) is MODEL
 
 
 def test_the_estimates_are_the_gaussian_posterior_of_offset_and_gain():
     data = readings(np.array([4e-8, 0.0]), np.array([1.01, 0.999]))
-    found = sensors.estimate(data, MODEL, SIGMA, SCALE)
+    found = sensors.estimate(data, MODEL, SIGMA, INSTRUMENTS)
     for c in range(2):
         # Conditioning the joint Normal of (o, g, y) on y: the textbook linear-Gaussian posterior, over the
         # quantities with a prior spread (the others stay at 0 and 1 with no spread).
-        fitted = SCALE[c] > 0
+        fitted = SCALE[c, :2] > 0
         design = np.column_stack([np.ones(N), MODEL[c]])[:, fitted]
-        prior_precision = np.diag(SCALE[c][fitted] ** -2.0)
+        prior_precision = np.diag(SCALE[c, :2][fitted] ** -2.0)
         covariance = np.linalg.inv(prior_precision + design.T @ design / SIGMA[c] ** 2)
         mean = covariance @ (prior_precision @ np.array([0.0, 1.0])[fitted] + design.T @ data[c] / SIGMA[c] ** 2)
         expected_mean, expected_sd = np.array([0.0, 1.0]), np.zeros(2)
@@ -58,8 +62,35 @@ def test_the_estimates_are_the_gaussian_posterior_of_offset_and_gain():
 def test_leading_axes_broadcast_like_the_plain_likelihood():
     data = readings(np.zeros(2), np.ones(2))
     models = np.stack([MODEL, 1.001 * MODEL, MODEL + 1e-8])
-    together = sensors.log_likelihood(data, models, SIGMA, SCALE)
-    assert together == pytest.approx([sensors.log_likelihood(data, m, SIGMA, SCALE) for m in models], rel=1e-13)
+    delayed = sensors.Instruments(SCALE + [[0.0, 0.0, 1.0], [0.0, 0.0, 0.0]], FS)
+    for instruments in (INSTRUMENTS, delayed):
+        together = sensors.log_likelihood(data, models, SIGMA, instruments)
+        assert together == pytest.approx([sensors.log_likelihood(data, m, SIGMA, instruments) for m in models], rel=1e-12)
+
+
+def test_the_delay_is_integrated_out_as_quadrature_over_it_does():
+    n, delay_sd = 1000, 0.5e-3
+    t = np.arange(n) / FS
+
+    def signal(at):  # a probe's two lines, known at any time
+        return 3e-6 * np.sin(2 * np.pi * 50 * at + 0.3) + 1e-6 * np.sin(2 * np.pi * 150 * at) + 5e-7
+
+    sigma = np.array([0.01 * np.std(signal(t))])
+    delay = 1.7 / FS  # between samples
+    data = (2e-8 + 1.003 * signal(t - delay) + sigma[0] * RNG.standard_normal(n))[None]
+    instruments = sensors.Instruments.of({"b1_x": sensors.Sensor(5e-8, 0.01, delay_sd)}, ("b1_x",), FS)
+    found = sensors.estimate(data, signal(t)[None], sigma, instruments)
+    assert abs(found["delay"][0] - delay) < 4 * found["delay_sd"][0] and found["delay_sd"][0] < 0.01 / FS
+    reported = sensors.summary(data, signal(t)[None], sigma, instruments, ("b1_x",), 0.94)["b1_x"]["delay"]
+    assert reported["hdi"] == pytest.approx(reported["mean"] + np.array([-1.881, 1.881]) * reported["sd"], rel=1e-3)
+    # The marginal over the delay by quadrature, offset and gain in closed form at each exactly delayed signal.
+    exact_delay = sensors.Instruments(instruments.scale * [1.0, 1.0, 0.0], FS)
+    grid = found["delay"][0] + found["delay_sd"][0] * np.linspace(-10, 10, 801)
+    log_joint = np.array([sensors.log_likelihood(data, signal(t - d)[None], sigma, exact_delay) for d in grid])
+    log_joint += stats.norm.logpdf(grid, scale=delay_sd)
+    top = log_joint.max()
+    marginal = top + np.log(np.trapezoid(np.exp(log_joint - top), grid))
+    assert sensors.log_likelihood(data, signal(t)[None], sigma, instruments) == pytest.approx(marginal, abs=0.1)
 
 
 def test_a_sensor_prior_must_be_a_finite_spread():
@@ -67,22 +98,27 @@ def test_a_sensor_prior_must_be_a_finite_spread():
         sensors.Sensor(offset_sd=1e-8, gain_sd=-0.01)
 
 
-def test_a_probe_offset_within_its_datasheet_is_not_a_misfit_but_a_stiffer_shaft_still_is():
+def test_datasheet_offsets_and_delays_are_not_a_misfit_but_a_stiffer_shaft_still_is():
     from newdyn import hypotheses, model, noise, simulation
 
     sampling = model.Sampling(fs=5000.0, t_first=0.1, n_samples=500)
     channels = ("b1_x", "w1")
     healthy = hypotheses.Hypothesis("healthy", "healthy")
-    scale = sensors.scales({"b1_x": sensors.Sensor(offset_sd=5e-8, gain_sd=0.01), "w1": sensors.Sensor(gain_sd=0.002)}, channels)
+    instruments = sensors.Instruments.of({"b1_x": sensors.Sensor(offset_sd=5e-8, gain_sd=0.01, delay_sd=5e-4),
+                                          "w1": sensors.Sensor(gain_sd=0.002, delay_sd=5e-4)}, channels, sampling.fs)
 
-    def chi2(truth, offset):
-        clean = simulation.simulate(model.complete(truth), sampling, channels)
+    def chi2(truth, offset=0.0, delay=0.0):
+        late = model.Sampling(sampling.fs, sampling.t_first - delay, sampling.n_samples)  # the rig's state `delay` earlier
+        clean = simulation.simulate(model.complete(truth), late, channels)
         data, sigma = noise.add_noise(clean, channels, 40.0, 2)
         data[0] += offset * np.std(clean[0])
-        return [hypotheses.fit(healthy, data, sigma, model.complete({}), sampling, channels, sensor_scale=s).chi2_red
-                for s in (None, scale)]
+        return [hypotheses.fit(healthy, data, sigma, model.complete({}), sampling, channels, instruments=s).chi2_red
+                for s in (None, instruments)]
 
-    exact, with_instruments = chi2({}, 0.2)
+    exact, with_instruments = chi2({}, offset=0.2)
     assert exact > 10 and with_instruments < 1.1
-    exact, with_instruments = chi2({"kT3": 2.2e6}, 0.0)  # an offset and a gain cannot take a resonance's shift
-    assert exact > 4 and with_instruments == pytest.approx(exact, rel=0.01)
+    exact, with_instruments = chi2({}, delay=0.37e-3)  # time stamps late by less than two samples
+    assert exact > 10 and with_instruments < 1.1
+    # A delay takes the phase a resonance's shift gives the strongest line of a channel, not the rest of its change.
+    exact, with_instruments = chi2({"kT3": 2.2e6})
+    assert exact > 4 and with_instruments > 3

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 import xarray as xr
 
-from . import likelihood, model, simulation
+from . import likelihood, model, sensors, simulation
 
 N_REFINED_MAXIMA = 3  # coarse likelihood maxima refined per measurement: enough to see multiple peaks
 SPAN_SD = 6.0  # refined span around each peak, in likelihood widths
@@ -151,20 +151,20 @@ def calibrate(
     refine_points: int,
     chi2_max: float,
     max_step: float = simulation.DEFAULT_MAX_STEP,
-    sensor_scale: np.ndarray | None = None,
+    instruments: sensors.Instruments | None = None,
 ) -> Calibration:
     """Grid posterior of ``spec.parameter`` given ``data`` (channel, time) with known noise ``sigma`` (and the
-    instruments' offsets and gains integrated out, with ``sensor_scale``: :mod:`newdyn.sensors`)
+    instruments' offsets, gains and delays integrated out, with ``instruments``: :mod:`newdyn.sensors`)
 
     ``coarse_models`` are :func:`simulate_grid`'s outputs on ``spec.axis`` for the model ``values``
     (the healthy rig at the measurement's operating condition and sampling).
     """
     def run(points):
         models = simulate_grid(values, spec.parameter, points, sampling, channels, max_step)
-        return models, likelihood.log_likelihood(data, models, sigma, sensor_scale=sensor_scale)
+        return models, likelihood.log_likelihood(data, models, sigma, instruments=instruments)
 
     coarse = spec.axis
-    coarse_ll = likelihood.log_likelihood(data, coarse_models, sigma, sensor_scale=sensor_scale)
+    coarse_ll = likelihood.log_likelihood(data, coarse_models, sigma, instruments=instruments)
     grids, all_models, all_ll = [coarse], [coarse_models], [coarse_ll]
     for i in _highest_maxima(coarse_ll):
         # Pass 1 finds the peak inside its coarse cells; pass 2 covers ±SPAN_SD widths of it, so that
@@ -182,7 +182,7 @@ def calibrate(
     ll = np.concatenate(all_ll)[unique]
     posterior = likelihood.grid_posterior(grid, ll, prior.log_pdf(grid))
     best = models[np.argmax(ll)]
-    chi2 = float(likelihood.reduced_chi2(data, best, sigma, n_fitted=1, sensor_scale=sensor_scale))
+    chi2 = float(likelihood.reduced_chi2(data, best, sigma, n_fitted=1, instruments=instruments))
     return Calibration(posterior, prior.sd, chi2, best, chi2_max)
 
 

@@ -94,10 +94,9 @@ class Settings:
             sensors={c: sensors_module.Sensor(**spec) for c, spec in d.get("sensors", {}).items()},
         )
 
-    @property
-    def sensor_scale(self) -> np.ndarray:
-        """(channel, 2) prior scales of the diagnosis channels' instrument offset and gain."""
-        return sensors_module.scales(self.sensors, self.channels)
+    def instruments(self, fs: float) -> sensors_module.Instruments | None:
+        """The diagnosis channels' instrument errors at sampling rate ``fs``; None when all are exact."""
+        return sensors_module.Instruments.of(self.sensors, self.channels, fs)
 
     def calibration_priors(self) -> dict[str, hypotheses.Prior]:
         return {
@@ -209,7 +208,7 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
         return {
             p: calibration.calibrate(
                 y, sigma, spec, settings.priors[p], coarse[p], values, sampling, channels, refine_points,
-                settings.chi2_max, settings.max_step, settings.sensor_scale,
+                settings.chi2_max, settings.max_step, settings.instruments(sampling.fs),
             )
             for p, spec in settings.grids.items()
         }
@@ -234,14 +233,14 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
 
     # Fits: healthy as it is, drifts from their grids (exact), faults from their closest signature and a global search.
     fits = {HEALTHY: hypotheses.fit(hyps[HEALTHY], data, sigma, values, sampling, channels, max_step=settings.max_step,
-                                    sensor_scale=settings.sensor_scale)}
+                                    instruments=settings.instruments(sampling.fs))}
     fits.update({f"{PARAMETER_CHANGE}:{p}": _drift_fit(hyps[f"{PARAMETER_CHANGE}:{p}"], cal) for p, cal in calibrations.items()})
     closest = signatures.mean("parameter")
     for kind in settings.fault_ranges:
         mine = closest.where(signatures["hypothesis"] == kind, drop=True)
         start = json.loads(str(mine["values"].values[int(np.argmin(mine.values))]))
         fits[kind] = hypotheses.fit(hyps[kind], data, sigma, values, sampling, channels, [start], settings.max_step,
-                                    sensor_scale=settings.sensor_scale)
+                                    instruments=settings.instruments(sampling.fs))
         stage(f"fit of {kind} ({fits[kind].n_simulations} simulations, chi2 {fits[kind].chi2_red:.4g})")
 
     best_fault = max(settings.fault_ranges, key=lambda kind: fits[kind].log_evidence)
@@ -269,20 +268,20 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
     if verdict["verdict"] == "new_dynamics" and verdict["effect"] == best_fault:
         verdict["parameters"] = verdict["effect_fit"]["parameters"]
         verdict["converged"] = bool(verdict["effect_fit"]["converged"])
-    versions = {name: _shown(fits[hypothesis], data, sigma, settings) for name, hypothesis in verdict["models"].items()}
+    versions = {name: _shown(fits[hypothesis], data, sigma, settings, sampling) for name, hypothesis in verdict["models"].items()}
     for key, version in (("where_nominal_fails", "nominal"), ("where_it_fails", "calibrated"), ("remaining", "after")):
         verdict[key] = residuals.where_it_fails(data - versions[version], sigma, channels, sampling.times,
                                                 sampling.fs, values["load_freq"])
     verdict["noise"] = {"sigma": dict(zip(channels, sigma.tolist())), "source": noise_source}
     if settings.sensors:
-        found = sensors_module.estimate(data, fits[verdict["models"]["after"]].model, sigma, settings.sensor_scale)
-        verdict["sensors"] = {c: {key: float(found[key][i]) for key in found} for i, c in enumerate(channels) if c in settings.sensors}
+        verdict["sensors"] = sensors_module.summary(data, fits[verdict["models"]["after"]].model, sigma, settings.instruments(sampling.fs),
+                                                    channels, likelihood.HDI_PROB)
     effect_file = discovered = forces = None
     # Discovery ran before the MCMC; a library fault whose polish explained the data after all drops it.
     if discovery is not None and (verdict["verdict"] == "unexplained" or settings.discovery == "always"):
         verdict["discovery"], effect_file, discovered, forces = discovery
         if discovered is not None:
-            versions["discovered"] = _shown(discovered, data, sigma, settings)
+            versions["discovered"] = _shown(discovered, data, sigma, settings, sampling)
             verdict["models"]["discovered"] = discovered.hypothesis.name
             verdict["model_versions"].append(_version_row("+ discovered", discovered, versions["discovered"], data, channels))
     verdict["model_comparison"], pointwise = _compare_versions(verdict, fits, calibrations, effect_mcmc, discovered, data, sigma,
@@ -315,13 +314,13 @@ def _compare_versions(verdict, fits, calibrations, effect_mcmc, discovered, data
     stacked = np.column_stack([effect_mcmc.posterior[name].values.ravel() for name in effect.hypothesis.parameters])
     evaluators["effect"] = (simulate(effect), stacked[rng.choice(len(stacked), n, replace=len(stacked) < n)], effect.hypothesis.parameters)
     cycle = model_comparison.cycles(sampling.times, values["load_freq"])
-    idata = model_comparison.evaluate_versions(evaluators, data, sigma, cycle, settings.channels, settings.sensor_scale)
+    idata = model_comparison.evaluate_versions(evaluators, data, sigma, cycle, settings.channels, settings.instruments(sampling.fs))
     if discovered is not None:
         low, high = np.array([[p.low, p.high] for p in discovered.hypothesis.priors]).T
         with effects.including(verify.generic_path(discovered.hypothesis.effect)):
             idata.update(model_comparison.evaluate_versions(
                 {"discovered": (simulate(discovered), model_comparison.draws(discovered.theta, discovered.covariance, low, high, rng),
-                                discovered.hypothesis.parameters)}, data, sigma, cycle, settings.channels, settings.sensor_scale))
+                                discovered.hypothesis.parameters)}, data, sigma, cycle, settings.channels, settings.instruments(sampling.fs)))
     pointwise = xr.concat([d.log_likelihood["y"].isel(chain=0, drop=True) for d in idata.values()],
                           dim=xr.Variable("comparison_version", list(idata)))
     return model_comparison.compare(idata), pointwise.rename({"draw": "comparison_draw", "cycle": "load_cycle"})
@@ -367,7 +366,7 @@ def _sample_and_polish(fit: hypotheses.Fit, data, sigma, values, sampling, chann
     if float(idata.sample_stats["log_likelihood"].max()) > fit.log_likelihood:
         polished = hypotheses.fit(hypothesis, data, sigma, values, sampling, channels,
                                   [dict(zip(hypothesis.parameters, best))], settings.max_step, search=False,
-                                  sensor_scale=settings.sensor_scale)
+                                  instruments=settings.instruments(sampling.fs))
         if polished.log_likelihood > fit.log_likelihood:
             return idata, polished
     return idata, fit
@@ -428,12 +427,12 @@ def _verdict(fits, calibrations, signatures, settings: Settings, values, samplin
     result = {
         "verdict": verdict, "effect": effect, "equivalent": [e for e in equivalent if e is not None],
         "ranking": ranking, "models": versions,
-        "model_versions": [_version_row(label, fits[versions[key]], _shown(fits[versions[key]], data, sigma, settings), data,
+        "model_versions": [_version_row(label, fits[versions[key]], _shown(fits[versions[key]], data, sigma, settings, sampling), data,
                                         settings.channels)
                            for key, label in (("nominal", "nominal"), ("calibrated", "calibrated"), ("effect", "+ effect"))],
         "chi2_before": fits[HEALTHY].chi2_red, "chi2_after": fits[after].chi2_red,
-        "rmse_before": _rmse(data, _shown(fits[HEALTHY], data, sigma, settings), settings.channels),
-        "rmse_after": _rmse(data, _shown(fits[after], data, sigma, settings), settings.channels),
+        "rmse_before": _rmse(data, _shown(fits[HEALTHY], data, sigma, settings, sampling), settings.channels),
+        "rmse_after": _rmse(data, _shown(fits[after], data, sigma, settings, sampling), settings.channels),
         "parameters": _fit_parameters(fits[after], calibrations),
     }
     if len(result["equivalent"]) > 1:
@@ -485,10 +484,10 @@ def _best_of(fits, cls: str) -> str:
     return max((n for n in fits if _class(fits[n].hypothesis) == cls), key=lambda n: fits[n].log_evidence)
 
 
-def _shown(fit: hypotheses.Fit, data, sigma, settings: Settings) -> np.ndarray:
+def _shown(fit: hypotheses.Fit, data, sigma, settings: Settings, sampling: model.Sampling) -> np.ndarray:
     """What the instruments most probably show of ``fit``'s outputs (its outputs with exact instruments): what
     the residuals, the error fall and the figures compare with the data."""
-    return sensors_module.reading(data, fit.model, sigma, settings.sensor_scale)
+    return sensors_module.reading(data, fit.model, sigma, settings.instruments(sampling.fs))
 
 
 def _version_row(label: str, fit: hypotheses.Fit, shown, data, channels) -> dict:
@@ -544,7 +543,7 @@ def _sample_effect(fit: hypotheses.Fit, data, sigma, values, sampling, channels,
 
     def log_likelihood(rows):
         ll = likelihood.log_likelihood(data, hypotheses.evaluate(hypothesis, rows, values, sampling, channels, settings.max_step), sigma,
-                                       sensor_scale=settings.sensor_scale)
+                                       instruments=settings.instruments(sampling.fs))
         return np.where(np.isnan(ll), -np.inf, ll)
 
     rng = np.random.default_rng(mcmc.seed)

@@ -18,7 +18,7 @@ import numpy as np
 from scipy import optimize
 from scipy.special import erfinv
 
-from . import effects, faults, likelihood, model, simulation
+from . import effects, faults, likelihood, model, sensors, simulation
 
 HEALTHY = "healthy"
 PARAMETER_CHANGE = faults.PARAMETER_CHANGE
@@ -222,11 +222,11 @@ def fit(
     max_step: float = simulation.DEFAULT_MAX_STEP,
     seed: int = 0,
     search: bool = True,
-    sensor_scale: np.ndarray | None = None,
+    instruments: sensors.Instruments | None = None,
 ) -> Fit:
     """Best fit of ``hypothesis`` by bounded least squares on the simulator (misfit standardized by
-    ``sigma``, plus the Normal priors' terms), the best of several starts kept; with ``sensor_scale`` the
-    channels' instrument offsets and gains are integrated out (:mod:`newdyn.sensors`).
+    ``sigma``, plus the Normal priors' terms), the best of several starts kept; with ``instruments`` the
+    channels' instrument offsets, gains and delays are integrated out (:mod:`newdyn.sensors`).
 
     Starts: the given ``starts`` (missing names at their prior's mean or mid-range) and, unless
     ``search`` is False, the best member of a differential evolution (``seed``) over the prior box on
@@ -250,8 +250,8 @@ def fit(
 
     if k == 0:
         best = simulate(np.zeros((1, 0)))[0]
-        ll = float(likelihood.log_likelihood(data, best, sigma, sensor_scale=sensor_scale))
-        return Fit(hypothesis, {}, best, ll, float(likelihood.reduced_chi2(data, best, sigma, sensor_scale=sensor_scale)), ll, n_runs)
+        ll = float(likelihood.log_likelihood(data, best, sigma, instruments=instruments))
+        return Fit(hypothesis, {}, best, ll, float(likelihood.reduced_chi2(data, best, sigma, instruments=instruments)), ll, n_runs)
 
     low = np.array([p.low for p in hypothesis.priors])
     span = np.array([p.high for p in hypothesis.priors]) - low
@@ -262,7 +262,7 @@ def fit(
     def residuals(u, n_samples):  # rows (m, k) -> (m, n_samples·C + normal priors), on the record's first n_samples
         theta = low + u * span
         window = replace(sampling, n_samples=n_samples)
-        misfit = likelihood.standardized_residuals(data[:, :n_samples], simulate(theta, window), sigma, sensor_scale).reshape(len(u), -1)
+        misfit = likelihood.standardized_residuals(data[:, :n_samples], simulate(theta, window), sigma, instruments).reshape(len(u), -1)
         return np.concatenate([misfit, ((theta - mean) / sd)[:, normal]], axis=1)
 
     def jacobian(u, n_samples, step):  # one-sided differences pointing into the box, all in one batch
@@ -306,7 +306,7 @@ def fit(
     u_star = best.x
     theta_star = low + u_star * span
     model_star = simulate(theta_star[None])[0]
-    ll = float(likelihood.log_likelihood(data, model_star, sigma, sensor_scale=sensor_scale))
+    ll = float(likelihood.log_likelihood(data, model_star, sigma, instruments=instruments))
     hessian = best.jac.T @ best.jac + np.diag(np.where(normal, 0.0, 1.0 / UNIFORM_UNIT_VARIANCE))
     _, log_det = np.linalg.slogdet(hessian)
     log_prior_u = float(hypothesis.log_prior(theta_star[None])[0] + np.sum(np.log(span)))
@@ -316,6 +316,6 @@ def fit(
     covariance_u = 0.5 * (covariance_u + covariance_u.T)  # symmetric as H is, not just to rounding
     return Fit(
         hypothesis, hypothesis.effective_values(theta_star, base), model_star, ll,
-        float(likelihood.reduced_chi2(data, model_star, sigma, n_fitted=k, sensor_scale=sensor_scale)), float(log_evidence), n_runs, at_bound,
+        float(likelihood.reduced_chi2(data, model_star, sigma, n_fitted=k, instruments=instruments)), float(log_evidence), n_runs, at_bound,
         span[:, None] * covariance_u * span[None, :],
     )

@@ -34,30 +34,21 @@ def _standardized_residuals(data: np.ndarray, model: np.ndarray, sigma: np.ndarr
     return (data - model) / sigma[..., None]
 
 
-def _instruments(sensor_scale) -> np.ndarray | None:
-    """The channels' instrument prior scales (C, 2) if any is non-zero, else None (the plain likelihood)."""
-    if sensor_scale is None:
-        return None
-    scale = np.asarray(sensor_scale, dtype=float)
-    return scale if np.any(scale > 0) else None
-
-
-def standardized_residuals(data, model, sigma, sensor_scale=None) -> np.ndarray:
-    """(..., C, n) misfits (y − m)/σ, or with instrument errors (``sensor_scale``, see :mod:`newdyn.sensors`)
-    (..., C, n + 2) numbers whose squares sum to the same quadratic form as the marginal likelihood's."""
+def standardized_residuals(data, model, sigma, instruments: sensors.Instruments | None = None) -> np.ndarray:
+    """(..., C, n) misfits (y − m)/σ, or with ``instruments`` (:mod:`newdyn.sensors`) (..., C, n + k) numbers
+    whose squares sum to the same quadratic form as the marginal likelihood's."""
     z = _standardized_residuals(data, model, sigma)
-    scale = _instruments(sensor_scale)
-    if scale is None:
+    if instruments is None:
         return z
     return sensors.standardized_residuals(np.asarray(data, dtype=float), np.asarray(model, dtype=float),
-                                          np.asarray(sigma, dtype=float), scale)
+                                          np.asarray(sigma, dtype=float), instruments)
 
 
-def log_likelihood(data, model, sigma, per_channel: bool = False, sensor_scale=None) -> np.ndarray:
+def log_likelihood(data, model, sigma, per_channel: bool = False, instruments: sensors.Instruments | None = None) -> np.ndarray:
     """Normalized Gaussian log-likelihood log p(y | m) of ``data`` given ``model`` outputs.
 
     Σ_c Σ_k [−½((y_ck − m_ck)/σ_c)² − log σ_c − ½ log 2π], noise independent over channels and samples;
-    with ``sensor_scale`` (C, 2), each channel's instrument offset and gain integrated over their priors
+    with ``instruments``, each channel's instrument offset, gain and delay integrated over their priors
     (:mod:`newdyn.sensors`).
 
     Parameters
@@ -73,10 +64,9 @@ def log_likelihood(data, model, sigma, per_channel: bool = False, sensor_scale=N
     (...) or, with ``per_channel``, (..., n_channels); ``...`` is the broadcast of the leading axes.
     """
     z = _standardized_residuals(data, model, sigma)
-    scale = _instruments(sensor_scale)
-    if scale is not None:
+    if instruments is not None:
         return sensors.log_likelihood(np.asarray(data, dtype=float), np.asarray(model, dtype=float),
-                                      np.asarray(sigma, dtype=float), scale, per_channel)
+                                      np.asarray(sigma, dtype=float), instruments, per_channel)
     n_samples = z.shape[-1]
     # The normalization matters only when σ or the channel set differs between compared likelihoods,
     # but keeping it makes the value a true log density of the data.
@@ -85,14 +75,14 @@ def log_likelihood(data, model, sigma, per_channel: bool = False, sensor_scale=N
     return per if per_channel else per.sum(axis=-1)
 
 
-def reduced_chi2(data, model, sigma, n_fitted: int = 0, sensor_scale=None) -> np.ndarray:
+def reduced_chi2(data, model, sigma, n_fitted: int = 0, instruments: sensors.Instruments | None = None) -> np.ndarray:
     """Σ((y − m)/σ)² / (N − n_fitted) over all N observations; ≈ 1 when the model explains the data (with
-    ``sensor_scale``, the misfit left after the instruments' offsets and gains, their prior terms included).
+    ``instruments``, the misfit left after the instruments' offsets, gains and delays, their prior terms included).
 
     ``model`` may carry leading grid axes like in :func:`log_likelihood`; the result has those axes.
     """
     dof = np.shape(data)[-2] * np.shape(data)[-1] - n_fitted
-    z = standardized_residuals(data, model, sigma, sensor_scale)
+    z = standardized_residuals(data, model, sigma, instruments)
     if dof <= 0:
         raise ValueError(f"{n_fitted} fitted parameters leave no degrees of freedom for {dof + n_fitted} observations")
     return np.sum(z**2, axis=(-2, -1)) / dof

@@ -25,11 +25,10 @@ def cycles(times: np.ndarray, load_freq: float) -> np.ndarray:
     return np.floor((times - times[0]) * load_freq + 1e-9).astype(int)
 
 
-def pointwise(data: np.ndarray, sigma: np.ndarray, outputs: np.ndarray, cycle: np.ndarray, sensor_scale=None) -> np.ndarray:
+def pointwise(data: np.ndarray, sigma: np.ndarray, outputs: np.ndarray, cycle: np.ndarray, instruments: sensors.Instruments | None = None) -> np.ndarray:
     """Log-likelihood (draw, channel, cycle) of ``data`` (channel, time) under model ``outputs`` (draw,
     channel, time), summed over the samples of each channel within each load cycle."""
-    if sensor_scale is not None:
-        outputs = sensors.reading(data, outputs, sigma, np.asarray(sensor_scale, dtype=float))
+    outputs = sensors.reading(data, outputs, sigma, instruments)
     return np.stack([likelihood.log_likelihood(data[:, cycle == c], outputs[..., cycle == c], sigma, per_channel=True)
                      for c in range(int(cycle.max()) + 1)], axis=-1)
 
@@ -72,7 +71,7 @@ def compare(versions: Mapping[str, object]) -> list[dict]:
 
 
 def evaluate_versions(evaluators: Mapping[str, tuple[Callable[[np.ndarray], np.ndarray], np.ndarray, Sequence[str]]],
-                      data: np.ndarray, sigma: np.ndarray, cycle: np.ndarray, channels: Sequence[str], sensor_scale=None) -> dict:
+                      data: np.ndarray, sigma: np.ndarray, cycle: np.ndarray, channels: Sequence[str], instruments: sensors.Instruments | None = None) -> dict:
     """InferenceData per version from (simulate(draws) -> outputs, draws (n, k), parameter names)."""
-    return {name: inference_data(pointwise(data, sigma, simulate(theta), cycle, sensor_scale), dict(zip(names, theta.T)), channels)
+    return {name: inference_data(pointwise(data, sigma, simulate(theta), cycle, instruments), dict(zip(names, theta.T)), channels)
             for name, (simulate, theta, names) in evaluators.items()}

@@ -1,95 +1,236 @@
-"""Instrument nuisances of a channel, marginalized in closed form: an offset and a gain error.
+"""Instrument nuisances of a channel, marginalized in closed form: an offset, a gain error and a delay.
 
-A channel reads y(t) = o + g·m(t) + e(t): the model's output m through an instrument whose offset o and
-gain g are known only to a datasheet's accuracy, o ~ N(0, s_o²) and g ~ N(1, s_g²), and white noise
-e ~ N(0, σ²).  Both enter linearly, so they integrate out exactly: with the residual r = y − m and the
-design B = [s_o·1, s_g·m] (n × 2, the prior's scales folded in), r ~ N(0, σ² I + B Bᵀ), and
+A channel reads y(t) = o + g·m(t − τ) + e(t): the model's output m through an instrument whose offset o,
+gain g and delay τ are known only to a datasheet's accuracy, o ~ N(0, s_o²), g ~ N(1, s_g²), τ ~ N(0, s_τ²),
+and white noise e ~ N(0, σ²).  Offset and gain enter linearly; the delay does near any τ̂,
+m(t − τ) ≈ m(t − τ̂) − (τ − τ̂) ṁ(t − τ̂), so with the residual r = y − m(t − τ̂) − τ̂ ṁ(t − τ̂) and the
+design B = [s_o·1, s_g·m(t − τ̂), −s_τ·ṁ(t − τ̂)] (the prior's scales folded in) r ~ N(0, σ² I + B Bᵀ), and
 
     rᵀ (σ² I + B Bᵀ)⁻¹ r = (‖r − B ĉ‖² + σ² ‖ĉ‖²) / σ²,   ĉ = (BᵀB + σ² I)⁻¹ Bᵀ r,
     log |σ² I + B Bᵀ| = n log σ² + log |I + BᵀB / σ²|,
 
-ĉ being the posterior mean of (o/s_o, (g − 1)/s_g).  The first line is a sum of squares, n + 2 of them per
-channel: what least squares minimizes.  A scale of zero fits nothing (its column drops out); with both zero this
-is the plain Gaussian likelihood.
+ĉ being the posterior mean of (o/s_o, (g − 1)/s_g, τ/s_τ).  τ̂ comes from Gauss–Newton passes (the first at
+τ̂ = 0), so the marginal over τ is Laplace's approximation at its mode, exact for offset and gain.  The first
+line is a sum of squares, n + 3 of them per channel: what least squares minimizes.  A scale of zero fits
+nothing (its column drops out); with all zero this is the plain Gaussian likelihood.  The delayed model is
+cubic (four-point Lagrange) interpolation between samples, extrapolated at the record's two ends.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
+from numba import njit
+from scipy import stats
 
 LOG_2PI = math.log(2.0 * math.pi)
+DELAY_PASSES = 3  # Gauss–Newton passes for τ̂; the last one's linearization is the likelihood's
 
 
 @dataclass(frozen=True)
 class Sensor:
-    """The prior spread of one channel's instrument errors: offset in the channel's unit, gain relative."""
+    """The prior spread of one channel's instrument errors: offset in the channel's unit, gain relative,
+    delay in seconds."""
 
     offset_sd: float = 0.0
     gain_sd: float = 0.0
+    delay_sd: float = 0.0
 
     def __post_init__(self):
-        for name in ("offset_sd", "gain_sd"):
-            value = getattr(self, name)
+        for name in QUANTITIES:
+            value = getattr(self, f"{name}_sd")
             if not (math.isfinite(value) and value >= 0.0):
-                raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+                raise ValueError(f"{name}_sd must be a finite number >= 0, got {value!r}")
 
 
-def scales(sensors: Mapping[str, Sensor], channels: Sequence[str]) -> np.ndarray:
-    """(channel, 2) prior scales (s_o, s_g) of ``channels``; a channel without a sensor model has none."""
-    none = Sensor()
-    return np.array([[sensors.get(c, none).offset_sd, sensors.get(c, none).gain_sd] for c in channels], dtype=float)
+QUANTITIES = tuple(f.name.removesuffix("_sd") for f in fields(Sensor))  # a scale's columns, in this order
+OFFSET, GAIN, DELAY = (QUANTITIES.index(q) for q in ("offset", "gain", "delay"))
+NOMINAL = {"offset": 0.0, "gain": 1.0, "delay": 0.0}  # a perfect instrument
 
 
-def _integrated(data: np.ndarray, model: np.ndarray, sigma: np.ndarray, scale: np.ndarray):
-    """(z (..., C, n + 2), ĉ (..., C, 2), BᵀB/σ² + I (..., C, 2, 2)): the misfit left after the most probable
-    offset and gain in σ followed by those two in their prior's sd, whose squares sum to rᵀC⁻¹r, and the rest.
-    B's columns are s_o·1 and s_g·m, so its Gram matrix and Bᵀr take sums over time only."""
-    residual = data - model
-    s_o, s_g, variance = scale[:, 0, None], scale[:, 1, None], (sigma**2)[..., None]
-    n = model.shape[-1]
-    sum_m, sum_mm = model.sum(axis=-1), np.einsum("...n,...n->...", model, model)
-    g00 = 1.0 + n * s_o[..., 0] ** 2 / variance[..., 0]
-    g01 = s_o[..., 0] * s_g[..., 0] * sum_m / variance[..., 0]
-    g11 = 1.0 + s_g[..., 0] ** 2 * sum_mm / variance[..., 0]
-    g00 = np.broadcast_to(g00, g11.shape)  # the offset's term has no model in it
-    p0 = s_o[..., 0] * residual.sum(axis=-1) / variance[..., 0]
-    p1 = s_g[..., 0] * np.einsum("...n,...n->...", model, residual) / variance[..., 0]
-    det = g00 * g11 - g01**2
-    c_hat = np.stack([(g11 * p0 - g01 * p1) / det, (g00 * p1 - g01 * p0) / det], axis=-1)
-    left = (residual - s_o * c_hat[..., :1] - s_g * model * c_hat[..., 1:]) / np.sqrt(variance)
-    gram = np.stack([np.stack([g00, g01], axis=-1), np.stack([g01, g11], axis=-1)], axis=-2)
-    return np.concatenate([left, c_hat], axis=-1), c_hat, gram
+@dataclass(frozen=True, eq=False)
+class Instruments:
+    """The diagnosis channels' instrument priors at one sampling rate: what every likelihood integrates out."""
+
+    scale: np.ndarray  # (channel, quantity) prior sds: offset in the channel's unit, gain relative, delay in samples
+    fs: float
+
+    @classmethod
+    def of(cls, sensors: Mapping[str, Sensor], channels: Sequence[str], fs: float) -> Instruments | None:
+        """``channels``' instruments (one without a sensor is exact); None when all are exact."""
+        none = Sensor()
+        scale = np.array([[getattr(sensors.get(c, none), f"{q}_sd") for q in QUANTITIES] for c in channels], dtype=float)
+        scale[:, DELAY] *= fs
+        return cls(scale, float(fs)) if np.any(scale > 0) else None
+
+    def widened(self, channel: int, quantity: int, factor: float) -> Instruments:
+        """The same instruments with one channel's prior on one quantity ``factor`` times wider."""
+        scale = self.scale.copy()
+        scale[channel, quantity] *= factor
+        return Instruments(scale, self.fs)
 
 
-def standardized_residuals(data: np.ndarray, model: np.ndarray, sigma: np.ndarray, scale: np.ndarray) -> np.ndarray:
-    """(..., C, n + 2) numbers whose squares sum to each channel's rᵀC⁻¹r: what least squares minimizes."""
-    return _integrated(data, model, sigma, scale)[0]
+@njit(cache=True, error_model="numpy", inline="always")
+def _cubic(u):
+    """Weights of four samples at offsets −1, 0, 1, 2 for the value and the slope of their cubic at offset u."""
+    value = (-u * (u - 1) * (u - 2) / 6, (u + 1) * (u - 1) * (u - 2) / 2, -(u + 1) * u * (u - 2) / 2, (u + 1) * u * (u - 1) / 6)
+    slope = (-(3 * u * u - 6 * u + 2) / 6, (3 * u * u - 4 * u - 1) / 2, -(3 * u * u - 2 * u - 2) / 2, (3 * u * u - 1) / 6)
+    return value, slope
 
 
-def log_likelihood(data: np.ndarray, model: np.ndarray, sigma: np.ndarray, scale: np.ndarray, per_channel: bool = False) -> np.ndarray:
-    """log p(y | m) with each channel's offset and gain integrated over their priors (``scale``: (C, 2))."""
-    z, _, gram = _integrated(data, model, sigma, scale)
-    n = data.shape[-1]
-    per = -0.5 * (np.sum(z**2, axis=-1) + np.linalg.slogdet(gram)[1] + n * (2.0 * np.log(sigma) + LOG_2PI))
+@njit(cache=True, error_model="numpy", inline="always")
+def _delayed_at(signal, k, late, inside, weights):
+    """(m, dm/dk) of ``signal`` at k − ``late``: the cubic through the four samples around it, or the four
+    nearest an end of the record beyond it.  ``inside`` (the first of the four for k = 0) and ``weights``
+    serve every k whose four samples lie in the record; the ends compute their own."""
+    n = signal.size
+    first = k + inside
+    if first < 1 or first > n - 3:
+        first = min(max(first, 1), n - 3)
+        weights = _cubic(k - late - first)
+    (wa, wb, wc, wd), (sa, sb, sc, sd) = weights
+    a, b, c, d = signal[first - 1], signal[first], signal[first + 1], signal[first + 2]
+    return wa * a + wb * b + wc * c + wd * d, sa * a + sb * b + sc * c + sd * d
+
+
+@njit(cache=True, error_model="numpy")
+def _moments(data, model, shift):
+    """Sums over time of each (model, channel)'s delayed design, unscaled, u = [1, m(k − shift), −ṁ(k − shift)],
+    and of its residual r = y − m(k − shift) − shift·ṁ(k − shift): (Σ u uᵀ (B, C, 3, 3), Σ u r (B, C, 3), Σ r² (B, C)).
+    One pass over the samples, nothing of length n kept."""
+    n_models, n_channels, n = model.shape
+    gram = np.zeros((n_models, n_channels, 3, 3))
+    projection = np.zeros((n_models, n_channels, 3))
+    squares = np.zeros((n_models, n_channels))
+    for b in range(n_models):
+        for c in range(n_channels):
+            signal, late = model[b, c], shift[b, c]
+            inside = math.floor(-late)
+            weights = _cubic(-late - inside)
+            s_m = s_mm = s_d = s_md = s_dd = s_r = s_mr = s_dr = s_rr = 0.0
+            for k in range(n):
+                m, slope = _delayed_at(signal, k, late, inside, weights)
+                d = -slope
+                r = data[c, k] - m + late * d
+                s_m += m
+                s_mm += m * m
+                s_d += d
+                s_md += m * d
+                s_dd += d * d
+                s_r += r
+                s_mr += m * r
+                s_dr += d * r
+                s_rr += r * r
+            g = gram[b, c]
+            g[0, 0], g[0, 1], g[0, 2], g[1, 1], g[1, 2], g[2, 2] = n, s_m, s_d, s_mm, s_md, s_dd
+            g[1, 0], g[2, 0], g[2, 1] = s_m, s_d, s_md
+            projection[b, c, 0], projection[b, c, 1], projection[b, c, 2] = s_r, s_mr, s_dr
+            squares[b, c] = s_rr
+    return gram, projection, squares
+
+
+@njit(cache=True, error_model="numpy")
+def _delayed(model, shift):
+    """m(k − shift) and ṁ(k − shift) per sample, (B, C, n) each, as :func:`_moments` sees them."""
+    value, slope = np.empty_like(model), np.empty_like(model)
+    for b in range(model.shape[0]):
+        for c in range(model.shape[1]):
+            signal, late = model[b, c], shift[b, c]
+            inside = math.floor(-late)
+            weights = _cubic(-late - inside)
+            for k in range(model.shape[2]):
+                value[b, c, k], slope[b, c, k] = _delayed_at(signal, k, late, inside, weights)
+    return value, slope
+
+
+@dataclass(frozen=True)
+class _Solution:
+    """The closed form at the delay's mode for a batch of models (leading axes flattened to B)."""
+
+    shift: np.ndarray  # (B, C) the delay the last pass linearized about, in samples
+    c_hat: np.ndarray  # (B, C, 3) posterior means in prior sds
+    gram: np.ndarray  # (B, C, 3, 3) I + BᵀB/σ²
+    quadratic: np.ndarray  # (B, C) rᵀ(σ²I + BBᵀ)⁻¹r
+    lead: tuple  # the batch's leading axes
+
+
+def _solve(data: np.ndarray, model: np.ndarray, sigma: np.ndarray, scale: np.ndarray) -> tuple[_Solution, np.ndarray, np.ndarray]:
+    """Gauss–Newton passes on the delay (one when no channel has a delay prior), then the closed form; also the
+    flattened model (B, C, n) and variance (B, C)."""
+    n_channels, n = data.shape
+    lead = np.broadcast_shapes(model.shape[:-2], sigma.shape[:-1])
+    flat = np.ascontiguousarray(np.broadcast_to(model, lead + (n_channels, n))).reshape(-1, n_channels, n)
+    variance = np.broadcast_to(sigma**2, lead + (n_channels,)).reshape(-1, n_channels)
+    shift = np.zeros(flat.shape[:2])
+    for remaining in reversed(range(DELAY_PASSES if np.any(scale[:, DELAY] > 0) else 1)):
+        sums, projection, squares = _moments(data, flat, shift)
+        design_gram = sums * scale[:, :, None] * scale[:, None, :]  # BᵀB, the prior's scales folded in
+        design_projection = projection * scale  # Bᵀr
+        gram = np.eye(3) + design_gram / variance[..., None, None]
+        c_hat = np.linalg.solve(gram, (design_projection / variance[..., None])[..., None])[..., 0]
+        if remaining:
+            shift = scale[:, DELAY] * c_hat[..., DELAY]
+    left = squares - 2 * np.einsum("...k,...k->...", c_hat, design_projection) + np.einsum("...k,...kl,...l->...", c_hat, design_gram, c_hat)
+    quadratic = left / variance + np.einsum("...k,...k->...", c_hat, c_hat)
+    return _Solution(shift, c_hat, gram, quadratic, lead), flat, variance
+
+
+def _fitted(data, model, sigma, scale):
+    """(z (..., C, n + 3): the misfit left in σ, then ĉ, whose squares sum to rᵀC⁻¹r; the instruments' most
+    probable reading of the model (..., C, n))."""
+    solution, flat, variance = _solve(data, model, sigma, scale)
+    late, slope = _delayed(flat, solution.shift) if np.any(scale[:, DELAY] > 0) else (flat, np.zeros_like(flat))
+    base = late + solution.shift[..., None] * slope
+    columns = (np.ones_like(flat), late, -slope)
+    fitted = sum(scale[:, q, None] * solution.c_hat[..., q, None] * columns[q] for q in range(3))
+    z = np.concatenate([(data - base - fitted) / np.sqrt(variance)[..., None], solution.c_hat], axis=-1)
+    shape = solution.lead + data.shape
+    return z.reshape(shape[:-1] + (shape[-1] + 3,)), (base + fitted).reshape(shape)
+
+
+def standardized_residuals(data: np.ndarray, model: np.ndarray, sigma: np.ndarray, instruments: Instruments) -> np.ndarray:
+    """(..., C, n + 3) numbers whose squares sum to each channel's rᵀC⁻¹r: what least squares minimizes."""
+    return _fitted(data, model, sigma, instruments.scale)[0]
+
+
+def log_likelihood(data: np.ndarray, model: np.ndarray, sigma: np.ndarray, instruments: Instruments, per_channel: bool = False) -> np.ndarray:
+    """log p(y | m) with each channel's offset, gain and delay integrated over their priors."""
+    solution, _, variance = _solve(data, model, sigma, instruments.scale)
+    per = -0.5 * (solution.quadratic + np.linalg.slogdet(solution.gram)[1] + data.shape[-1] * (np.log(variance) + LOG_2PI))
+    per = per.reshape(solution.lead + data.shape[:1])
     return per if per_channel else per.sum(axis=-1)
 
 
-def estimate(data: np.ndarray, model: np.ndarray, sigma: np.ndarray, scale: np.ndarray) -> dict[str, np.ndarray]:
-    """Posterior mean and sd of each channel's offset and gain given ``model`` (..., C, n): (..., C) each."""
-    _, c_hat, gram = _integrated(data, model, sigma, scale)
-    sd = np.sqrt(np.diagonal(np.linalg.inv(gram), axis1=-2, axis2=-1))
-    return {"offset": scale[:, 0] * c_hat[..., 0], "offset_sd": scale[:, 0] * sd[..., 0],
-            "gain": 1.0 + scale[:, 1] * c_hat[..., 1], "gain_sd": scale[:, 1] * sd[..., 1]}
+def estimate(data: np.ndarray, model: np.ndarray, sigma: np.ndarray, instruments: Instruments) -> dict[str, np.ndarray]:
+    """Posterior mean and sd of each channel's offset [channel unit], gain [–] and delay [s] given ``model``
+    (..., C, n): ``{quantity: (..., C), quantity_sd: (..., C)}``; a quantity without a prior stays nominal."""
+    solution, _, _ = _solve(data, model, sigma, instruments.scale)
+    sd = np.sqrt(np.diagonal(np.linalg.inv(solution.gram), axis1=-2, axis2=-1))
+    in_units = instruments.scale / np.where(np.arange(len(QUANTITIES)) == DELAY, instruments.fs, 1.0)
+    found = {}
+    for i, quantity in enumerate(QUANTITIES):
+        found[quantity] = (NOMINAL[quantity] + in_units[:, i] * solution.c_hat[..., i]).reshape(solution.lead + data.shape[:1])
+        found[f"{quantity}_sd"] = (in_units[:, i] * sd[..., i]).reshape(solution.lead + data.shape[:1])
+    return found
 
 
-def reading(data: np.ndarray, model: np.ndarray, sigma: np.ndarray, scale: np.ndarray) -> np.ndarray:
-    """What the instruments most probably show of ``model`` (..., C, n): o + g·m at the posterior means; the
-    model itself when no channel has instrument errors."""
-    if not np.any(scale > 0):
+def summary(data: np.ndarray, model: np.ndarray, sigma: np.ndarray, instruments: Instruments, channels: Sequence[str],
+            hdi_prob: float) -> dict[str, dict[str, dict[str, float | list[float]]]]:
+    """``{channel: {quantity: {mean, sd, hdi}}}`` of the quantities with a prior, given one ``model`` (C, n); the
+    posterior is Normal, so its ``hdi_prob`` highest-density interval is the mean ± that many sds."""
+    found, half = estimate(data, model, sigma, instruments), stats.norm.ppf(0.5 + hdi_prob / 2)
+    return {c: {q: {"mean": float(found[q][i]), "sd": float(found[f"{q}_sd"][i]),
+                    "hdi": [float(found[q][i] - half * found[f"{q}_sd"][i]), float(found[q][i] + half * found[f"{q}_sd"][i])]}
+                for j, q in enumerate(QUANTITIES) if instruments.scale[i, j] > 0}
+            for i, c in enumerate(channels) if np.any(instruments.scale[i] > 0)}
+
+
+def reading(data: np.ndarray, model: np.ndarray, sigma: np.ndarray, instruments: Instruments | None) -> np.ndarray:
+    """What the instruments most probably show of ``model`` (..., C, n): o + g·m(t − τ) at the posterior
+    means (to first order in τ about its mode); the model itself with exact instruments."""
+    if instruments is None:
         return model
-    found = estimate(data, model, sigma, scale)
-    return found["offset"][..., None] + found["gain"][..., None] * model
+    return _fitted(data, model, sigma, instruments.scale)[1]

@@ -33,7 +33,7 @@ def discover(name: str, calibrated: hypotheses.Fit, data, sigma, values, samplin
     """The discovery section of the verdict, the best candidate's effect file (name, content) and its fit on the
     full simulator (both None when the search found no candidate), and the force estimated at each place."""
     base = {**values, **calibrated.values}
-    read = sensors.reading(data, calibrated.model, sigma, settings.sensor_scale)  # the instruments' offsets and gains taken out
+    read = sensors.reading(data, calibrated.model, sigma, settings.instruments(sampling.fs))  # what the instruments add taken out
     found = search.discover(data - read, sigma, base, sampling, settings.channels, settings.max_step)
     top = search.log_bayes_factor(found.candidates[0], found) if found.candidates else 0.0
     leading = [c for c in found.candidates if search.log_bayes_factor(c, found) >= FULL_FIT_SHARE * top]
@@ -133,7 +133,7 @@ def _full_fit(candidate: search.Candidate, data, sigma, values, calibrated: hypo
         hypothesis = hypotheses.library(settings.calibration_priors(), ranges, settings.drift)[-1]
         start = {**{key: float(row["value"]) for key, row in candidate.parameters.items()}, **calibrated.values}
         return hypotheses.fit(hypothesis, data, sigma, values, sampling, settings.channels, [start], settings.max_step, search=False,
-                              sensor_scale=settings.sensor_scale)
+                              instruments=settings.instruments(sampling.fs))
 
 
 def _merged(linearized: Mapping, full: Mapping) -> dict:
