@@ -193,6 +193,11 @@ BAD = {
     "drift not calibrated": (_set("diagnosis.drift", ["k_s"]), "diagnosis.drift[0]", "not one of calibration.parameters"),
     "negative sensor spread": (_set("diagnosis.sensors.b1_x.offset_sd", -1e-8), "diagnosis.sensors.b1_x.offset_sd", "≥ 0"),
     "sensor of no channel": (_set("diagnosis.sensors.b9_x.gain_sd", 0.01), "diagnosis.sensors.b9_x", "unknown name"),
+    "hidden instruments without datasheets": (lambda c: (c["diagnosis"].pop("sensors"), _set("hidden.sets.blind.instruments", True)(c)),
+                                              "hidden.sets.blind.instruments", "diagnosis.sensors"),
+    "more out of spec than cases": (lambda c: c["hidden"]["sets"]["blind"].update(instruments=True, out_of_spec=30),
+                                    "hidden.sets.blind.out_of_spec", "more than the set's 24 cases"),
+    "out of spec without instruments": (_set("hidden.sets.blind.out_of_spec", 2), "hidden.sets.blind.out_of_spec", "instruments: true"),
     # stick_slip, the largest effect, has 3 parameters; with the drift kT1 4: the KDE move needs 2·4 + 2
     "too few diagnosis walkers": (_set("diagnosis.mcmc.walkers", 8), "diagnosis.mcmc.walkers", "at least 10",
                                   "the 4 parameters"),

@@ -355,3 +355,54 @@ def test_a_users_effect_is_a_hypothesis_of_the_diagnosis_and_a_class_of_the_blin
     result = hidden.score(ripples[:1], {ripples[0]["name"]: verdict})
     assert result["accuracy"] == 1.0 and result["confusion"]["truth"] == ["torque_ripple"]
     assert [e["parameter"] for e in result["parameter_errors"]] == ["amplitude"]
+
+
+DATASHEETS = {"b1_x": {"offset_sd": 1e-7, "gain_sd": 0.02, "delay_sd": 1e-4}, "w1": {"gain_sd": 0.001, "delay_sd": 1e-4},
+              "torque_c": {"offset_sd": 5.0}}
+
+
+def test_instrument_errors_are_drawn_on_top_of_the_same_machines(blind):
+    section = copy.deepcopy(HIDDEN)
+    section["sets"]["blind"] = {**section["sets"]["blind"], "instruments": True, "out_of_spec": 5}
+    seen = hidden.draw_cases(section, "blind", BASE, RANGES, CLASSES, DATASHEETS, ("b1_x", "w1"))
+    assert [{k: v for k, v in c.items() if k not in ("instruments", "out_of_spec")} for c in seen] == blind
+    bad = [c for c in seen if "out_of_spec" in c]
+    assert len(bad) == 5
+    for case in seen:
+        assert set(case["instruments"]) == set(DATASHEETS)
+        assert case["instruments"]["w1"]["offset"] == 0.0 and case["instruments"]["torque_c"]["gain"] == 1.0  # no datasheet: exact
+    for case in bad:
+        where = case["out_of_spec"]
+        assert where["channel"] in ("b1_x", "w1") and 10 <= abs(where["sds"]) <= 30  # on a compared channel, far off
+        sd = DATASHEETS[where["channel"]][f"{where['quantity']}_sd"]
+        error = case["instruments"][where["channel"]][where["quantity"]] - {"gain": 1.0}.get(where["quantity"], 0.0)
+        assert error == pytest.approx(where["sds"] * sd)
+    # Within spec the errors follow their datasheets' Normal priors.
+    gains = np.array([c["instruments"]["b1_x"]["gain"] for c in seen if "out_of_spec" not in c or c["out_of_spec"]["channel"] != "b1_x"])
+    assert abs(np.mean(gains) - 1.0) < 4 * 0.02 / np.sqrt(len(gains)) and 0.01 < np.std(gains) < 0.03
+
+
+def test_a_measurement_through_instruments_is_offset_scaled_and_late():
+    sampling = model.Sampling(fs=5000.0, t_first=0.1, n_samples=400)
+    case = {"scenario": {"overrides": {}}, "instruments": {"b1_x": {"offset": 2e-8, "gain": 1.01, "delay": 3e-4}}}
+    read = hidden._through_instruments(case, BASE, sampling, 1e-4)
+    exact = hidden._through_instruments({"scenario": {"overrides": {}}}, BASE, sampling, 1e-4)
+    late = model.Sampling(sampling.fs, sampling.t_first - 3e-4, sampling.n_samples)
+    from newdyn import simulation
+
+    assert np.array_equal(exact, simulation.simulate(BASE, sampling, model.CHANNELS, 1e-4))
+    b1_x = model.CHANNELS.index("b1_x")
+    assert np.allclose(read[b1_x], 2e-8 + 1.01 * simulation.simulate(BASE, late, ["b1_x"], 1e-4)[0], rtol=0, atol=1e-15)
+    assert np.array_equal(np.delete(read, b1_x, axis=0), np.delete(exact, b1_x, axis=0))
+
+
+def test_the_score_counts_named_and_false_instrument_problems():
+    cases = [{**CASES[0], "instruments": {}}, {**CASES[1], "instruments": {}, "out_of_spec": {"channel": "w1", "quantity": "gain", "sds": 12.0}},
+             {**CASES[4], "instruments": {}, "out_of_spec": {"channel": "b1_x", "quantity": "delay", "sds": -15.0}}]
+    problem = {"channel": "w1", "quantity": "gain"}
+    verdicts = {"t_01": {**VERDICTS["t_01"], "sensor_problems": [{"channel": "b1_x", "quantity": "offset"}]},
+                "t_02": {**VERDICTS["t_01"], "verdict": "sensor_problem", "sensor_problems": [problem]},
+                "t_05": {**VERDICTS["t_05"], "sensor_problems": []}}
+    result = hidden.score(cases, verdicts)
+    assert result["instruments"] == {"cases": 3, "out_of_spec": 2, "named": 1, "false_alarms": 1}
+    assert [row["predicted"] for row in result["rows"]] == ["healthy", "healthy", "parameter_change"]  # a sensor problem: a healthy machine

@@ -40,7 +40,8 @@ def test_compare_ranks_the_model_that_made_the_data_above_one_without_it():
 
     amplitude = model_comparison.draws(np.array([1.0]), np.array([[1e-4]]), np.array([0.0]), np.array([2.0]), rng)
     versions = model_comparison.evaluate_versions(
-        {"with the term": (scaled, amplitude, ["a"]), "without": (lambda theta: np.zeros((len(theta), *SHAPE.shape)), np.zeros((64, 0)), [])},
+        {"with the term": model_comparison.Version(scaled, amplitude, ["a"]),
+         "without": model_comparison.Version(lambda theta: np.zeros((len(theta), *SHAPE.shape)), np.zeros((64, 0)), [])},
         data, SIGMA, cycle, ["b1_x", "w1"])
     assert versions["with the term"].log_likelihood["y"].dims == ("chain", "draw", "channel", "cycle")
     rows = model_comparison.compare(versions)

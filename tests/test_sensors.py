@@ -93,6 +93,31 @@ def test_the_delay_is_integrated_out_as_quadrature_over_it_does():
     assert sensors.log_likelihood(data, signal(t)[None], sigma, instruments) == pytest.approx(marginal, abs=0.1)
 
 
+@pytest.mark.parametrize("sds, flagged", [(0.8, []), (-3.0, []), (12.0, [(1, sensors.GAIN)])])
+def test_an_instrument_far_outside_its_datasheet_is_out_of_spec(sds, flagged):
+    """The speed sensor's gain ``sds`` datasheet sds off: out of spec when the data say so at prior odds e^-margin,
+    and then its Bayes factor is the widened prior's gain in likelihood."""
+    data = readings(np.zeros(2), np.array([1.0, 1.0 + sds * SCALE[1, 1]]))
+    found = sensors.check(data, MODEL, SIGMA, INSTRUMENTS, margin=6.9)
+    assert [(c, q) for c, q, _ in found.out_of_spec] == flagged
+    if flagged:
+        assert found.instruments.scale[1, sensors.GAIN] == SCALE[1, sensors.GAIN] * sensors.OUT_OF_SPEC
+        # Alone widened, the Bayes factor is this channel's gain; it is then the whole gain of the check.
+        assert found.out_of_spec[0][2] == pytest.approx(found.gain, rel=1e-9) and found.gain > 6.9
+        # One gain's Normal evidence ratio in closed form: ½ĉ²(1/(1+v) − 1/(K²+v)) − ½ log((K²+v)/(1+v)), v = 1/λ
+        # the data's variance of c, ĉ the least-squares estimate of c (in the datasheet sd's units).
+        design = MODEL[1] * SCALE[1, 1]
+        lam = design @ design / SIGMA[1] ** 2
+        c_hat = design @ (data[1] - MODEL[1]) / SIGMA[1] ** 2 / lam
+        v, k2 = 1 / lam, sensors.OUT_OF_SPEC**2
+        assert found.gain == pytest.approx(0.5 * c_hat**2 * (1 / (1 + v) - 1 / (k2 + v)) - 0.5 * np.log((k2 + v) / (1 + v)), rel=1e-6)
+        assert sensors.in_words("w1", "gain", 1.021, "rad/s") == "w1 reads 2.1 % high"
+        assert sensors.in_words("b1_x", "delay", 4.2e-4, "m") == "b1_x lags by 0.42 ms"
+        assert sensors.in_words("b1_x", "offset", -1.7e-8, "m") == "b1_x reads 1.7e-08 m low"
+    else:
+        assert found.instruments is INSTRUMENTS and found.gain == 0.0
+
+
 def test_a_sensor_prior_must_be_a_finite_spread():
     with pytest.raises(ValueError, match="gain_sd must be a finite number >= 0"):
         sensors.Sensor(offset_sd=1e-8, gain_sd=-0.01)

@@ -338,7 +338,7 @@ def draw_hidden(spec: dict, output: str, code_hash: str) -> None:
     from . import config, hidden
 
     cases = hidden.draw_cases(spec["hidden"], spec["set"], spec["values"], config.hidden_ranges(spec),
-                              config.hidden_classes(spec))
+                              config.hidden_classes(spec), spec.get("sensors"), spec.get("channels", ()))
     hidden.write_truth(cases, output, code_hash)
     log.info("drew %d hidden cases of set %s", len(cases), spec["set"])
 

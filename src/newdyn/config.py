@@ -432,9 +432,15 @@ def _hidden_problems(config: Mapping) -> Iterator[tuple[str, str]]:
         yield "hidden.parameter_change.relative", f"must be 0 <= low < high < 1 (got [{low:g}, {high:g}])"
     for kind, ranges in (hidden.get("faults") or {}).items():
         yield from _range_problems(f"hidden.faults.{kind}", kind, ranges)
-    for name in hidden["sets"]:
+    for name, spec in hidden["sets"].items():
         if name in variant_names(config) or name in ("diagnosis", "figures", "logs", "benchmarks"):
             yield f"hidden.sets.{name}", f"'{name}' would share results/{name}/ with the study; choose another name"
+        if spec.get("instruments") and not config["diagnosis"].get("sensors"):
+            yield f"hidden.sets.{name}.instruments", "draws instrument errors from diagnosis.sensors, which names none"
+        if spec.get("out_of_spec", 0) > 0 and not spec.get("instruments"):
+            yield f"hidden.sets.{name}.out_of_spec", "needs instruments: true (out-of-spec errors are drawn on top of them)"
+        if spec.get("out_of_spec", 0) > spec["cases"]:
+            yield f"hidden.sets.{name}.out_of_spec", f"more than the set's {spec['cases']} cases"
 
 
 def _all_scenario_problems(config: Mapping) -> Iterator[tuple[str, str]]:

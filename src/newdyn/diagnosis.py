@@ -8,7 +8,10 @@ missing, add it and show the error fall (the paper's Steps 1–3, automated, the
 3. Signatures (Steps 1 and 3): the posteriors that each hypothesis at a range of severities would give,
    simulated noise-free, and their Hellinger distances to the measurement's posteriors.
 4. Fits: each effect of :mod:`newdyn.effects` added to the model, its parameters and the drift parameters fitted
-   (:func:`newdyn.hypotheses.fit`), scored by χ² and log-evidence; hypotheses ranked by evidence.
+   (:func:`newdyn.hypotheses.fit`), scored by χ² and log-evidence; hypotheses ranked by evidence.  With
+   ``sensors``, every fit integrates the instruments' offsets, gains and delays out over their datasheets'
+   priors, and an instrument error far outside its prior (:func:`newdyn.sensors.check`) gets a wide one at prior
+   odds e^−``evidence_margin``: a machine that is otherwise healthy is then a ``sensor_problem``.
 5. Verdict: the best-evidence hypothesis if its fit brings χ² to the noise (≤ ``chi2_max``), else
    ``unexplained``; hypotheses of the same class within ``evidence_margin`` of it explain the data
    equally, and the unmeasured channels that would separate them are named.
@@ -42,7 +45,8 @@ from .discovery import verify
 from .hypotheses import HEALTHY, PARAMETER_CHANGE
 
 log = logging.getLogger("newdyn")
-VERDICTS = ("healthy", "parameter_change", "new_dynamics", "unexplained")
+SENSOR_PROBLEM = "sensor_problem"
+VERDICTS = ("healthy", "parameter_change", "new_dynamics", "unexplained", SENSOR_PROBLEM)
 SIGNATURE_REFINE_POINTS = 21  # refined runs per likelihood maximum of a signature (the measurement's use the config's)
 
 
@@ -203,12 +207,13 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
     sigma, noise_source = noise_level(measurement, rows, settings.noise_band_hz)
     values = model.complete({**settings.rig, **measurement.operating})
     hyps = {h.name: h for h in settings.hypotheses()}
+    instruments = settings.instruments(sampling.fs)  # as the datasheets say; out-of-spec ones are found per fit
 
     def calibrate_all(y, refine_points):
         return {
             p: calibration.calibrate(
                 y, sigma, spec, settings.priors[p], coarse[p], values, sampling, channels, refine_points,
-                settings.chi2_max, settings.max_step, settings.instruments(sampling.fs),
+                settings.chi2_max, settings.max_step, instruments,
             )
             for p, spec in settings.grids.items()
         }
@@ -233,15 +238,16 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
 
     # Fits: healthy as it is, drifts from their grids (exact), faults from their closest signature and a global search.
     fits = {HEALTHY: hypotheses.fit(hyps[HEALTHY], data, sigma, values, sampling, channels, max_step=settings.max_step,
-                                    instruments=settings.instruments(sampling.fs))}
-    fits.update({f"{PARAMETER_CHANGE}:{p}": _drift_fit(hyps[f"{PARAMETER_CHANGE}:{p}"], cal) for p, cal in calibrations.items()})
+                                    instruments=instruments)}
+    fits.update({f"{PARAMETER_CHANGE}:{p}": _drift_fit(hyps[f"{PARAMETER_CHANGE}:{p}"], cal, instruments) for p, cal in calibrations.items()})
     closest = signatures.mean("parameter")
     for kind in settings.fault_ranges:
         mine = closest.where(signatures["hypothesis"] == kind, drop=True)
         start = json.loads(str(mine["values"].values[int(np.argmin(mine.values))]))
         fits[kind] = hypotheses.fit(hyps[kind], data, sigma, values, sampling, channels, [start], settings.max_step,
-                                    instruments=settings.instruments(sampling.fs))
+                                    instruments=instruments)
         stage(f"fit of {kind} ({fits[kind].n_simulations} simulations, chi2 {fits[kind].chi2_red:.4g})")
+    fits = {name: _instruments_checked(fit, data, sigma, settings.evidence_margin) for name, fit in fits.items()}
 
     best_fault = max(settings.fault_ranges, key=lambda kind: fits[kind].log_evidence)
     discovery = None
@@ -250,7 +256,7 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
         stage(f"discovery ({len(discovery[0]['candidates'])} candidates)")
     ahead = _explaining_ahead(fits, calibrations, best_fault, settings.chi2_max, discovery and discovery[2])
     if ahead is None:
-        effect_mcmc, fits[best_fault] = _sample_and_polish(fits[best_fault], data, sigma, values, sampling, channels, settings)
+        effect_mcmc, fits[best_fault] = _sample_and_polish(fits[best_fault], data, sigma, values, sampling, channels, settings, instruments)
     else:
         # The verdict rests on another hypothesis: one round shows the fault's posterior (how much of it the data
         # leave room for), the rounds towards convergence and the polish would change nothing.
@@ -261,6 +267,10 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
     stage(f"MCMC of {best_fault}" + (f" (one round: {ahead} explains the data ahead of it)" if ahead else ""))
 
     verdict = _verdict(fits, calibrations, signatures, settings, values, sampling, data, sigma)
+    if instruments is not None:
+        verdict.update(_instrument_report(fits[verdict["models"]["after"]], data, sigma, instruments, channels, settings.evidence_margin))
+        if verdict["verdict"] == "healthy" and verdict["sensor_problems"]:
+            verdict["verdict"] = SENSOR_PROBLEM
     verdict["effect_fit"] = {
         "hypothesis": best_fault, "parameters": _mcmc_parameters(effect_mcmc, hyps[best_fault].parameters),
         **{key: effect_mcmc.attrs[key] for key in ("converged", "rhat", "ess_bulk", "reason") if key in effect_mcmc.attrs},
@@ -268,20 +278,17 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
     if verdict["verdict"] == "new_dynamics" and verdict["effect"] == best_fault:
         verdict["parameters"] = verdict["effect_fit"]["parameters"]
         verdict["converged"] = bool(verdict["effect_fit"]["converged"])
-    versions = {name: _shown(fits[hypothesis], data, sigma, settings, sampling) for name, hypothesis in verdict["models"].items()}
+    versions = {name: _shown(fits[hypothesis], data, sigma) for name, hypothesis in verdict["models"].items()}
     for key, version in (("where_nominal_fails", "nominal"), ("where_it_fails", "calibrated"), ("remaining", "after")):
         verdict[key] = residuals.where_it_fails(data - versions[version], sigma, channels, sampling.times,
                                                 sampling.fs, values["load_freq"])
     verdict["noise"] = {"sigma": dict(zip(channels, sigma.tolist())), "source": noise_source}
-    if settings.sensors:
-        verdict["sensors"] = sensors_module.summary(data, fits[verdict["models"]["after"]].model, sigma, settings.instruments(sampling.fs),
-                                                    channels, likelihood.HDI_PROB)
     effect_file = discovered = forces = None
     # Discovery ran before the MCMC; a library fault whose polish explained the data after all drops it.
     if discovery is not None and (verdict["verdict"] == "unexplained" or settings.discovery == "always"):
         verdict["discovery"], effect_file, discovered, forces = discovery
         if discovered is not None:
-            versions["discovered"] = _shown(discovered, data, sigma, settings, sampling)
+            versions["discovered"] = _shown(discovered, data, sigma)
             verdict["models"]["discovered"] = discovered.hypothesis.name
             verdict["model_versions"].append(_version_row("+ discovered", discovered, versions["discovered"], data, channels))
     verdict["model_comparison"], pointwise = _compare_versions(verdict, fits, calibrations, effect_mcmc, discovered, data, sigma,
@@ -301,26 +308,28 @@ def _compare_versions(verdict, fits, calibrations, effect_mcmc, discovered, data
     rng = np.random.default_rng(int(settings.mcmc.get("seed", 0)))
     n = model_comparison.DRAWS
 
-    def simulate(fit):
-        return lambda theta: hypotheses.evaluate(fit.hypothesis, theta, values, sampling, settings.channels, settings.max_step)
+    def version(fit, draws):
+        return model_comparison.Version(
+            lambda theta: hypotheses.evaluate(fit.hypothesis, theta, values, sampling, settings.channels, settings.max_step),
+            draws, fit.hypothesis.parameters, fit.instruments)
 
     nominal, calibrated, effect = (fits[verdict["models"][key]] for key in ("nominal", "calibrated", "effect"))
-    evaluators = {"nominal": (simulate(nominal), np.zeros((n, 0)), [])}
+    evaluators = {"nominal": version(nominal, np.zeros((n, 0)))}
     if calibrated.hypothesis.kind == PARAMETER_CHANGE:
         posterior = calibrations[calibrated.hypothesis.effect].posterior
         cdf = posterior.cdf
         theta = np.interp(rng.uniform(0, cdf[-1], n), cdf, posterior.grid)[:, None]
-        evaluators["calibrated"] = (simulate(calibrated), theta, calibrated.hypothesis.parameters)
+        evaluators["calibrated"] = version(calibrated, theta)
     stacked = np.column_stack([effect_mcmc.posterior[name].values.ravel() for name in effect.hypothesis.parameters])
-    evaluators["effect"] = (simulate(effect), stacked[rng.choice(len(stacked), n, replace=len(stacked) < n)], effect.hypothesis.parameters)
+    evaluators["effect"] = version(effect, stacked[rng.choice(len(stacked), n, replace=len(stacked) < n)])
     cycle = model_comparison.cycles(sampling.times, values["load_freq"])
-    idata = model_comparison.evaluate_versions(evaluators, data, sigma, cycle, settings.channels, settings.instruments(sampling.fs))
+    idata = model_comparison.evaluate_versions(evaluators, data, sigma, cycle, settings.channels)
     if discovered is not None:
         low, high = np.array([[p.low, p.high] for p in discovered.hypothesis.priors]).T
         with effects.including(verify.generic_path(discovered.hypothesis.effect)):
             idata.update(model_comparison.evaluate_versions(
-                {"discovered": (simulate(discovered), model_comparison.draws(discovered.theta, discovered.covariance, low, high, rng),
-                                discovered.hypothesis.parameters)}, data, sigma, cycle, settings.channels, settings.instruments(sampling.fs)))
+                {"discovered": version(discovered, model_comparison.draws(discovered.theta, discovered.covariance, low, high, rng))},
+                data, sigma, cycle, settings.channels))
     pointwise = xr.concat([d.log_likelihood["y"].isel(chain=0, drop=True) for d in idata.values()],
                           dim=xr.Variable("comparison_version", list(idata)))
     return model_comparison.compare(idata), pointwise.rename({"draw": "comparison_draw", "cycle": "load_cycle"})
@@ -350,26 +359,61 @@ def _signature_distances(settings: Settings, hyps, values, calibrations, calibra
     )
 
 
-def _drift_fit(hypothesis: hypotheses.Hypothesis, cal: calibration.Calibration) -> hypotheses.Fit:
-    """A drift of one parameter as a fit: its grid calibration, with the exact evidence by quadrature."""
+def _drift_fit(hypothesis: hypotheses.Hypothesis, cal: calibration.Calibration, instruments) -> hypotheses.Fit:
+    """A drift of one parameter as a fit: its grid calibration (through ``instruments``), with the exact evidence by
+    quadrature."""
     post = cal.posterior
     return hypotheses.Fit(hypothesis, {hypothesis.effect: post.map}, cal.best_fit, float(np.max(post.log_likelihood)),
-                          cal.chi2_red, _grid_evidence(post), len(post.grid), () if post.consistent() else (hypothesis.effect,))
+                          cal.chi2_red, _grid_evidence(post), len(post.grid), () if post.consistent() else (hypothesis.effect,),
+                          instruments=instruments)
 
 
-def _sample_and_polish(fit: hypotheses.Fit, data, sigma, values, sampling, channels, settings: Settings):
-    """MCMC of a fault model for its parameters' uncertainty, and the fit again from the chains' best
-    draw when that beats it: stick-slip's misfit has narrow valleys the least squares may miss."""
+def _sample_and_polish(fit: hypotheses.Fit, data, sigma, values, sampling, channels, settings: Settings, instruments):
+    """MCMC of a fault model for its parameters' uncertainty, and the fit again (through the datasheets'
+    ``instruments``, then checked) from the chains' best draw when that beats it: stick-slip's misfit has narrow
+    valleys the least squares may miss."""
     hypothesis = fit.hypothesis
     idata = _sample_effect(fit, data, sigma, values, sampling, channels, settings)
     best = _best_draw(idata, hypothesis.parameters)
     if float(idata.sample_stats["log_likelihood"].max()) > fit.log_likelihood:
-        polished = hypotheses.fit(hypothesis, data, sigma, values, sampling, channels,
-                                  [dict(zip(hypothesis.parameters, best))], settings.max_step, search=False,
-                                  instruments=settings.instruments(sampling.fs))
+        polished = _instruments_checked(hypotheses.fit(hypothesis, data, sigma, values, sampling, channels,
+                                                       [dict(zip(hypothesis.parameters, best))], settings.max_step, search=False,
+                                                       instruments=instruments), data, sigma, settings.evidence_margin)
         if polished.log_likelihood > fit.log_likelihood:
             return idata, polished
     return idata, fit
+
+
+def _instruments_checked(fit: hypotheses.Fit, data, sigma, margin: float) -> hypotheses.Fit:
+    """``fit`` seen through the instruments the data most probably went through: each instrument error that
+    :func:`newdyn.sensors.check` finds out of its spec gets the wide prior, and the likelihood, χ² and evidence
+    follow — the evidence less ``margin`` per such instrument, the prior odds that one is out of its spec."""
+    if fit.instruments is None:
+        return fit
+    found = sensors_module.check(data, fit.model, sigma, fit.instruments, margin)
+    if not found.out_of_spec:
+        return fit
+    return replace(fit, instruments=found.instruments, log_likelihood=fit.log_likelihood + found.gain,
+                   log_evidence=fit.log_evidence + found.gain - margin * len(found.out_of_spec),
+                   chi2_red=float(likelihood.reduced_chi2(data, fit.model, sigma, n_fitted=len(fit.values), instruments=found.instruments)))
+
+
+def _instrument_report(fit: hypotheses.Fit, data, sigma, instruments: sensors_module.Instruments, channels, margin: float) -> dict:
+    """verdict.json's ``sensors`` (each instrument error under the final model ``fit``), ``sensor_problems`` (those
+    out of their datasheet's spec, in words) and ``instruments_took`` (the final model's χ² with exact
+    instruments and through the ones it was seen through)."""
+    found = sensors_module.check(data, fit.model, sigma, instruments, margin)
+    summary = sensors_module.summary(data, fit.model, sigma, found.instruments, channels, likelihood.HDI_PROB)
+    problems = []
+    for c, q, log_bayes_factor in found.out_of_spec:
+        channel, quantity = channels[c], sensors_module.QUANTITIES[q]
+        entry = summary[channel][quantity]
+        entry.update(out_of_spec=True, log_bayes_factor=log_bayes_factor)
+        problems.append({"channel": channel, "quantity": quantity, "value": entry["mean"], "hdi": entry["hdi"],
+                         "datasheet_sd": float(instruments.sd[c, q]), "log_bayes_factor": log_bayes_factor,
+                         "statement": sensors_module.in_words(channel, quantity, entry["mean"], model.CHANNEL_UNITS[channel])})
+    took = {"chi2_exact": float(likelihood.reduced_chi2(data, fit.model, sigma, len(fit.values))), "chi2": fit.chi2_red}
+    return {"sensors": summary, "sensor_problems": problems, "instruments_took": took}
 
 
 def _class(hypothesis: hypotheses.Hypothesis) -> str:
@@ -427,12 +471,12 @@ def _verdict(fits, calibrations, signatures, settings: Settings, values, samplin
     result = {
         "verdict": verdict, "effect": effect, "equivalent": [e for e in equivalent if e is not None],
         "ranking": ranking, "models": versions,
-        "model_versions": [_version_row(label, fits[versions[key]], _shown(fits[versions[key]], data, sigma, settings, sampling), data,
+        "model_versions": [_version_row(label, fits[versions[key]], _shown(fits[versions[key]], data, sigma), data,
                                         settings.channels)
                            for key, label in (("nominal", "nominal"), ("calibrated", "calibrated"), ("effect", "+ effect"))],
         "chi2_before": fits[HEALTHY].chi2_red, "chi2_after": fits[after].chi2_red,
-        "rmse_before": _rmse(data, _shown(fits[HEALTHY], data, sigma, settings, sampling), settings.channels),
-        "rmse_after": _rmse(data, _shown(fits[after], data, sigma, settings, sampling), settings.channels),
+        "rmse_before": _rmse(data, _shown(fits[HEALTHY], data, sigma), settings.channels),
+        "rmse_after": _rmse(data, _shown(fits[after], data, sigma), settings.channels),
         "parameters": _fit_parameters(fits[after], calibrations),
     }
     if len(result["equivalent"]) > 1:
@@ -452,7 +496,23 @@ def _verdict(fits, calibrations, signatures, settings: Settings, values, samplin
 
 def statement(verdict: Mapping, chi2_max: float) -> str:
     """The verdict in one plain sentence: what explains the data, with which values, and how far the
-    error fell; or, when nothing does, where the best model's residual remains above the noise."""
+    error fell; or, when nothing does, where the best model's residual remains above the noise; then, with a
+    sensor model, the instruments out of their spec and how much of the misfit the instruments took."""
+    if "instruments_took" not in verdict:
+        return _machine_statement(verdict, chi2_max)
+    problems = "; ".join(p["statement"] for p in verdict["sensor_problems"])
+    if verdict["verdict"] == SENSOR_PROBLEM:
+        sentence = (f"sensor problem: {problems}, outside the datasheet's spread; seen through that, the nominal model "
+                    f"explains the data (reduced chi2 {verdict['chi2_before']:.3g} <= {chi2_max:g})")
+    else:
+        sentence = _machine_statement(verdict, chi2_max) + (f"; out of spec: {problems}" if problems else "")
+    took = verdict["instruments_took"]
+    return sentence + (f"; the instruments' offsets, gains and delays took the final model's reduced chi2 from "
+                       f"{took['chi2_exact']:.3g} (exact instruments) to {took['chi2']:.3g}")
+
+
+def _machine_statement(verdict: Mapping, chi2_max: float) -> str:
+    """What the machine's model says: :func:`statement` without the instruments."""
     before, after = verdict["chi2_before"], verdict["chi2_after"]
     fitted = ", ".join(f"{name} = {p['mean']:.4g} (94 % HDI {p['hdi_low']:.4g} to {p['hdi_high']:.4g})"
                        for name, p in verdict["parameters"].items())
@@ -484,10 +544,10 @@ def _best_of(fits, cls: str) -> str:
     return max((n for n in fits if _class(fits[n].hypothesis) == cls), key=lambda n: fits[n].log_evidence)
 
 
-def _shown(fit: hypotheses.Fit, data, sigma, settings: Settings, sampling: model.Sampling) -> np.ndarray:
+def _shown(fit: hypotheses.Fit, data, sigma) -> np.ndarray:
     """What the instruments most probably show of ``fit``'s outputs (its outputs with exact instruments): what
     the residuals, the error fall and the figures compare with the data."""
-    return sensors_module.reading(data, fit.model, sigma, settings.instruments(sampling.fs))
+    return sensors_module.reading(data, fit.model, sigma, fit.instruments)
 
 
 def _version_row(label: str, fit: hypotheses.Fit, shown, data, channels) -> dict:
@@ -543,7 +603,7 @@ def _sample_effect(fit: hypotheses.Fit, data, sigma, values, sampling, channels,
 
     def log_likelihood(rows):
         ll = likelihood.log_likelihood(data, hypotheses.evaluate(hypothesis, rows, values, sampling, channels, settings.max_step), sigma,
-                                       instruments=settings.instruments(sampling.fs))
+                                       instruments=fit.instruments)
         return np.where(np.isnan(ll), -np.inf, ll)
 
     rng = np.random.default_rng(mcmc.seed)

@@ -8,6 +8,11 @@ classes) at random parameter values, in equal shares.  :func:`draw_cases` draws 
 the operating condition and provenance (no scenario, fault, class, parameter value or noise level),
 and :func:`score` compares the diagnoses' verdicts with the truth.
 
+A set with ``instruments`` sees every case through imperfect instruments: each channel with a datasheet in
+``diagnosis.sensors`` gets an offset, gain and delay drawn from that datasheet's Normal prior (from a stream of
+its own, so the machines are those of the same set without instruments), and ``out_of_spec`` of its cases get
+one instrument error on a compared channel :data:`OUT_OF_SPEC_SDS` datasheet sds off instead.
+
 An effect's draw ranges default to its parameters' ``hidden`` ranges (:attr:`Parameter.draw_range`,
 in its file, with how they were measured; ``hidden.faults`` in the config overrides them): each
 range's weak end still leaves a reduced-χ² excess the best drift of one rig parameter cannot remove.
@@ -22,10 +27,11 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from . import effects, faults, io, model, noise, provenance, simulation
-from .diagnosis import VERDICTS
+from . import effects, faults, io, model, noise, provenance, sensors, simulation
+from .diagnosis import SENSOR_PROBLEM, VERDICTS
 
 HEALTHY, PARAMETER_CHANGE, UNEXPLAINED = "healthy", faults.PARAMETER_CHANGE, "unexplained"
+OUT_OF_SPEC_SDS = (10.0, 30.0)  # an out-of-spec instrument error, in its datasheet's sds (either sign)
 MAX_DRAWS = 1000  # tries per case before a range is declared to admit no valid draw
 CHI2_MAX = 1.1  # a fault's fit explains the data when its reduced χ² is at most this
 
@@ -68,6 +74,8 @@ def draw_cases(
     base_values: Mapping[str, float],
     ranges: Mapping[str, Mapping[str, Sequence[float]]] | None = None,
     classes: Sequence[str] | None = None,
+    datasheets: Mapping[str, Mapping[str, float]] | None = None,
+    compared: Sequence[str] = (),
 ) -> list[dict]:
     """The cases of hidden set ``set_name``, deterministic from the set's seed.
 
@@ -76,8 +84,12 @@ def draw_cases(
     (default: :func:`default_ranges`); ``classes`` the classes of a set that names none of its own,
     :func:`newdyn.config.hidden_classes` (default: every class, :func:`all_classes`).
 
+    With the set's ``instruments``, ``datasheets`` (channel -> ``offset_sd``, ``gain_sd``, ``delay_sd``: the
+    config's ``diagnosis.sensors``) give each case's ``instruments`` and ``compared`` (the diagnosis channels) the
+    channels an ``out_of_spec`` error may fall on.
+
     Each case is ``{"name": "<set>_01", "class", "scenario": {"overrides", "fault"?}, "truth",
-    "noise_seed"}``; ``scenario`` goes to :func:`faults.scenario_values`, ``truth`` holds the drifted
+    "noise_seed"}`` (and ``instruments``, ``out_of_spec``); ``scenario`` goes to :func:`faults.scenario_values`, ``truth`` holds the drifted
     parameter and its value, or the effect's drawn parameters (every parameter of its range).
     Classes (the set's own ``classes``, else ``classes``) come in equal shares (the remainder to
     classes picked by the seed), shuffled.  A draw that is not admissible on ``base_values`` is
@@ -96,11 +108,34 @@ def draw_cases(
     order = list(streams[0].permutation(chosen))
     labels = [str(c) for c in streams[0].permutation((order * (n // len(chosen) + 1))[:n])]
     width = max(2, len(str(n)))
-    return [
+    cases = [
         {"name": f"{set_name}_{i + 1:0{width}d}", "class": label, **_draw(label, hidden, ranges, base, rng),
          "noise_seed": int(rng.integers(0, 2**31 - 1))}
         for i, (label, rng) in enumerate(zip(labels, streams[1:]))
     ]
+    if spec.get("instruments"):
+        instrument_streams = [np.random.default_rng(s) for s in np.random.SeedSequence([seed, 1]).spawn(n + 1)]
+        bad = set(instrument_streams[0].choice(n, int(spec.get("out_of_spec", 0)), replace=False).tolist())
+        for i, (case, rng) in enumerate(zip(cases, instrument_streams[1:])):
+            case.update(_draw_instruments(datasheets or {}, compared, rng, i in bad))
+    return cases
+
+
+def _draw_instruments(datasheets: Mapping[str, Mapping[str, float]], compared: Sequence[str], rng: np.random.Generator,
+                      out_of_spec: bool) -> dict:
+    """One case's instrument errors: each from its datasheet's Normal prior; with ``out_of_spec`` one error on a
+    ``compared`` channel :data:`OUT_OF_SPEC_SDS` datasheet sds off instead."""
+    errors = {c: {q: sensors.NOMINAL[q] + float(rng.normal(0.0, sheet.get(f"{q}_sd", 0.0))) for q in sensors.QUANTITIES}
+              for c, sheet in sorted(datasheets.items())}
+    if not out_of_spec:
+        return {"instruments": errors}
+    candidates = [(c, q) for c in compared if c in datasheets for q in sensors.QUANTITIES if datasheets[c].get(f"{q}_sd", 0.0) > 0]
+    if not candidates:
+        raise ValueError("hidden out_of_spec: no compared channel has an instrument error with a datasheet (diagnosis.sensors)")
+    channel, quantity = candidates[int(rng.integers(len(candidates)))]
+    sds = float(rng.uniform(*OUT_OF_SPEC_SDS)) * (1.0 if rng.random() < 0.5 else -1.0)
+    errors[channel][quantity] = sensors.NOMINAL[quantity] + sds * datasheets[channel][f"{quantity}_sd"]
+    return {"instruments": errors, "out_of_spec": {"channel": channel, "quantity": quantity, "sds": sds}}
 
 
 def _draw(label: str, hidden: Mapping, ranges: Mapping[str, Mapping[str, Sequence[float]]], base: Mapping[str, float],
@@ -164,21 +199,36 @@ def write_case_measurement(
     measurement file that carries the signal, the operating condition and provenance, nothing else:
     no scenario, class, parameter value or noise level (σ or SNR)."""
     values = case_values(case, base_values)
-    clean = simulation.simulate(values, sampling, model.CHANNELS, max_step)
-    noisy, _ = noise.add_noise(clean, model.CHANNELS, snr_db, int(case["noise_seed"]))
+    noisy, _ = noise.add_noise(_through_instruments(case, values, sampling, max_step), model.CHANNELS, snr_db, int(case["noise_seed"]))
     attrs = {"title": f"newdyn blind-test measurement {case['name']}", **provenance.attributes(code_hash)}
     operating = {name: values[name] for name in model.OPERATING_PARAMETERS}
     io.write_netcdf(io.measurement_dataset(noisy, model.CHANNELS, sampling, operating, attrs), output)
+
+
+def _through_instruments(case: Mapping, values: Mapping[str, float], sampling: model.Sampling, max_step: float) -> np.ndarray:
+    """Every channel as the case's instruments read it, o + g·m(t − τ): the rig simulated at the times each
+    delay shows (channels of one delay in one simulation); exact instruments read m."""
+    errors = {c: case.get("instruments", {}).get(c, sensors.NOMINAL) for c in model.CHANNELS}
+    reading = np.empty((len(model.CHANNELS), sampling.n_samples))
+    for delay in sorted({e["delay"] for e in errors.values()}):
+        rows = [i for i, c in enumerate(model.CHANNELS) if errors[c]["delay"] == delay]
+        late = model.Sampling(sampling.fs, sampling.t_first - delay, sampling.n_samples)
+        reading[rows] = simulation.simulate(values, late, [model.CHANNELS[i] for i in rows], max_step)
+    offset, gain = (np.array([errors[c][q] for c in model.CHANNELS])[:, None] for q in ("offset", "gain"))
+    return offset + gain * reading
 
 
 # ----------------------------------------------------------------------------------------- scoring
 
 
 def predicted_label(verdict: Mapping) -> str:
-    """The class a verdict names: healthy, parameter_change, a fault kind, or unexplained."""
+    """The class a verdict names: healthy (a sensor problem is a healthy machine), parameter_change, a fault
+    kind, or unexplained."""
     kind = verdict.get("verdict")
     if kind in (HEALTHY, PARAMETER_CHANGE, UNEXPLAINED):
         return kind
+    if kind == SENSOR_PROBLEM:
+        return HEALTHY
     if kind == "new_dynamics":
         if verdict.get("effect") not in fault_classes():
             raise ValueError(f"verdict new_dynamics names no library fault kind (effect {verdict.get('effect')!r})")
@@ -206,8 +256,10 @@ def score(cases: Sequence[Mapping], verdicts: Mapping[str, Mapping], chi2_max: f
 
     Returns the per-case ``rows``, the ``confusion`` matrix (truth class × predicted label), top-1
     ``accuracy`` overall and ``per_class``, the fitted-parameter errors of the correctly identified
-    cases (``parameter_errors``: relative error of the posterior mean, truth inside the 94 % HDI) and
-    ``fault_fit``: how many correctly identified fault cases the fault's fit explains (χ²_red ≤ chi2_max).
+    cases (``parameter_errors``: relative error of the posterior mean, truth inside the 94 % HDI),
+    ``fault_fit``: how many correctly identified fault cases the fault's fit explains (χ²_red ≤ chi2_max) and
+    ``instruments``: of the cases seen through instruments, how many out-of-spec errors the verdicts name
+    (channel and quantity) and how many instrument errors they name that were within spec.
     """
     missing = [case["name"] for case in cases if case["name"] not in verdicts]
     if missing:
@@ -229,6 +281,8 @@ def score(cases: Sequence[Mapping], verdicts: Mapping[str, Mapping], chi2_max: f
             "verdict": verdict["verdict"], "effect": verdict.get("effect"), "equivalent": list(verdict.get("equivalent") or []),
             "predicted": label, "correct": correct,
             "chi2_before": _float(verdict.get("chi2_before")), "chi2_after": _float(verdict.get("chi2_after")),
+            "out_of_spec": _instrument(case["out_of_spec"]) if "out_of_spec" in case else None,
+            "sensor_problems": [_instrument(p) for p in verdict.get("sensor_problems") or []],
         })
         if correct:
             errors += _parameter_errors(case, verdict)
@@ -240,6 +294,8 @@ def score(cases: Sequence[Mapping], verdicts: Mapping[str, Mapping], chi2_max: f
     explained = sum(1 for row in fault_rows if row["chi2_after"] is not None and row["chi2_after"] <= chi2_max)
     covered = [e["in_hdi"] for e in errors if e["in_hdi"] is not None]
     n_correct = sum(row["correct"] for row in rows)
+    seen = [row for row, case in zip(rows, cases) if "instruments" in case]
+    bad = [row for row in seen if row["out_of_spec"]]
     return {
         "cases": len(rows),
         "correct": n_correct,
@@ -251,7 +307,15 @@ def score(cases: Sequence[Mapping], verdicts: Mapping[str, Mapping], chi2_max: f
         "hdi_coverage": sum(covered) / len(covered) if covered else None,
         "fault_fit": {"cases": len(fault_rows), "explained": explained, "chi2_max": chi2_max,
                       "fraction": explained / len(fault_rows) if fault_rows else None},
+        "instruments": {"cases": len(seen), "out_of_spec": len(bad),
+                        "named": sum(row["out_of_spec"] in row["sensor_problems"] for row in bad),
+                        "false_alarms": sum(p != row["out_of_spec"] for row in seen for p in row["sensor_problems"])},
     }
+
+
+def _instrument(entry: Mapping) -> str:
+    """An instrument error as a score names it: "<channel> <quantity>"."""
+    return f"{entry['channel']} {entry['quantity']}"
 
 
 def _parameter_errors(case: Mapping, verdict: Mapping) -> list[dict]:
@@ -290,7 +354,7 @@ def _float(value) -> float | None:
 
 
 CSV_COLUMNS = ("name", "class", "truth", "verdict", "effect", "equivalent", "predicted", "correct",
-               "chi2_before", "chi2_after", "parameter_errors")
+               "chi2_before", "chi2_after", "parameter_errors", "out_of_spec", "sensor_problems")
 
 
 def write_score(result: Mapping, json_path: str | os.PathLike, csv_path: str | os.PathLike, code_hash: str = "") -> None:
@@ -303,7 +367,8 @@ def write_score(result: Mapping, json_path: str | os.PathLike, csv_path: str | o
     table = [
         {**row, "truth": json.dumps(row["truth"], sort_keys=True), "equivalent": ";".join(row["equivalent"]),
          "effect": row["effect"] or "", "chi2_before": _cell(row["chi2_before"]), "chi2_after": _cell(row["chi2_after"]),
-         "parameter_errors": json.dumps(by_case.get(row["name"], []))}
+         "parameter_errors": json.dumps(by_case.get(row["name"], [])), "out_of_spec": row["out_of_spec"] or "",
+         "sensor_problems": ";".join(row["sensor_problems"])}
         for row in result["rows"]
     ]
     io.write_csv(csv_path, CSV_COLUMNS, table)

@@ -173,6 +173,7 @@ class Fit:
     n_simulations: int
     at_bound: tuple[str, ...] = ()
     covariance: np.ndarray | None = None  # Laplace posterior covariance of the fitted values
+    instruments: sensors.Instruments | None = None  # the instrument errors its likelihood integrates out (None: exact)
 
     @property
     def theta(self) -> np.ndarray:
@@ -251,7 +252,8 @@ def fit(
     if k == 0:
         best = simulate(np.zeros((1, 0)))[0]
         ll = float(likelihood.log_likelihood(data, best, sigma, instruments=instruments))
-        return Fit(hypothesis, {}, best, ll, float(likelihood.reduced_chi2(data, best, sigma, instruments=instruments)), ll, n_runs)
+        return Fit(hypothesis, {}, best, ll, float(likelihood.reduced_chi2(data, best, sigma, instruments=instruments)), ll, n_runs,
+                   instruments=instruments)
 
     low = np.array([p.low for p in hypothesis.priors])
     span = np.array([p.high for p in hypothesis.priors]) - low
@@ -317,5 +319,5 @@ def fit(
     return Fit(
         hypothesis, hypothesis.effective_values(theta_star, base), model_star, ll,
         float(likelihood.reduced_chi2(data, model_star, sigma, n_fitted=k, instruments=instruments)), float(log_evidence), n_runs, at_bound,
-        span[:, None] * covariance_u * span[None, :],
+        span[:, None] * covariance_u * span[None, :], instruments,
     )

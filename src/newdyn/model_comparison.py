@@ -12,6 +12,7 @@ outputs are read through the instruments' offsets and gains at their posterior m
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
+from typing import NamedTuple
 
 import numpy as np
 
@@ -70,8 +71,17 @@ def compare(versions: Mapping[str, object]) -> list[dict]:
             for name, row in table.iterrows()]
 
 
-def evaluate_versions(evaluators: Mapping[str, tuple[Callable[[np.ndarray], np.ndarray], np.ndarray, Sequence[str]]],
-                      data: np.ndarray, sigma: np.ndarray, cycle: np.ndarray, channels: Sequence[str], instruments: sensors.Instruments | None = None) -> dict:
-    """InferenceData per version from (simulate(draws) -> outputs, draws (n, k), parameter names)."""
-    return {name: inference_data(pointwise(data, sigma, simulate(theta), cycle, instruments), dict(zip(names, theta.T)), channels)
-            for name, (simulate, theta, names) in evaluators.items()}
+class Version(NamedTuple):
+    """A model version to compare: its outputs for a batch of draws, the draws, and what it is seen through."""
+
+    simulate: Callable[[np.ndarray], np.ndarray]  # draws (n, k) -> outputs (n, channel, time)
+    draws: np.ndarray
+    names: Sequence[str]  # the draws' parameters
+    instruments: sensors.Instruments | None = None
+
+
+def evaluate_versions(versions: Mapping[str, Version], data: np.ndarray, sigma: np.ndarray, cycle: np.ndarray,
+                      channels: Sequence[str]) -> dict:
+    """InferenceData per version."""
+    return {name: inference_data(pointwise(data, sigma, v.simulate(v.draws), cycle, v.instruments), dict(zip(v.names, v.draws.T)), channels)
+            for name, v in versions.items()}

@@ -28,6 +28,7 @@ from scipy import stats
 
 LOG_2PI = math.log(2.0 * math.pi)
 DELAY_PASSES = 3  # Gauss–Newton passes for τ̂; the last one's linearization is the likelihood's
+OUT_OF_SPEC = 100.0  # an instrument out of its spec: its error's prior this many times wider than its datasheet's
 
 
 @dataclass(frozen=True)
@@ -66,11 +67,16 @@ class Instruments:
         scale[:, DELAY] *= fs
         return cls(scale, float(fs)) if np.any(scale > 0) else None
 
-    def widened(self, channel: int, quantity: int, factor: float) -> Instruments:
-        """The same instruments with one channel's prior on one quantity ``factor`` times wider."""
+    def widened(self, channel: int | slice, quantity: int, factor: float) -> Instruments:
+        """The same instruments with ``channel``'s prior on ``quantity`` ``factor`` times wider."""
         scale = self.scale.copy()
         scale[channel, quantity] *= factor
         return Instruments(scale, self.fs)
+
+    @property
+    def sd(self) -> np.ndarray:
+        """(channel, quantity) prior sds in the quantities' own units (the delay's in seconds)."""
+        return self.scale / np.where(np.arange(len(QUANTITIES)) == DELAY, self.fs, 1.0)
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -209,11 +215,10 @@ def estimate(data: np.ndarray, model: np.ndarray, sigma: np.ndarray, instruments
     (..., C, n): ``{quantity: (..., C), quantity_sd: (..., C)}``; a quantity without a prior stays nominal."""
     solution, _, _ = _solve(data, model, sigma, instruments.scale)
     sd = np.sqrt(np.diagonal(np.linalg.inv(solution.gram), axis1=-2, axis2=-1))
-    in_units = instruments.scale / np.where(np.arange(len(QUANTITIES)) == DELAY, instruments.fs, 1.0)
     found = {}
     for i, quantity in enumerate(QUANTITIES):
-        found[quantity] = (NOMINAL[quantity] + in_units[:, i] * solution.c_hat[..., i]).reshape(solution.lead + data.shape[:1])
-        found[f"{quantity}_sd"] = (in_units[:, i] * sd[..., i]).reshape(solution.lead + data.shape[:1])
+        found[quantity] = (NOMINAL[quantity] + instruments.sd[:, i] * solution.c_hat[..., i]).reshape(solution.lead + data.shape[:1])
+        found[f"{quantity}_sd"] = (instruments.sd[:, i] * sd[..., i]).reshape(solution.lead + data.shape[:1])
     return found
 
 
@@ -226,6 +231,41 @@ def summary(data: np.ndarray, model: np.ndarray, sigma: np.ndarray, instruments:
                     "hdi": [float(found[q][i] - half * found[f"{q}_sd"][i]), float(found[q][i] + half * found[f"{q}_sd"][i])]}
                 for j, q in enumerate(QUANTITIES) if instruments.scale[i, j] > 0}
             for i, c in enumerate(channels) if np.any(instruments.scale[i] > 0)}
+
+
+@dataclass(frozen=True)
+class Check:
+    """Which instrument errors lie outside their spec, given one model of the machine."""
+
+    instruments: Instruments  # the priors, with those out of spec widened OUT_OF_SPEC times
+    gain: float  # log p(y | m, instruments) − log p(y | m, datasheet priors)
+    out_of_spec: tuple[tuple[int, int, float], ...]  # (channel, quantity, log Bayes factor of widening it alone)
+
+
+def check(data: np.ndarray, model: np.ndarray, sigma: np.ndarray, instruments: Instruments, margin: float) -> Check:
+    """The instrument errors whose prior, widened :data:`OUT_OF_SPEC` times, raises the likelihood of ``model``
+    (C, n) by more than ``margin``: with prior odds e^−margin that an instrument is out of its spec, those the
+    data say more probably are.  Channels are independent, so widening a quantity on every channel at once
+    gives each channel's Bayes factor."""
+    spec = log_likelihood(data, model, sigma, instruments, per_channel=True)
+    found = []
+    for q in range(len(QUANTITIES)):
+        wide = log_likelihood(data, model, sigma, instruments.widened(slice(None), q, OUT_OF_SPEC), per_channel=True) - spec
+        found += [(int(c), q, float(wide[c])) for c in np.flatnonzero((wide > margin) & (instruments.scale[:, q] > 0))]
+    used = instruments
+    for c, q, _ in found:
+        used = used.widened(c, q, OUT_OF_SPEC)
+    gain = float(np.sum(log_likelihood(data, model, sigma, used, per_channel=True) - spec)) if found else 0.0
+    return Check(used, gain, tuple(found))
+
+
+def in_words(channel: str, quantity: str, value: float, unit: str) -> str:
+    """An instrument error as a user reads it: "w1 reads 2.1 % high", "b1_x lags by 0.42 ms"."""
+    if quantity == "gain":
+        return f"{channel} reads {abs(value - 1) * 100:.2g} % {'high' if value > 1 else 'low'}"
+    if quantity == "delay":
+        return f"{channel} {'lags' if value > 0 else 'leads'} by {abs(value) * 1e3:.2g} ms"
+    return f"{channel} reads {abs(value):.2g} {unit} {'high' if value > 0 else 'low'}"
 
 
 def reading(data: np.ndarray, model: np.ndarray, sigma: np.ndarray, instruments: Instruments | None) -> np.ndarray:

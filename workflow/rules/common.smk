@@ -354,7 +354,9 @@ def diagnosis_targets(root, names):
 
 def hidden_spec(wildcards):
     """What draws and simulates a hidden set: its name, cases and seed (not the other sets'), the draw's
-    ranges, the rig and the record."""
+    ranges, the rig and the record; for a set seen through instruments, their datasheets and the compared
+    channels."""
+    instruments = HIDDEN_SETS[wildcards.set].get("instruments", False)
     return newdyn.config.canonical_json(
         {
             "set": wildcards.set,
@@ -363,6 +365,14 @@ def hidden_spec(wildcards):
             "sampling": _sampling_spec(config),
             "max_step": config["simulation"]["max_step"],
             "effects": EFFECTS,
+            **(
+                {
+                    "sensors": config["diagnosis"]["sensors"],
+                    "channels": config["diagnosis"]["channels"],
+                }
+                if instruments
+                else {}
+            ),
         }
     )
 
