@@ -251,3 +251,29 @@ def test_the_fault_mcmc_takes_one_round_only_behind_a_discovered_term_that_expla
     # A library fault that explains the data keeps its MCMC to convergence, whatever discovery found on request.
     explained = {**fits, "stick_slip": replace(fits["stick_slip"], chi2_red=1.0)}
     assert diagnosis._explaining_ahead(explained, {}, "stick_slip", 1.1, discovered) is None
+
+
+def test_a_speed_sensor_out_of_its_spec_is_a_sensor_problem_not_a_machine_fault():
+    """The healthy fit through a w1 that reads 2.4 % high (its datasheet: 0.1 %): the check widens that gain's prior,
+    the fit's evidence and χ² follow, and the verdict names the sensor and how much of the misfit it took."""
+    from newdyn import sensors
+
+    clean = simulation.simulate(model.DEFAULTS, SAMPLING, ("b1_x", "w1"))
+    data, sigma = noise.add_noise(clean, ("b1_x", "w1"), 40.0, 4)
+    data[1] = 1.024 * clean[1] + (data[1] - clean[1])
+    instruments = sensors.Instruments.of({"b1_x": sensors.Sensor(1e-6, 0.01, 2e-4), "w1": sensors.Sensor(0.01, 0.001, 2e-4)},
+                                         ("b1_x", "w1"), SAMPLING.fs)
+    healthy = hypotheses.fit(hypotheses.Hypothesis("healthy", "healthy"), data, sigma, model.DEFAULTS, SAMPLING, ("b1_x", "w1"),
+                             instruments=instruments)
+    checked = diagnosis._instruments_checked(healthy, data, sigma, 6.9)
+    assert healthy.chi2_red > 1.5 and checked.chi2_red < 1.1
+    gain = checked.log_likelihood - healthy.log_likelihood
+    assert gain > 6.9 and checked.log_evidence == pytest.approx(healthy.log_evidence + gain - 6.9)
+    report = diagnosis._instrument_report(checked, data, sigma, instruments, ("b1_x", "w1"), 6.9)
+    (problem,) = report["sensor_problems"]
+    assert (problem["channel"], problem["quantity"], problem["statement"]) == ("w1", "gain", "w1 reads 2.4 % high")
+    assert problem["hdi"][0] < 1.024 < problem["hdi"][1] and report["sensors"]["w1"]["gain"]["out_of_spec"]
+    assert report["instruments_took"]["chi2_exact"] > 100 and report["instruments_took"]["chi2"] == checked.chi2_red
+    verdict = {"verdict": diagnosis.SENSOR_PROBLEM, "chi2_before": checked.chi2_red, **report}
+    assert diagnosis.statement(verdict, 1.1).startswith("sensor problem: w1 reads 2.4 % high, outside the datasheet's spread; "
+                                                        "seen through that, the nominal model explains the data")

@@ -239,23 +239,30 @@ class Check:
 
     instruments: Instruments  # the priors, with those out of spec widened OUT_OF_SPEC times
     gain: float  # log p(y | m, instruments) − log p(y | m, datasheet priors)
-    out_of_spec: tuple[tuple[int, int, float], ...]  # (channel, quantity, log Bayes factor of widening it alone)
+    out_of_spec: tuple[tuple[int, int, float], ...]  # (channel, quantity, log Bayes factor of widening it, given those before)
 
 
 def check(data: np.ndarray, model: np.ndarray, sigma: np.ndarray, instruments: Instruments, margin: float) -> Check:
     """The instrument errors whose prior, widened :data:`OUT_OF_SPEC` times, raises the likelihood of ``model``
     (C, n) by more than ``margin``: with prior odds e^−margin that an instrument is out of its spec, those the
-    data say more probably are.  Channels are independent, so widening a quantity on every channel at once
-    gives each channel's Bayes factor."""
-    spec = log_likelihood(data, model, sigma, instruments, per_channel=True)
-    found = []
-    for q in range(len(QUANTITIES)):
-        wide = log_likelihood(data, model, sigma, instruments.widened(slice(None), q, OUT_OF_SPEC), per_channel=True) - spec
-        found += [(int(c), q, float(wide[c])) for c in np.flatnonzero((wide > margin) & (instruments.scale[:, q] > 0))]
-    used = instruments
-    for c, q, _ in found:
-        used = used.widened(c, q, OUT_OF_SPEC)
-    gain = float(np.sum(log_likelihood(data, model, sigma, used, per_channel=True) - spec)) if found else 0.0
+    data say more probably are.  Per channel, greedily: the quantity whose widening gains most, then the others
+    given it (a speed sensor's gain error also moves its mean, which its offset alone would take in part).
+    Channels are independent, so widening a quantity on every channel at once gives each channel's gain."""
+    used, found = instruments, []
+    current = log_likelihood(data, model, sigma, used, per_channel=True)
+    while True:
+        gains = np.stack([log_likelihood(data, model, sigma, used.widened(slice(None), q, OUT_OF_SPEC), per_channel=True)
+                          for q in range(len(QUANTITIES))], axis=-1) - current[:, None]
+        gains[(instruments.scale <= 0) | (used.scale != instruments.scale)] = -np.inf  # no prior, or widened already
+        best = np.argmax(gains, axis=-1)
+        out = [(int(c), int(best[c]), float(gains[c, best[c]])) for c in np.flatnonzero(gains.max(axis=-1) > margin)]
+        if not out:
+            break
+        for c, q, _ in out:
+            used = used.widened(c, q, OUT_OF_SPEC)
+        found += out
+        current = log_likelihood(data, model, sigma, used, per_channel=True)
+    gain = float(np.sum(current - log_likelihood(data, model, sigma, instruments, per_channel=True))) if found else 0.0
     return Check(used, gain, tuple(found))
 
 
