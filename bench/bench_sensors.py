@@ -3,21 +3,24 @@ more diagnosis time), side by side with exact instruments on the stages that eva
 calibration, a fault's fit (breathing crack with the drift, least squares through the windows) and the
 likelihood of an MCMC batch.  Default record (1 s at 40 dB, b1_x and w1), a healthy rig whose b1_x reads
 0.2 of its std high; the sensor model is the README's (b1_x offset sd 100 nm, gain sd 2 %; w1 0.01 rad/s, 0.1 %),
-then the same with a delay sd of 0.2 ms on both.
+then the same with a delay sd of 0.2 ms on both.  With ``--diagnosis``, whole diagnoses of that measurement and of
+a kT1 drift, with exact instruments and with the config's datasheets (minutes each).
 
-Run: python bench/bench_sensors.py
+Run: python bench/bench_sensors.py [--diagnosis]
 """
 
 from __future__ import annotations
 
+import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numba
 import numpy as np
 import yaml
 
-from newdyn import calibration, diagnosis, hypotheses, likelihood, model, noise, sensors, simulation
+from newdyn import calibration, diagnosis, hypotheses, io, likelihood, model, noise, sensors, simulation
 
 ROOT = Path(__file__).resolve().parents[1]
 GOAL = 1.2
@@ -65,5 +68,29 @@ def main() -> None:
         print(f"{name:32s} {exact * 1e3:8.1f}ms" + row)
 
 
+def whole_diagnoses() -> None:
+    """A healthy rig whose b1_x reads 0.2 std high, and a kT1 drift, diagnosed with and without the datasheets."""
+    config = yaml.safe_load((ROOT / "config" / "config.yaml").read_text())
+    settings = diagnosis.Settings.from_config(config)
+    sampling, channels = model.Sampling(), settings.channels
+    operating = {k: config["operating"][k] for k in model.OPERATING_PARAMETERS}
+    print(f"whole diagnoses, 1-s record at 40 dB ({', '.join(channels)}), 2 cores")
+    print(f"{'measurement':24s} {'exact':>9s} {'datasheets':>11s} {'ratio':>6s}   verdicts   goal <= {GOAL:.1f}x")
+    for name, truth, offset in (("healthy + b1_x offset", {}, 0.2), ("kT1 +8 %", {"kT1": 3.25e6}, 0.0)):
+        clean = simulation.simulate(model.complete({**settings.rig, **truth}), sampling, channels)
+        data, sigma = noise.add_noise(clean, channels, 40.0, 3)
+        data[0] += offset * np.std(clean[0])
+        measurement = io.Measurement(name, tuple(channels), data, sampling, operating, sigma)
+        times, verdicts = [], []
+        for chosen in (replace(settings, sensors={}), settings):
+            start = time.perf_counter()
+            verdicts.append(diagnosis.diagnose(measurement, chosen).verdict["verdict"])
+            times.append(time.perf_counter() - start)
+        print(f"{name:24s} {times[0]:8.0f}s {times[1]:10.0f}s {times[1] / times[0]:5.2f}x   {' / '.join(verdicts)}")
+
+
 if __name__ == "__main__":
-    main()
+    if "--diagnosis" in sys.argv[1:]:
+        whole_diagnoses()
+    else:
+        main()
