@@ -277,3 +277,15 @@ def test_a_speed_sensor_out_of_its_spec_is_a_sensor_problem_not_a_machine_fault(
     verdict = {"verdict": diagnosis.SENSOR_PROBLEM, "chi2_before": checked.chi2_red, **report}
     assert diagnosis.statement(verdict, 1.1).startswith("sensor problem: w1 reads 2.4 % high, outside the datasheet's spread; "
                                                         "seen through that, the nominal model explains the data")
+    # A drift that took the same misfit through in-spec instruments: the sensor problem is its equal but for the
+    # prior odds against a bad instrument, and is named beside it; a drift far ahead leaves none.
+    settings = replace(SETTINGS, evidence_margin=6.9)
+    for ahead, named in ((9.0, ["healthy"]), (15.0, [])):
+        drift = replace(healthy, hypothesis=hypotheses.Hypothesis("parameter_change:kT1", "parameter_change", "kT1"),
+                        values={"kT1": 3.0e6}, log_evidence=checked.log_evidence + ahead, chi2_red=checked.chi2_red)
+        fits = {"healthy": checked, "parameter_change:kT1": drift}
+        found = diagnosis._sensor_alternatives(fits, "parameter_change:kT1", data, sigma, instruments, ("b1_x", "w1"), settings)
+        assert [row["hypothesis"] for row in found] == named
+    assert found == [] and "explains the data as well through an instrument out of its spec (w1 reads 2.4 % high)" in diagnosis.statement(
+        {"verdict": "parameter_change", "effect": "kT1", "equivalent": ["kT1"], "parameters": {}, "chi2_before": 3.0, "chi2_after": 1.0,
+         **report, "sensor_problems": [], "sensor_alternatives": [{"hypothesis": "healthy", "sensor_problems": report["sensor_problems"]}]}, 1.1)

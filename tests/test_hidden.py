@@ -402,7 +402,8 @@ def test_the_score_counts_named_and_false_instrument_problems():
     problem = {"channel": "w1", "quantity": "gain"}
     verdicts = {"t_01": {**VERDICTS["t_01"], "sensor_problems": [{"channel": "b1_x", "quantity": "offset"}]},
                 "t_02": {**VERDICTS["t_01"], "verdict": "sensor_problem", "sensor_problems": [problem]},
-                "t_05": {**VERDICTS["t_05"], "sensor_problems": []}}
+                "t_05": {**VERDICTS["t_05"], "sensor_problems": [], "sensor_alternatives": [
+                    {"hypothesis": "healthy", "sensor_problems": [{"channel": "b1_x", "quantity": "delay"}]}]}}
     result = hidden.score(cases, verdicts)
-    assert result["instruments"] == {"cases": 3, "out_of_spec": 2, "named": 1, "false_alarms": 1}
+    assert result["instruments"] == {"cases": 3, "out_of_spec": 2, "named": 1, "named_as_alternative": 1, "false_alarms": 1}
     assert [row["predicted"] for row in result["rows"]] == ["healthy", "healthy", "parameter_change"]  # a sensor problem: a healthy machine

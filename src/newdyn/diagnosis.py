@@ -271,6 +271,7 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
         verdict.update(_instrument_report(fits[verdict["models"]["after"]], data, sigma, instruments, channels, settings.evidence_margin))
         if verdict["verdict"] == "healthy" and verdict["sensor_problems"]:
             verdict["verdict"] = SENSOR_PROBLEM
+        verdict["sensor_alternatives"] = _sensor_alternatives(fits, verdict["models"]["after"], data, sigma, instruments, channels, settings)
     verdict["effect_fit"] = {
         "hypothesis": best_fault, "parameters": _mcmc_parameters(effect_mcmc, hyps[best_fault].parameters),
         **{key: effect_mcmc.attrs[key] for key in ("converged", "rhat", "ess_bulk", "reason") if key in effect_mcmc.attrs},
@@ -416,6 +417,22 @@ def _instrument_report(fit: hypotheses.Fit, data, sigma, instruments: sensors_mo
     return {"sensors": summary, "sensor_problems": problems, "instruments_took": took}
 
 
+def _sensor_alternatives(fits, after: str, data, sigma, instruments: sensors_module.Instruments, channels, settings: Settings) -> list[dict]:
+    """The fits through an instrument out of its spec that explain the data (χ² ≤ ``chi2_max``) as well as the
+    verdict's fit ``after`` but for the prior odds against a bad instrument: within ``evidence_margin`` of its
+    evidence once those odds are given back.  A probe's gain and a bearing's stiffness, say, can scale a
+    displacement alike; the data cannot choose, only the odds did."""
+    best, rows = fits[after].log_evidence, []
+    for name, fit in fits.items():
+        widened = 0 if fit.instruments is None else int(np.sum(fit.instruments.scale != instruments.scale))
+        if name == after or not widened or fit.chi2_red > settings.chi2_max:
+            continue
+        if fit.log_evidence + settings.evidence_margin * widened >= best - settings.evidence_margin:
+            problems = _instrument_report(fit, data, sigma, instruments, channels, settings.evidence_margin)["sensor_problems"]
+            rows.append({"hypothesis": name, "log_evidence": fit.log_evidence, "chi2": fit.chi2_red, "sensor_problems": problems})
+    return sorted(rows, key=lambda row: -row["log_evidence"])
+
+
 def _class(hypothesis: hypotheses.Hypothesis) -> str:
     return {HEALTHY: "healthy", PARAMETER_CHANGE: "parameter_change"}.get(hypothesis.kind, "new_dynamics")
 
@@ -506,6 +523,10 @@ def statement(verdict: Mapping, chi2_max: float) -> str:
                     f"explains the data (reduced chi2 {verdict['chi2_before']:.3g} <= {chi2_max:g})")
     else:
         sentence = _machine_statement(verdict, chi2_max) + (f"; out of spec: {problems}" if problems else "")
+    for alternative in verdict.get("sensor_alternatives", []):
+        sentence += (f"; {alternative['hypothesis']} explains the data as well through an instrument out of its spec ("
+                     + "; ".join(p["statement"] for p in alternative["sensor_problems"])
+                     + "): only the prior odds against a bad instrument chose, a check of that sensor would tell")
     took = verdict["instruments_took"]
     return sentence + (f"; the instruments' offsets, gains and delays took the final model's reduced chi2 from "
                        f"{took['chi2_exact']:.3g} (exact instruments) to {took['chi2']:.3g}")

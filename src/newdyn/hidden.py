@@ -259,7 +259,8 @@ def score(cases: Sequence[Mapping], verdicts: Mapping[str, Mapping], chi2_max: f
     cases (``parameter_errors``: relative error of the posterior mean, truth inside the 94 % HDI),
     ``fault_fit``: how many correctly identified fault cases the fault's fit explains (χ²_red ≤ chi2_max) and
     ``instruments``: of the cases seen through instruments, how many out-of-spec errors the verdicts name
-    (channel and quantity) and how many instrument errors they name that were within spec.
+    (channel and quantity), how many only as an alternative that explains the data as well
+    (``sensor_alternatives``), and how many instrument errors they name that were within spec.
     """
     missing = [case["name"] for case in cases if case["name"] not in verdicts]
     if missing:
@@ -283,6 +284,7 @@ def score(cases: Sequence[Mapping], verdicts: Mapping[str, Mapping], chi2_max: f
             "chi2_before": _float(verdict.get("chi2_before")), "chi2_after": _float(verdict.get("chi2_after")),
             "out_of_spec": _instrument(case["out_of_spec"]) if "out_of_spec" in case else None,
             "sensor_problems": [_instrument(p) for p in verdict.get("sensor_problems") or []],
+            "sensor_alternatives": [_instrument(p) for a in verdict.get("sensor_alternatives") or [] for p in a["sensor_problems"]],
         })
         if correct:
             errors += _parameter_errors(case, verdict)
@@ -309,6 +311,7 @@ def score(cases: Sequence[Mapping], verdicts: Mapping[str, Mapping], chi2_max: f
                       "fraction": explained / len(fault_rows) if fault_rows else None},
         "instruments": {"cases": len(seen), "out_of_spec": len(bad),
                         "named": sum(row["out_of_spec"] in row["sensor_problems"] for row in bad),
+                        "named_as_alternative": sum(row["out_of_spec"] in row["sensor_alternatives"] for row in bad),
                         "false_alarms": sum(p != row["out_of_spec"] for row in seen for p in row["sensor_problems"])},
     }
 
