@@ -357,7 +357,7 @@ def _float(value) -> float | None:
 
 
 CSV_COLUMNS = ("name", "class", "truth", "verdict", "effect", "equivalent", "predicted", "correct",
-               "chi2_before", "chi2_after", "parameter_errors", "out_of_spec", "sensor_problems")
+               "chi2_before", "chi2_after", "parameter_errors", "out_of_spec", "sensor_problems", "sensor_alternatives")
 
 
 def write_score(result: Mapping, json_path: str | os.PathLike, csv_path: str | os.PathLike, code_hash: str = "") -> None:
@@ -371,7 +371,7 @@ def write_score(result: Mapping, json_path: str | os.PathLike, csv_path: str | o
         {**row, "truth": json.dumps(row["truth"], sort_keys=True), "equivalent": ";".join(row["equivalent"]),
          "effect": row["effect"] or "", "chi2_before": _cell(row["chi2_before"]), "chi2_after": _cell(row["chi2_after"]),
          "parameter_errors": json.dumps(by_case.get(row["name"], [])), "out_of_spec": row["out_of_spec"] or "",
-         "sensor_problems": ";".join(row["sensor_problems"])}
+         "sensor_problems": ";".join(row["sensor_problems"]), "sensor_alternatives": ";".join(row["sensor_alternatives"])}
         for row in result["rows"]
     ]
     io.write_csv(csv_path, CSV_COLUMNS, table)
