@@ -109,6 +109,13 @@ def test_the_noise_level_is_inferred_from_the_noise_floor_when_the_file_has_none
     assert 3.0 < stated < 7.0
 
 
+def test_a_coloured_channel_takes_its_residual_level_a_white_one_keeps_its_sigma():
+    colour = noise.Colour(np.array([[0.9], [0.0]]), np.array([np.sqrt(0.19), 1.0]))  # the first channel coloured
+    sigma, source = diagnosis.coloured_level(SETTINGS.channels, np.array([1.0, 2.0]), "the file's sigma", colour, np.array([3.0, 4.0]))
+    assert sigma.tolist() == [3.0, 2.0]
+    assert source.startswith("the file's sigma for white channels") and f"({SETTINGS.channels[0]} AR(1))" in source
+
+
 def test_a_measurement_without_a_diagnosis_channel_is_refused():
     m = measurement("short", {})
     m = io.Measurement(m.name, ("b1_x",), m.y[:1], m.sampling, m.operating, m.sigma[:1])

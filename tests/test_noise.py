@@ -3,9 +3,10 @@ recovered from a noisy record alone, by its noise floor or by its stated SNR."""
 
 import numpy as np
 import pytest
+import scipy.signal
 
 from newdyn import faults, model
-from newdyn.noise import add_noise, noise_floor_sigma, noise_sigma, sigma_from_snr
+from newdyn.noise import Colour, add_noise, colour, noise_floor_sigma, noise_sigma, sigma_from_snr
 from newdyn.simulation import simulate
 
 CHANNELS = ["b1_x", "w1", "torque_c"]
@@ -102,3 +103,46 @@ def test_sigma_from_snr_recovers_noise_sigma(clean, snr_db):
     q, n = 10 ** (-snr_db / 10), clean.shape[1]
     se = 0.5 * np.sqrt(2 * q**2 / n + 4 * q / n) / (1 + q)
     assert np.all(np.abs(sigma_from_snr(noisy, snr_db) / sigma - 1) < 3 * se)
+
+
+def _ar1(phi: float, shape, seed: int) -> np.ndarray:
+    """Unit-variance AR(1) noise from scipy's filter: a generator the estimator does not share."""
+    white = np.random.default_rng(seed).standard_normal(shape)
+    return scipy.signal.lfilter([1.0], [1.0, -phi], white, axis=-1) * np.sqrt(1.0 - phi**2)
+
+
+def _lines(n: int, fs: float, amplitude: float) -> np.ndarray:
+    """A rotating machine's misfit: harmonics of 12.3 Hz and two resonances, far above the noise."""
+    t = np.arange(n) / fs
+    return sum(amplitude * np.sin(2 * np.pi * f * t + f) for f in (12.3, 24.6, 36.9, 49.2, 150.2, 611.1))
+
+
+def test_white_noise_is_found_white_through_misfit_lines():
+    n, fs = 5000, 5000.0
+    rng = np.random.default_rng(11)
+    found = [colour(rng.standard_normal((2, n)) + _lines(n, fs, 100.0 * (seed % 2)), 8)[0] for seed in range(20)]
+    assert sum(c.white for c in found) >= 19
+    assert all(c.innovation.tolist() == [1.0, 1.0] for c in found if c.white)
+
+
+@pytest.mark.parametrize("phi", [0.5, 0.9, 0.97])
+def test_ar1_noise_is_found_beneath_misfit_lines(phi):
+    n, fs = 5000, 5000.0
+    x = _ar1(phi, (1, n), seed=int(phi * 100)) + _lines(n, fs, 100.0)
+    found, level = colour(x, 8)
+    assert found.order >= 1
+    # the fitted spectrum, not the coefficients, is what whitening needs: compare it where the noise lives
+    frequency = np.linspace(5.0, 2000.0, 200)
+    truth = (1 - phi**2) / np.abs(1 - phi * np.exp(-2j * np.pi * frequency / fs)) ** 2
+    ratio = found.spectrum(frequency, fs)[0] / truth
+    assert np.all(np.abs(np.log(ratio)) < 0.35), ratio.min()
+    assert abs(found.innovation[0] - np.sqrt(1 - phi**2)) < 0.25 * np.sqrt(1 - phi**2)
+    assert level[0] == pytest.approx(1.0, rel=0.3)
+
+
+def test_whitening_an_ar_process_leaves_white_noise():
+    coefficients = np.array([[1.2, -0.5], [0.6, 0.0]])
+    white = np.random.default_rng(5).standard_normal((2, 4000))
+    x = np.stack([scipy.signal.lfilter([1.0], np.r_[1.0, -a], w) for a, w in zip(coefficients, white)])
+    e = Colour(coefficients, np.ones(2)).whiten(x)
+    np.testing.assert_allclose(e, white[:, 2:], atol=1e-12)

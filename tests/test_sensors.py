@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from newdyn import likelihood, sensors
+from newdyn import likelihood, noise, sensors
 
 RNG = np.random.default_rng(11)
 N = 60
@@ -33,6 +33,31 @@ def test_the_marginal_likelihood_is_the_normal_density_with_the_instruments_cova
     # What least squares minimizes: n + 2 numbers per channel whose squares sum to rᵀC⁻¹r.
     z = sensors.standardized_residuals(data, MODEL, SIGMA, INSTRUMENTS)
     assert z.shape == (2, N + 3) and np.sum(z**2, axis=-1) == pytest.approx(quadratic, rel=1e-9)
+
+
+def test_with_coloured_noise_it_is_the_normal_density_of_the_whitened_readings():
+    """AR(1) noise of stationary variance σ² (covariance σ²φ^|i−j|) under offset and gain errors: the likelihood is
+    the density of W y, W the whitening filter, whose covariance is W (σ²R + BBᵀ) Wᵀ, and least squares sees it."""
+    phi = 0.7
+    colour = noise.Colour(np.full((2, 1), phi), np.full(2, np.sqrt(1 - phi**2)))
+    coloured = sensors.Instruments(SCALE, FS, colour)
+    lags = np.abs(np.subtract.outer(np.arange(N), np.arange(N)))
+    whitening = np.eye(N)[1:] - phi * np.eye(N)[:-1]
+    data = readings(np.array([4e-8, 0.0]), np.array([1.01, 0.999]))
+    expected, quadratic = [], []
+    for c in range(2):
+        design = np.column_stack([np.full(N, SCALE[c, 0]), SCALE[c, 1] * MODEL[c]])
+        covariance = whitening @ (SIGMA[c] ** 2 * phi**lags + design @ design.T) @ whitening.T
+        expected.append(stats.multivariate_normal(whitening @ MODEL[c], covariance).logpdf(whitening @ data[c]))
+        residual = whitening @ (data[c] - MODEL[c])
+        quadratic.append(residual @ np.linalg.solve(covariance, residual))
+    assert sensors.log_likelihood(data, MODEL, SIGMA, coloured, per_channel=True) == pytest.approx(expected, rel=1e-10)
+    z = sensors.standardized_residuals(data, MODEL, SIGMA, coloured)
+    assert z.shape == (2, N - 1 + 3) and np.sum(z**2, axis=-1) == pytest.approx(quadratic, rel=1e-9)
+    # the readings stay in the channel's units: what o + g·m is, whitened or not
+    assert sensors.reading(data, MODEL, SIGMA, coloured) == pytest.approx(
+        sensors.estimate(data, MODEL, SIGMA, coloured)["offset"][:, None]
+        + sensors.estimate(data, MODEL, SIGMA, coloured)["gain"][:, None] * MODEL, rel=1e-12)
 
 
 def test_without_instrument_errors_it_is_the_plain_gaussian_likelihood():

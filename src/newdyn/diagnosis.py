@@ -2,7 +2,11 @@
 missing, add it and show the error fall (the paper's Steps 1–3, automated, then a fit of the effect).
 
 1. Noise level: the file's ``sigma``, else its ``snr_db``, else the noise floor above
-   ``noise_band_hz`` — never a model's residual, which would absorb the very misfit we look for.
+   ``noise_band_hz`` — never a model's misfit, which would absorb the very effect we look for.  Noise colour
+   (up to AR order ``noise_colour_order``): read, after the fits under white noise, from the residual of the best
+   of them without its lines (:func:`newdyn.noise.colour`) — least squares stays unbiased under coloured noise,
+   and a fit that explains the data leaves noise alone; when coloured, the diagnosis runs again with those
+   channels whitened in every likelihood and their σ that residual's level.
 2. Calibration: each calibration parameter on its likelihood grid (as in the study); a drift of one
    parameter is the hypothesis ``parameter_change:<p>``, its log-evidence exact by quadrature.
 3. Signatures (Steps 1 and 3): the posteriors that each hypothesis at a range of severities would give,
@@ -43,10 +47,9 @@ from . import calibration, comparison, effects, hypotheses, io, likelihood, mcmc
 from . import sensors as sensors_module
 from .discovery import verify
 from .hypotheses import HEALTHY, PARAMETER_CHANGE
+from .verdicts import SENSOR_PROBLEM
 
 log = logging.getLogger("newdyn")
-SENSOR_PROBLEM = "sensor_problem"
-VERDICTS = ("healthy", "parameter_change", "new_dynamics", "unexplained", SENSOR_PROBLEM)
 SIGNATURE_REFINE_POINTS = 21  # refined runs per likelihood maximum of a signature (the measurement's use the config's)
 
 
@@ -70,6 +73,7 @@ class Settings:
     mcmc: Mapping[str, float | int | str] = field(default_factory=dict)
     discovery: str = "unexplained"  # or "always"
     sensors: Mapping[str, sensors_module.Sensor] = field(default_factory=dict)  # instrument errors per channel
+    noise_colour_order: int = 0  # highest AR order of the noise's colour; 0: white
 
     @classmethod
     def from_config(cls, config: Mapping) -> Settings:
@@ -96,11 +100,13 @@ class Settings:
             mcmc={**{k: c["mcmc"][k] for k in ("rhat_max", "ess_min", "move", "max_rounds")}, **d["mcmc"]},
             discovery=d.get("discovery", "unexplained"),
             sensors={c: sensors_module.Sensor(**spec) for c, spec in d.get("sensors", {}).items()},
+            noise_colour_order=int(d.get("noise_colour_order", 0)),
         )
 
-    def instruments(self, fs: float) -> sensors_module.Instruments | None:
-        """The diagnosis channels' instrument errors at sampling rate ``fs``; None when all are exact."""
-        return sensors_module.Instruments.of(self.sensors, self.channels, fs)
+    def instruments(self, fs: float, colour: noise.Colour | None = None) -> sensors_module.Instruments | None:
+        """The diagnosis channels' instrument errors at sampling rate ``fs`` and their noise's ``colour``; None
+        when all are exact and the noise white."""
+        return sensors_module.Instruments.of(self.sensors, self.channels, fs, colour)
 
     def calibration_priors(self) -> dict[str, hypotheses.Prior]:
         return {
@@ -136,6 +142,17 @@ def noise_level(measurement: io.Measurement, rows: Sequence[int], band_hz: float
         return noise.sigma_from_snr(y, float(measurement.attrs["snr_db"])), f"the file's snr_db = {measurement.attrs['snr_db']} dB"
     sigma, error = noise.noise_floor_sigma(y, measurement.sampling.fs, band_hz)
     return sigma, f"the noise floor above {band_hz:g} Hz (relative standard error {float(np.max(error / sigma)):.1%})"
+
+
+def coloured_level(channels: Sequence[str], sigma: np.ndarray, source: str, colour: noise.Colour,
+                   level: np.ndarray) -> tuple[np.ndarray, str]:
+    """The noise σ of ``channels`` and its source under a ``colour`` read with that broadband ``level``: a coloured
+    channel's σ is its level, from the residual's innovation σ_e (what its likelihood needs, read to ~1.4 % on a
+    1-s record) over the AR model's σ_e/σ_x, so a stated σ's product with that ratio and its error never enters;
+    a white channel keeps ``sigma``."""
+    orders = ", ".join(f"{c} AR({len(found['ar'])})" for c, found in colour.summary(channels).items())
+    coloured = np.any(colour.ar != 0, axis=1)
+    return np.where(coloured, level, sigma), f"{source} for white channels; the best white-noise fit's residual without its lines for coloured ones ({orders})"
 
 
 def _grid_evidence(posterior: likelihood.GridPosterior) -> float:
@@ -198,16 +215,21 @@ class Diagnosis:
     pointwise: xr.DataArray | None = None  # each version's log-likelihood (comparison_version, comparison_draw, channel, load_cycle)
 
 
-def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mapping[str, str] | None = None) -> Diagnosis:
+def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mapping[str, str] | None = None,
+             colour: noise.Colour | None = None, level: np.ndarray | None = None) -> Diagnosis:
     """Diagnose ``measurement`` (already read and checked); ``grid_paths`` are the study's shared
-    coarse-grid files per calibration parameter, reused when their condition is the measurement's."""
+    coarse-grid files per calibration parameter, reused when their condition is the measurement's.  ``colour``
+    (with the coloured channels' σ ``level``) is the noise's, when a first pass found it; without it, a first pass
+    fits under white noise and, when its best fit's residual reads coloured, the diagnosis runs again whitened."""
     check_measurement(measurement, settings.channels, settings.noise_band_hz)
     rows = [measurement.channels.index(c) for c in settings.channels]
     channels, data, sampling = settings.channels, measurement.y[rows], measurement.sampling
     sigma, noise_source = noise_level(measurement, rows, settings.noise_band_hz)
     values = model.complete({**settings.rig, **measurement.operating})
     hyps = {h.name: h for h in settings.hypotheses()}
-    instruments = settings.instruments(sampling.fs)  # as the datasheets say; out-of-spec ones are found per fit
+    if colour is not None:
+        sigma, noise_source = coloured_level(channels, sigma, noise_source, colour, level)
+    instruments = settings.instruments(sampling.fs, colour)  # as the datasheets say; out-of-spec ones are found per fit
 
     def calibrate_all(y, refine_points):
         return {
@@ -248,6 +270,13 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
                                     instruments=instruments)
         stage(f"fit of {kind} ({fits[kind].n_simulations} simulations, chi2 {fits[kind].chi2_red:.4g})")
     fits = {name: _instruments_checked(fit, data, sigma, settings.evidence_margin) for name, fit in fits.items()}
+    if colour is None and settings.noise_colour_order:
+        best = max(fits.values(), key=lambda fit: fit.log_evidence)
+        found, level = noise.colour(data - _shown(best, data, sigma), settings.noise_colour_order)
+        if not found.white:
+            stage(f"noise colour {found.summary(channels)} from the residual of {best.hypothesis.name}: again, whitened")
+            return diagnose(measurement, settings, grid_paths, found, level)
+    colour = colour or noise.white(len(channels))
 
     best_fault = max(settings.fault_ranges, key=lambda kind: fits[kind].log_evidence)
     discovery = None
@@ -267,7 +296,7 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
     stage(f"MCMC of {best_fault}" + (f" (one round: {ahead} explains the data ahead of it)" if ahead else ""))
 
     verdict = _verdict(fits, calibrations, signatures, settings, values, sampling, data, sigma)
-    if instruments is not None:
+    if instruments is not None and np.any(instruments.scale > 0):
         verdict.update(_instrument_report(fits[verdict["models"]["after"]], data, sigma, instruments, channels, settings.evidence_margin))
         if verdict["verdict"] == "healthy" and verdict["sensor_problems"]:
             verdict["verdict"] = SENSOR_PROBLEM
@@ -281,9 +310,10 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
         verdict["converged"] = bool(verdict["effect_fit"]["converged"])
     versions = {name: _shown(fits[hypothesis], data, sigma) for name, hypothesis in verdict["models"].items()}
     for key, version in (("where_nominal_fails", "nominal"), ("where_it_fails", "calibrated"), ("remaining", "after")):
-        verdict[key] = residuals.where_it_fails(data - versions[version], sigma, channels, sampling.times,
-                                                sampling.fs, values["load_freq"])
-    verdict["noise"] = {"sigma": dict(zip(channels, sigma.tolist())), "source": noise_source}
+        verdict[key] = residuals.where_it_fails(colour.whiten(data - versions[version]), sigma * colour.innovation, channels,
+                                                sampling.times[colour.order:], sampling.fs, values["load_freq"])
+    verdict["noise"] = {"sigma": dict(zip(channels, sigma.tolist())), "source": noise_source,
+                        "colour": colour.summary(channels)}
     effect_file = discovered = forces = None
     # Discovery ran before the MCMC; a library fault whose polish explained the data after all drops it.
     if discovery is not None and (verdict["verdict"] == "unexplained" or settings.discovery == "always"):
@@ -413,7 +443,8 @@ def _instrument_report(fit: hypotheses.Fit, data, sigma, instruments: sensors_mo
         problems.append({"channel": channel, "quantity": quantity, "value": entry["mean"], "hdi": entry["hdi"],
                          "datasheet_sd": float(instruments.sd[c, q]), "log_bayes_factor": log_bayes_factor,
                          "statement": sensors_module.in_words(channel, quantity, entry["mean"], model.CHANNEL_UNITS[channel])})
-    took = {"chi2_exact": float(likelihood.reduced_chi2(data, fit.model, sigma, len(fit.values))), "chi2": fit.chi2_red}
+    took = {"chi2_exact": float(likelihood.reduced_chi2(data, fit.model, sigma, len(fit.values), instruments=instruments.exact)),
+            "chi2": fit.chi2_red}
     return {"sensors": summary, "sensor_problems": problems, "instruments_took": took}
 
 

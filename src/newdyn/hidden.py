@@ -28,9 +28,8 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from . import effects, faults, io, model, noise, provenance, sensors, simulation
-from .diagnosis import SENSOR_PROBLEM, VERDICTS
+from .verdicts import HEALTHY, NEW_DYNAMICS, PARAMETER_CHANGE, SENSOR_PROBLEM, UNEXPLAINED, VERDICTS
 
-HEALTHY, PARAMETER_CHANGE, UNEXPLAINED = "healthy", faults.PARAMETER_CHANGE, "unexplained"
 OUT_OF_SPEC_SDS = (10.0, 30.0)  # an out-of-spec instrument error, in its datasheet's sds (either sign)
 MAX_DRAWS = 1000  # tries per case before a range is declared to admit no valid draw
 CHI2_MAX = 1.1  # a fault's fit explains the data when its reduced χ² is at most this
@@ -229,7 +228,7 @@ def predicted_label(verdict: Mapping) -> str:
         return kind
     if kind == SENSOR_PROBLEM:
         return HEALTHY
-    if kind == "new_dynamics":
+    if kind == NEW_DYNAMICS:
         if verdict.get("effect") not in fault_classes():
             raise ValueError(f"verdict new_dynamics names no library fault kind (effect {verdict.get('effect')!r})")
         return verdict["effect"]

@@ -77,11 +77,13 @@ def log_likelihood(data, model, sigma, per_channel: bool = False, instruments: s
 
 def reduced_chi2(data, model, sigma, n_fitted: int = 0, instruments: sensors.Instruments | None = None) -> np.ndarray:
     """Σ((y − m)/σ)² / (N − n_fitted) over all N observations; ≈ 1 when the model explains the data (with
-    ``instruments``, the misfit left after the instruments' offsets, gains and delays, their prior terms included).
+    ``instruments``, the misfit left after the instruments' offsets, gains and delays, their prior terms included, and
+    whitened when their noise is coloured).
 
     ``model`` may carry leading grid axes like in :func:`log_likelihood`; the result has those axes.
     """
-    dof = np.shape(data)[-2] * np.shape(data)[-1] - n_fitted
+    n_samples = np.shape(data)[-1] - (instruments.presamples if instruments is not None else 0)
+    dof = np.shape(data)[-2] * n_samples - n_fitted
     z = standardized_residuals(data, model, sigma, instruments)
     if dof <= 0:
         raise ValueError(f"{n_fitted} fitted parameters leave no degrees of freedom for {dof + n_fitted} observations")

@@ -28,8 +28,12 @@ def cycles(times: np.ndarray, load_freq: float) -> np.ndarray:
 
 def pointwise(data: np.ndarray, sigma: np.ndarray, outputs: np.ndarray, cycle: np.ndarray, instruments: sensors.Instruments | None = None) -> np.ndarray:
     """Log-likelihood (draw, channel, cycle) of ``data`` (channel, time) under model ``outputs`` (draw,
-    channel, time), summed over the samples of each channel within each load cycle."""
+    channel, time), summed over the samples of each channel within each load cycle (whitened ones, when the
+    instruments' noise is coloured)."""
     outputs = sensors.reading(data, outputs, sigma, instruments)
+    colour = instruments.colour if instruments is not None else None
+    if colour is not None:
+        data, outputs, sigma, cycle = colour.whiten(data), colour.whiten(outputs), sigma * colour.innovation, cycle[colour.order:]
     return np.stack([likelihood.log_likelihood(data[:, cycle == c], outputs[..., cycle == c], sigma, per_channel=True)
                      for c in range(int(cycle.max()) + 1)], axis=-1)
 

@@ -10,9 +10,12 @@ rig's clean signals have no content: no model enters, so model misfit cannot inf
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 
 import numpy as np
+import scipy.ndimage
 import scipy.signal
 
 from . import model
@@ -112,3 +115,133 @@ def at_measured_snr(data: np.ndarray, sigma: np.ndarray, signals: np.ndarray) ->
     an unmeasured channel would show, measured as well as the others."""
     snr_db = float(np.mean(20 * np.log10(np.sqrt(np.maximum(np.var(data, axis=-1) - sigma**2, 0)) / sigma)))
     return snr_db, np.std(signals, axis=-1) * 10 ** (-snr_db / 20)
+
+
+LINE_WINDOW = "blackmanharris"  # sidelobes below −92 dB: a misfit line 60 dB above the noise leaks nothing into it
+LINE_HALF_WIDTH = 4  # bins either side of a line that its window's main lobe covers
+MEDIAN_HALF_WIDTH = 32  # bins either side of a bin in the running median the noise's spectrum is read from
+BIN_STRIDE = 3  # bins apart that the window leaves uncorrelated, the ones the Whittle likelihood counts
+LINE_FALSE_ALARM = 0.01  # probability that a record of pure noise has a bin flagged as a line
+LINE_PASSES = 3
+
+
+@dataclass(frozen=True)
+class Colour:
+    """Per-channel autoregressive noise: e_k = x_k − Σ_j a_j x_{k−j} is white, of σ_e = innovation·σ_x.
+
+    White noise is the special case without coefficients (``ar`` of shape (C, 0), innovation 1)."""
+
+    ar: np.ndarray  # (channel, order) coefficients a_j, zero beyond a channel's own order
+    innovation: np.ndarray  # (channel,) σ_e/σ_x
+
+    @property
+    def order(self) -> int:
+        return self.ar.shape[1]
+
+    @property
+    def white(self) -> bool:
+        return not np.any(self.ar)
+
+    def whiten(self, x: np.ndarray) -> np.ndarray:
+        """e_k for k ≥ order of ``x`` (..., C, n): the first ``order`` samples only start the filter."""
+        x = np.asarray(x, dtype=float)
+        e = x[..., self.order:].copy()
+        for j in range(1, self.order + 1):
+            e -= self.ar[:, j - 1, None] * x[..., self.order - j: x.shape[-1] - j]
+        return e
+
+    def summary(self, channels: Sequence[str]) -> dict[str, dict]:
+        """``{channel: {ar, innovation}}`` of the coloured channels, as ``verdict.json`` reports them."""
+        return {c: {"ar": a[: np.max(np.flatnonzero(a), initial=-1) + 1].tolist(), "innovation": float(r)}
+                for c, a, r in zip(channels, self.ar, self.innovation) if np.any(a)}
+
+    @classmethod
+    def from_summary(cls, summary: Mapping[str, Mapping], channels: Sequence[str]) -> Colour:
+        """The colour a :meth:`summary` describes, over ``channels`` (those not in it white)."""
+        order = max((len(s["ar"]) for s in summary.values()), default=0)
+        ar = np.zeros((len(channels), order))
+        for i, c in enumerate(channels):
+            ar[i, : len(summary.get(c, {}).get("ar", []))] = summary.get(c, {}).get("ar", [])
+        return cls(ar, np.array([float(summary.get(c, {}).get("innovation", 1.0)) for c in channels]))
+
+    def spectrum(self, frequency: np.ndarray, fs: float) -> np.ndarray:
+        """(C, F) the noise's one-sided PSD relative to white noise of the same variance, at ``frequency`` [Hz]."""
+        lags = np.arange(1, self.order + 1)
+        response = 1.0 - np.exp(-2j * np.pi * np.outer(frequency / fs, lags)) @ self.ar.T  # (F, C)
+        return (self.innovation[:, None] ** 2) / np.abs(response.T) ** 2
+
+
+def white(n_channels: int) -> Colour:
+    return Colour(np.zeros((n_channels, 0)), np.ones(n_channels))
+
+
+def colour(residual: np.ndarray, max_order: int) -> tuple[Colour, np.ndarray]:
+    """The noise colour of ``residual`` (C, n), a measurement less a model of it, per channel: the AR order
+    ≤ ``max_order`` that the Bayesian information criterion picks (often 0: white), its Yule–Walker coefficients;
+    and the noise's σ, the level of that broadband part (C,).
+
+    A model's misfit is the machine's periodic response, lines in the spectrum, while the noise is broadband:
+    the spectrum is read through a window that keeps lines to their own few bins, bins that stand out of the
+    running median as no noise could are left out, and the AR spectra are scored by the Whittle likelihood
+    of the remaining bins, every :data:`BIN_STRIDE`-th one, as the window correlates neighbours."""
+    residual = np.atleast_2d(np.asarray(residual, dtype=float))
+    fitted = [_channel_colour(x, max_order) for x in residual]
+    order = max([len(a) for a, _, _ in fitted], default=0)
+    ar = np.zeros((len(fitted), order))
+    for c, (a, _, _) in enumerate(fitted):
+        ar[c, :len(a)] = a
+    return Colour(ar, np.array([ratio for _, ratio, _ in fitted])), np.array([level for _, _, level in fitted])
+
+
+def _channel_colour(x: np.ndarray, max_order: int) -> tuple[np.ndarray, float, float]:
+    """(AR coefficients, σ_e/σ_x, σ_x) of one channel's residual."""
+    n = x.size
+    window = scipy.signal.get_window(LINE_WINDOW, n)
+    periodogram = np.abs(np.fft.rfft((x - x.mean()) * window)) ** 2 / np.sum(window**2)  # two-sided density, unit fs
+    inside = np.arange(1 + LINE_HALF_WIDTH, periodogram.size - 1)  # off DC (the mean's leakage) and Nyquist
+    threshold = math.log(inside.size / LINE_FALSE_ALARM)  # an exponential bin exceeds its mean this much this rarely
+    outside = np.ones(periodogram.size, dtype=bool)
+    outside[inside] = False
+    line = outside
+    for _ in range(LINE_PASSES):  # lines found raise the median around them: read it again without them
+        level = _running_median(np.where(line, np.nan, periodogram)) / math.log(2)
+        found = np.zeros(periodogram.size, dtype=bool)
+        found[inside[periodogram[inside] > threshold * level[inside]]] = True
+        line = scipy.ndimage.binary_dilation(found, iterations=LINE_HALF_WIDTH) | outside
+    noise_only = np.where(line, level, periodogram)  # the lines' bins at the noise level around them
+    full = np.concatenate([noise_only, noise_only[-2:0:-1]]) if n % 2 == 0 else np.concatenate([noise_only, noise_only[:0:-1]])
+    covariance = np.fft.ifft(full).real[: max_order + 1]
+    kept = np.flatnonzero(~line)[::BIN_STRIDE]
+    best, best_bic = None, math.inf
+    for order, (a, variance) in enumerate(_levinson(covariance, max_order)):
+        gain = np.abs(1.0 - np.exp(-2j * np.pi * np.outer(kept / n, np.arange(1, order + 1))) @ a) ** 2  # |A(f)|²
+        innovation = float(np.mean(periodogram[kept] * gain))  # the Whittle likelihood's maximum over σ_e² given a
+        whittle = -kept.size * (math.log(innovation) + 1.0) + float(np.sum(np.log(gain)))
+        bic = -2.0 * whittle + order * math.log(kept.size)
+        if bic < best_bic:
+            # σ_e/σ_x of the AR model itself, Π(1 − k²) over its reflection coefficients, and σ_e from the bins
+            # kept: the level of the lowest frequencies, where few cycles fit and lines crowd, does not enter
+            ratio = math.sqrt(variance / covariance[0])
+            best, best_bic = (a, ratio, math.sqrt(innovation) / ratio), bic
+    return best
+
+
+def _running_median(values: np.ndarray) -> np.ndarray:
+    """The median of the finite ``values`` within :data:`MEDIAN_HALF_WIDTH` bins of each bin."""
+    padded = np.pad(values, MEDIAN_HALF_WIDTH, constant_values=np.nan)
+    windows = np.lib.stride_tricks.sliding_window_view(padded, 2 * MEDIAN_HALF_WIDTH + 1)
+    empty = np.all(np.isnan(windows), axis=-1)  # inside a run of lines wider than the window
+    median = np.full(values.size, np.nanmedian(values))
+    median[~empty] = np.nanmedian(windows[~empty], axis=-1)
+    return median
+
+
+def _levinson(covariance: np.ndarray, max_order: int):
+    """(a, innovation variance) of the Yule–Walker AR fits of orders 0 … ``max_order`` to ``covariance``."""
+    a, variance = np.zeros(0), float(covariance[0])
+    yield a, variance
+    for order in range(1, max_order + 1):
+        reflection = (covariance[order] - a @ covariance[order - 1:0:-1]) / variance
+        a = np.concatenate([a - reflection * a[::-1], [reflection]])
+        variance *= 1.0 - reflection**2
+        yield a, variance

@@ -23,7 +23,7 @@ from matplotlib.colors import LogNorm, Normalize
 from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 
-from . import io, model, provenance, residuals
+from . import io, model, noise, provenance, residuals
 
 PathLike = str | os.PathLike
 PNG_DPI = 150
@@ -295,10 +295,13 @@ def diagnosis_figures(verdict_path: PathLike, diagnosis_path: PathLike, mcmc_pat
     sources = [verdict_path, diagnosis_path]
     name = verdict["measurement"]
     diagnosis_overlays(verdict, result, png_paths["overlays"], code_hash, sources)
-    residual = result["y"].values - result["model"].sel(version="calibrated").values
-    residual_map(residual, result["sigma"].values, list(result["channel"].values), result["time"].values,
+    channels = list(result["channel"].values)
+    colour = noise.Colour.from_summary(verdict["noise"].get("colour", {}), channels)  # as the verdict judged it
+    residual = colour.whiten(result["y"].values - result["model"].sel(version="calibrated").values)
+    residual_map(residual, result["sigma"].values * colour.innovation, channels, result["time"].values[colour.order:],
                  float(result.attrs["fs"]), float(result.attrs["load_freq"]), png_paths["residuals"],
-                 f"{name}: where the calibrated model ({verdict['models']['calibrated']}) fails", code_hash, sources)
+                 f"{name}: where the calibrated model ({verdict['models']['calibrated']}) fails"
+                 + (", noise whitened" if colour.order else ""), code_hash, sources)
     hypothesis_ranking(verdict, result, png_paths["hypotheses"], code_hash, sources)
     error_fall(verdict, result, png_paths["error_fall"], code_hash, sources)
     discovered_force(verdict, result, png_paths["discovery"], code_hash, sources)

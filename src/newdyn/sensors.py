@@ -20,11 +20,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 from scipy import stats
+
+from . import noise
 
 LOG_2PI = math.log(2.0 * math.pi)
 DELAY_PASSES = 3  # Gauss–Newton passes for τ̂; the last one's linearization is the likelihood's
@@ -54,24 +56,38 @@ NOMINAL = {"offset": 0.0, "gain": 1.0, "delay": 0.0}  # a perfect instrument
 
 @dataclass(frozen=True, eq=False)
 class Instruments:
-    """The diagnosis channels' instrument priors at one sampling rate: what every likelihood integrates out."""
+    """The diagnosis channels' instrument priors at one sampling rate, what every likelihood integrates out, and
+    the colour of their noise, which every likelihood whitens."""
 
     scale: np.ndarray  # (channel, quantity) prior sds: offset in the channel's unit, gain relative, delay in samples
     fs: float
+    colour: noise.Colour | None = None  # None: white
 
     @classmethod
-    def of(cls, sensors: Mapping[str, Sensor], channels: Sequence[str], fs: float) -> Instruments | None:
-        """``channels``' instruments (one without a sensor is exact); None when all are exact."""
+    def of(cls, sensors: Mapping[str, Sensor], channels: Sequence[str], fs: float,
+           colour: noise.Colour | None = None) -> Instruments | None:
+        """``channels``' instruments (one without a sensor is exact); None when all are exact and the noise white."""
         none = Sensor()
         scale = np.array([[getattr(sensors.get(c, none), f"{q}_sd") for q in QUANTITIES] for c in channels], dtype=float)
         scale[:, DELAY] *= fs
-        return cls(scale, float(fs)) if np.any(scale > 0) else None
+        colour = None if colour is None or colour.white else colour
+        return cls(scale, float(fs), colour) if np.any(scale > 0) or colour is not None else None
 
     def widened(self, channel: int | slice, quantity: int, factor: float) -> Instruments:
         """The same instruments with ``channel``'s prior on ``quantity`` ``factor`` times wider."""
         scale = self.scale.copy()
         scale[channel, quantity] *= factor
-        return Instruments(scale, self.fs)
+        return replace(self, scale=scale)
+
+    @property
+    def exact(self) -> Instruments | None:
+        """Exact instruments with the same noise colour; None when the noise is white."""
+        return None if self.colour is None else replace(self, scale=np.zeros_like(self.scale))
+
+    @property
+    def presamples(self) -> int:
+        """The samples at each channel's start that only start the whitening filter: the likelihood is theirs' given them."""
+        return 0 if self.colour is None else self.colour.order
 
     @property
     def sd(self) -> np.ndarray:
@@ -102,54 +118,59 @@ def _delayed_at(signal, k, late, inside, weights):
     return wa * a + wb * b + wc * c + wd * d, sa * a + sb * b + sc * c + sd * d
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", parallel=True)
 def _moments(data, model, shift):
     """Sums over time of each (model, channel)'s delayed design, unscaled, u = [1, m(k − shift), −ṁ(k − shift)],
     and of its residual r = y − m(k − shift) − shift·ṁ(k − shift): (Σ u uᵀ (B, C, 3, 3), Σ u r (B, C, 3), Σ r² (B, C)).
-    One pass over the samples, nothing of length n kept."""
+    One pass over the samples, nothing of length n kept; the (model, channel) pairs in parallel, each summed in
+    order, so the sums do not depend on the number of threads."""
     n_models, n_channels, n = model.shape
     gram = np.zeros((n_models, n_channels, 3, 3))
     projection = np.zeros((n_models, n_channels, 3))
     squares = np.zeros((n_models, n_channels))
-    for b in range(n_models):
-        for c in range(n_channels):
-            signal, late = model[b, c], shift[b, c]
-            inside = math.floor(-late)
-            weights = _cubic(-late - inside)
-            s_m = s_mm = s_d = s_md = s_dd = s_r = s_mr = s_dr = s_rr = 0.0
-            for k in range(n):
-                m, slope = _delayed_at(signal, k, late, inside, weights)
-                d = -slope
-                r = data[c, k] - m + late * d
-                s_m += m
-                s_mm += m * m
-                s_d += d
-                s_md += m * d
-                s_dd += d * d
-                s_r += r
-                s_mr += m * r
-                s_dr += d * r
-                s_rr += r * r
-            g = gram[b, c]
-            g[0, 0], g[0, 1], g[0, 2], g[1, 1], g[1, 2], g[2, 2] = n, s_m, s_d, s_mm, s_md, s_dd
-            g[1, 0], g[2, 0], g[2, 1] = s_m, s_d, s_md
-            projection[b, c, 0], projection[b, c, 1], projection[b, c, 2] = s_r, s_mr, s_dr
-            squares[b, c] = s_rr
+    for bc in prange(n_models * n_channels):
+        b, c = bc // n_channels, bc % n_channels
+        signal, late = model[b, c], shift[b, c]
+        inside = math.floor(-late)
+        weights = _cubic(-late - inside)
+        s_m = s_mm = s_d = s_md = s_dd = s_r = s_mr = s_dr = s_rr = 0.0
+        for k in range(n):
+            m, slope = _delayed_at(signal, k, late, inside, weights)
+            d = -slope
+            r = data[c, k] - m + late * d
+            s_m += m
+            s_mm += m * m
+            s_d += d
+            s_md += m * d
+            s_dd += d * d
+            s_r += r
+            s_mr += m * r
+            s_dr += d * r
+            s_rr += r * r
+        g = gram[b, c]
+        g[0, 0], g[0, 1], g[0, 2], g[1, 1], g[1, 2], g[2, 2] = n, s_m, s_d, s_mm, s_md, s_dd
+        g[1, 0], g[2, 0], g[2, 1] = s_m, s_d, s_md
+        projection[b, c, 0], projection[b, c, 1], projection[b, c, 2] = s_r, s_mr, s_dr
+        squares[b, c] = s_rr
     return gram, projection, squares
 
 
-@njit(cache=True, error_model="numpy")
-def _delayed(model, shift):
-    """m(k − shift) and ṁ(k − shift) per sample, (B, C, n) each, as :func:`_moments` sees them."""
-    value, slope = np.empty_like(model), np.empty_like(model)
-    for b in range(model.shape[0]):
-        for c in range(model.shape[1]):
-            signal, late = model[b, c], shift[b, c]
-            inside = math.floor(-late)
-            weights = _cubic(-late - inside)
-            for k in range(model.shape[2]):
-                value[b, c, k], slope[b, c, k] = _delayed_at(signal, k, late, inside, weights)
-    return value, slope
+@njit(cache=True, error_model="numpy", parallel=True)
+def _left(data, model, shift, fitted):
+    """r − Bĉ per sample (B, C, n), as :func:`_moments` linearizes: y − m(k − τ̂) − τ̂·ṁ(k − τ̂) − (o + (g − 1)·m(k − τ̂)
+    − τ·ṁ(k − τ̂)), with ``fitted`` (B, C, 3) the posterior means (o, g − 1, τ) in the scale's units."""
+    n_models, n_channels, n = model.shape
+    left = np.empty(model.shape)
+    for bc in prange(n_models * n_channels):
+        b, c = bc // n_channels, bc % n_channels
+        signal, late = model[b, c], shift[b, c]
+        inside = math.floor(-late)
+        weights = _cubic(-late - inside)
+        offset, gain, delay = fitted[b, c, 0], fitted[b, c, 1], fitted[b, c, 2]
+        for k in range(n):
+            m, slope = _delayed_at(signal, k, late, inside, weights)
+            left[b, c, k] = data[c, k] - offset - (1.0 + gain) * m - (late - delay) * slope
+    return left
 
 
 @dataclass(frozen=True)
@@ -184,28 +205,38 @@ def _solve(data: np.ndarray, model: np.ndarray, sigma: np.ndarray, scale: np.nda
     return _Solution(shift, c_hat, gram, quadratic, lead), flat, variance
 
 
-def _fitted(data, model, sigma, scale):
-    """(z (..., C, n + 3): the misfit left in σ, then ĉ, whose squares sum to rᵀC⁻¹r; the instruments' most
-    probable reading of the model (..., C, n))."""
-    solution, flat, variance = _solve(data, model, sigma, scale)
-    late, slope = _delayed(flat, solution.shift) if np.any(scale[:, DELAY] > 0) else (flat, np.zeros_like(flat))
-    base = late + solution.shift[..., None] * slope
-    columns = (np.ones_like(flat), late, -slope)
-    fitted = sum(scale[:, q, None] * solution.c_hat[..., q, None] * columns[q] for q in range(3))
-    z = np.concatenate([(data - base - fitted) / np.sqrt(variance)[..., None], solution.c_hat], axis=-1)
-    shape = solution.lead + data.shape
-    return z.reshape(shape[:-1] + (shape[-1] + 3,)), (base + fitted).reshape(shape)
+def _seen(data, model, sigma, instruments: Instruments):
+    """(data, model, σ, prior scales) as the likelihood sees them: whitened by the noise's colour.  Whitening W is
+    linear and time-invariant, so it commutes with the delay and the gain, and takes a constant offset o to
+    o·(1 − Σa): the offset's column is scaled by that."""
+    colour = instruments.colour
+    if colour is None:
+        return data, model, sigma, instruments.scale
+    scale = instruments.scale.copy()
+    scale[:, OFFSET] *= 1.0 - colour.ar.sum(axis=1)
+    return colour.whiten(data), colour.whiten(model), sigma * colour.innovation, scale
+
+
+def _solved(data, model, sigma, instruments: Instruments):
+    """:func:`_solve` on what the likelihood sees, and that."""
+    seen_data, seen_model, seen_sigma, scale = _seen(data, model, sigma, instruments)
+    return (*_solve(seen_data, seen_model, seen_sigma, scale), seen_data, scale)
 
 
 def standardized_residuals(data: np.ndarray, model: np.ndarray, sigma: np.ndarray, instruments: Instruments) -> np.ndarray:
-    """(..., C, n + 3) numbers whose squares sum to each channel's rᵀC⁻¹r: what least squares minimizes."""
-    return _fitted(data, model, sigma, instruments.scale)[0]
+    """(..., C, n − presamples + 3) numbers whose squares sum to each channel's rᵀC⁻¹r: the misfit left in σ (whitened
+    when the noise is coloured), then ĉ; what least squares minimizes."""
+    solution, flat, variance, seen_data, scale = _solved(data, model, sigma, instruments)
+    left = _left(seen_data, flat, solution.shift, scale * solution.c_hat)
+    z = np.concatenate([left / np.sqrt(variance)[..., None], solution.c_hat], axis=-1)
+    return z.reshape(solution.lead + z.shape[-2:])
 
 
 def log_likelihood(data: np.ndarray, model: np.ndarray, sigma: np.ndarray, instruments: Instruments, per_channel: bool = False) -> np.ndarray:
-    """log p(y | m) with each channel's offset, gain and delay integrated over their priors."""
-    solution, _, variance = _solve(data, model, sigma, instruments.scale)
-    per = -0.5 * (solution.quadratic + np.linalg.slogdet(solution.gram)[1] + data.shape[-1] * (np.log(variance) + LOG_2PI))
+    """log p(y | m) with each channel's offset, gain and delay integrated over their priors; with coloured noise,
+    of the samples after the first :attr:`Instruments.presamples` given those."""
+    solution, _, variance, seen_data, _ = _solved(data, model, sigma, instruments)
+    per = -0.5 * (solution.quadratic + np.linalg.slogdet(solution.gram)[1] + seen_data.shape[-1] * (np.log(variance) + LOG_2PI))
     per = per.reshape(solution.lead + data.shape[:1])
     return per if per_channel else per.sum(axis=-1)
 
@@ -213,7 +244,7 @@ def log_likelihood(data: np.ndarray, model: np.ndarray, sigma: np.ndarray, instr
 def estimate(data: np.ndarray, model: np.ndarray, sigma: np.ndarray, instruments: Instruments) -> dict[str, np.ndarray]:
     """Posterior mean and sd of each channel's offset [channel unit], gain [–] and delay [s] given ``model``
     (..., C, n): ``{quantity: (..., C), quantity_sd: (..., C)}``; a quantity without a prior stays nominal."""
-    solution, _, _ = _solve(data, model, sigma, instruments.scale)
+    solution = _solved(data, model, sigma, instruments)[0]
     sd = np.sqrt(np.diagonal(np.linalg.inv(solution.gram), axis1=-2, axis2=-1))
     found = {}
     for i, quantity in enumerate(QUANTITIES):
@@ -280,4 +311,7 @@ def reading(data: np.ndarray, model: np.ndarray, sigma: np.ndarray, instruments:
     means (to first order in τ about its mode); the model itself with exact instruments."""
     if instruments is None:
         return model
-    return _fitted(data, model, sigma, instruments.scale)[1]
+    solution = _solved(data, model, sigma, instruments)[0]
+    shape = solution.lead + data.shape
+    flat = np.ascontiguousarray(np.broadcast_to(model, shape)).reshape(-1, *data.shape)
+    return (data - _left(data, flat, solution.shift, instruments.scale * solution.c_hat)).reshape(shape)

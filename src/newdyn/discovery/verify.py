@@ -33,7 +33,7 @@ def discover(name: str, calibrated: hypotheses.Fit, data, sigma, values, samplin
     """The discovery section of the verdict, the best candidate's effect file (name, content) and its fit on the
     full simulator (both None when the search found no candidate), and the force estimated at each place."""
     base = {**values, **calibrated.values}
-    read = sensors.reading(data, calibrated.model, sigma, settings.instruments(sampling.fs))  # what the instruments add taken out
+    read = sensors.reading(data, calibrated.model, sigma, _datasheets(calibrated, settings, sampling))  # what the instruments add taken out
     found = search.discover(data - read, sigma, base, sampling, settings.channels, settings.max_step)
     top = search.log_bayes_factor(found.candidates[0], found) if found.candidates else 0.0
     leading = [c for c in found.candidates if search.log_bayes_factor(c, found) >= FULL_FIT_SHARE * top]
@@ -133,7 +133,12 @@ def _full_fit(candidate: search.Candidate, data, sigma, values, calibrated: hypo
         hypothesis = hypotheses.library(settings.calibration_priors(), ranges, settings.drift)[-1]
         start = {**{key: float(row["value"]) for key, row in candidate.parameters.items()}, **calibrated.values}
         return hypotheses.fit(hypothesis, data, sigma, values, sampling, settings.channels, [start], settings.max_step, search=False,
-                              instruments=settings.instruments(sampling.fs))
+                              instruments=_datasheets(calibrated, settings, sampling))
+
+
+def _datasheets(calibrated: hypotheses.Fit, settings: Settings, sampling) -> sensors.Instruments | None:
+    """The instruments as their datasheets say, with the noise colour the library's fits were whitened by."""
+    return settings.instruments(sampling.fs, calibrated.instruments.colour if calibrated.instruments is not None else None)
 
 
 def _merged(linearized: Mapping, full: Mapping) -> dict:
