@@ -967,3 +967,20 @@ def test_user_effect_counts_in_the_diagnosis_walkers(default_config, effect_fold
     assert_one_line(error_of(config), SOURCE, "diagnosis.mcmc.walkers", "at least 18", "the 8 parameters")
     config["diagnosis"]["mcmc"]["walkers"] = 18
     cfg.check(config, SOURCE, SCHEMA)
+
+
+@pytest.mark.parametrize("environment", ["environment.yml", "workflow/envs/newdyn.yaml"])
+def test_conda_environments_hold_every_runtime_dependency_of_the_package(environment):
+    """pyproject.toml lists the dependencies once; conda cannot read it, so its files must agree with it."""
+    import tomllib
+
+    declared = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["dependencies"]
+    wanted = {re.match(r"[A-Za-z0-9_.-]+", d).group(0).lower(): d for d in declared}
+    listed = {}
+    for entry in yaml.safe_load((ROOT / environment).read_text())["dependencies"]:
+        if isinstance(entry, str):
+            name = re.match(r"[A-Za-z0-9_.-]+", entry).group(0).lower()
+            listed[name] = entry[len(name):].replace(" ", "")
+    for name, requirement in wanted.items():
+        assert name in listed, f"{environment} lacks {name}"
+        assert listed[name] == requirement[len(name):].replace(" ", ""), f"{environment}: {name}{listed[name]} vs pyproject {requirement}"

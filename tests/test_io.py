@@ -2,6 +2,7 @@
 
 import json
 import os
+import warnings
 
 import numpy as np
 import pytest
@@ -106,6 +107,7 @@ BAD_FILES = {
     "operating attribute not a number": (_nc(lambda ds: ds.assign_attrs(T0="fast")), "attribute T0"),
     "operating attribute infinite": (_nc(lambda ds: ds.assign_attrs(speed_rpm=np.inf)), "attribute speed_rpm"),
     "ragged CSV": (_csv("time,b1_x,w1\n0.5,1\n"), "rows have 2 columns, header has 3"),
+    "CSV without data": (_csv("time,b1_x,w1\n"), "has a header but no data rows"),
     "unsupported type": (lambda p: (p.with_suffix(".mat").write_text("x"), p.with_suffix(".mat"))[1], "unsupported file type"),
 }
 
@@ -114,7 +116,8 @@ BAD_FILES = {
 def test_bad_file_gets_one_line_naming_it(tmp_path, case):
     build, problem = BAD_FILES[case]
     path = build(tmp_path / "bad.nc")
-    with pytest.raises(MeasurementError) as error:
+    with pytest.raises(MeasurementError) as error, warnings.catch_warnings():
+        warnings.simplefilter("error")  # newdyn's line alone: no numpy warning printed before it
         read_measurement(path)
     message = str(error.value)
     assert "\n" not in message

@@ -195,9 +195,12 @@ def _read_csv(path: Path):
     try:
         with open(path, newline="") as f:
             header = f.readline().strip().split(",")
-        data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+            empty = not f.read().strip()
+        data = None if empty else np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
     except (OSError, UnicodeDecodeError, ValueError) as exc:
         raise MeasurementError(path, f"unreadable or truncated CSV ({exc})") from None
+    if data is None:
+        raise MeasurementError(path, "has a header but no data rows")
     header = [h.strip() for h in header]
     if header[:1] != ["time"]:
         raise MeasurementError(path, "header must start with 'time'")

@@ -13,7 +13,7 @@ rule grid_models:
     threads: 1
     params:
         spec=grid_models_spec,
-        code=CALIBRATION_CODE,
+        code=code_hash("grid-models"),
     shell:
         "NUMBA_NUM_THREADS={threads} OPENBLAS_NUM_THREADS={threads} newdyn grid-models --spec {params.spec:q} "
         "--code-hash {params.code} --output {output} > {log} 2>&1"
@@ -34,7 +34,7 @@ rule calibrate_grid:
     threads: 1
     params:
         spec=calibration_spec,
-        code=CALIBRATION_CODE,
+        code=code_hash("calibrate-grid"),
     shell:
         "NUMBA_NUM_THREADS={threads} OPENBLAS_NUM_THREADS={threads} newdyn calibrate-grid --measurement {input.measurement} "
         "--grid {input.grid} --spec {params.spec:q} --code-hash {params.code} --output {output} > {log} 2>&1"
@@ -55,7 +55,7 @@ rule calibrate_mcmc:
     threads: 1
     params:
         spec=mcmc_spec,
-        code=MCMC_CODE,
+        code=code_hash("calibrate-mcmc"),
     shell:
         "NUMBA_NUM_THREADS={threads} OPENBLAS_NUM_THREADS={threads} newdyn calibrate-mcmc --measurement {input.measurement} "
         "--grid-result {input.grid_result} --spec {params.spec:q} --code-hash {params.code} "
@@ -80,7 +80,7 @@ rule calibrate_joint:
     threads: 1
     params:
         spec=joint_spec,
-        code=MCMC_CODE,
+        code=code_hash("calibrate-joint"),
     shell:
         "NUMBA_NUM_THREADS={threads} OPENBLAS_NUM_THREADS={threads} newdyn calibrate-joint --measurement {input.measurement} "
         "--grid-results {input.grid_results} --spec {params.spec:q} --code-hash {params.code} "

@@ -1,8 +1,8 @@
 # Config checking and the helpers rules share. Runs at parse time, before any job starts.
-import re
 import sys
 from pathlib import Path
 
+import newdyn.catalog
 import newdyn.config
 import newdyn.effects
 import newdyn.provenance
@@ -19,29 +19,9 @@ except newdyn.config.ConfigError as error:
 VARIANTS = {name: newdyn.config.variant_config(config, name) for name in newdyn.config.variant_names(config)}
 SEEDS = [str(seed) for seed in config["noise"]["seeds"]]
 
-# Rules pass these as params so that an edit of the science code reruns exactly its jobs.  The
-# simulator is its modules and the effects' interface; an effect's own file counts only for the jobs
-# that simulate it (effect_files).
-SIMULATOR = (
-    "model",
-    "faults",
-    "effects",
-    "effects.base",
-    "effects.check",
-    "effects.contact",
-    "kernels",
-    "kernel_template",
-    "simulation",
-)
-SIMULATION_CODE = newdyn.provenance.source_hash(*SIMULATOR, "io")
-NOISE_CODE = newdyn.provenance.source_hash("noise", "io")
-CALIBRATION_CODE = newdyn.provenance.source_hash(*SIMULATOR, "io", "likelihood", "sensors", "calibration")
-MCMC_CODE = newdyn.provenance.source_hash(
-    *SIMULATOR, "io", "likelihood", "sensors", "calibration", "mcmc_calibration", "sampling", "comparison"
-)
-SUMMARY_CODE = newdyn.provenance.source_hash("calibration", "comparison", "sampling")
-COMPARISON_CODE = newdyn.provenance.source_hash("comparison")
-PLOT_CODE = newdyn.provenance.source_hash("plots", "residuals")
+# Rules pass the hash of the code their `newdyn` command runs as a param (code_hash), so that an edit of any
+# module it imports, directly or through others, reruns exactly its jobs; an effect's own file counts only
+# for the jobs that load it (effect_files).
 EFFECTS = list(config.get("effects", []))  # the study's own effects, beside the built-ins
 
 
@@ -51,11 +31,16 @@ def effect_files(kinds=None):
     return [active[kind].source for kind in (active if kinds is None else kinds)]
 
 
+def code_hash(command, files=()):
+    """The hash of what ``newdyn <command>`` runs, with the effect ``files`` it loads (newdyn.provenance.command_hash)."""
+    return newdyn.provenance.command_hash(command, files)
+
+
 def simulation_code(wildcards):
     """The simulator's hash, with the file of the scenario's effect if it has one."""
     fault = (study(wildcards)["scenarios"][wildcards.scenario] or {}).get("fault") or {}
     kinds = [fault["kind"]] if fault.get("kind") in newdyn.effects.active() else []
-    return newdyn.provenance.source_hash(*SIMULATOR, "io", files=effect_files(kinds))
+    return code_hash("simulate", effect_files(kinds))
 
 
 def _names(key):
@@ -253,56 +238,20 @@ def figure_targets():
 
 
 # --- diagnosis of measurements: users' files in measurements/, and hidden-effect sets drawn from a seed
-DIAGNOSIS_CODE = newdyn.provenance.source_hash(
-    *SIMULATOR,
-    "io",
-    "noise",
-    "likelihood",
-    "sensors",
-    "calibration",
-    "mcmc_calibration",
-    "sampling",
-    "comparison",
-    "residuals",
-    "hypotheses",
-    "diagnosis",
-    files=effect_files(),  # every effect is a hypothesis
-    packages=("discovery",),
-)
-HIDDEN_CODE = newdyn.provenance.source_hash(*SIMULATOR, "noise", "io", "hidden", files=effect_files())
-SCORE_CODE = newdyn.provenance.source_hash("hidden", "plots", files=effect_files())
 HIDDEN_SETS = config["hidden"]["sets"]
 
 
-def _checked_measurements(folder="measurements"):
-    """name -> file of every good measurement in ``folder``; each bad one gets its one line on stderr
-    and is left out, so it never stops the diagnosis of the good ones."""
-    import newdyn.diagnosis
-    import newdyn.io
-
-    found = {}
-    for path in sorted(Path(folder).glob("*")):
-        if path.suffix.lower() in (".nc", ".csv"):
-            found.setdefault(path.stem, []).append(path)
-    good = {}
-    for name, paths in found.items():
-        try:
-            if len(paths) > 1:
-                raise newdyn.io.MeasurementError(paths[0], f"{' and '.join(map(str, paths))} share the name '{name}'")
-            measurement = newdyn.io.read_measurement(paths[0], config["operating"])
-            newdyn.diagnosis.check_measurement(
-                measurement, config["diagnosis"]["channels"], config["diagnosis"]["noise_band_hz"], paths[0]
-            )
-            if not re.fullmatch(r"[A-Za-z0-9_.-]+", name):
-                raise newdyn.io.MeasurementError(paths[0], "name may hold letters, digits, '_', '-' and '.' only")
-        except newdyn.io.MeasurementError as error:
-            print(f"newdyn: skipping bad measurement: {error}", file=sys.stderr)
-        else:
-            good[name] = str(paths[0])
-    return good
-
-
-MEASUREMENTS = _checked_measurements()
+# name -> file of every good measurement in measurements/; each bad one gets its one line on stderr and is
+# left out, so it never stops the diagnosis of the good ones (the checks are remembered per file).
+MEASUREMENTS, _bad = newdyn.catalog.good_measurements(
+    "measurements",
+    config["operating"],
+    config["diagnosis"]["channels"],
+    config["diagnosis"]["noise_band_hz"],
+    ".snakemake/newdyn/measurements.json",
+)
+for _line in _bad:
+    print(f"newdyn: skipping bad measurement: {_line}", file=sys.stderr)
 
 
 def diagnosis_root(root, name):

@@ -11,6 +11,6 @@ rule compare:
         "../envs/newdyn.yaml"
     threads: 1
     params:
-        code=COMPARISON_CODE,
+        code=code_hash("compare"),
     shell:
         "newdyn compare --code-hash {params.code} --output {output} {input} > {log} 2>&1"

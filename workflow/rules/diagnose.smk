@@ -33,7 +33,7 @@ rule diagnose:
     threads: 1
     params:
         spec=diagnosis_spec,
-        code=DIAGNOSIS_CODE,
+        code=code_hash("diagnose", effect_files()),
     shell:
         "NUMBA_NUM_THREADS={threads} OPENBLAS_NUM_THREADS={threads} newdyn diagnose --measurement {input.measurement} "
         "--grids {input.grids} --spec {params.spec:q} --code-hash {params.code} --verdict {output.verdict} --table {output.table} "
@@ -64,7 +64,7 @@ rule plot_diagnosis:
     conda:
         "../envs/newdyn.yaml"
     params:
-        code=PLOT_CODE,
+        code=code_hash("plot-diagnosis"),
     shell:
         "newdyn plot-diagnosis --verdict {input.verdict} --netcdf {input.netcdf} --mcmc {input.mcmc} "
         "--overlays {output.overlays} --residuals {output.residuals} --hypotheses {output.hypotheses} "

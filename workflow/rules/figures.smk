@@ -18,7 +18,7 @@ rule plot_posteriors:
     conda:
         "../envs/newdyn.yaml"
     params:
-        code=PLOT_CODE,
+        code=code_hash("plot"),
     shell:
         "newdyn plot posteriors --code-hash {params.code} --output {output.png} {input} > {log} 2>&1"
 
@@ -48,7 +48,7 @@ rule plot_paper_figure:
     conda:
         "../envs/newdyn.yaml"
     params:
-        code=PLOT_CODE,
+        code=code_hash("plot"),
     shell:
         "newdyn plot posteriors --code-hash {params.code} --output {output.png} {input} > {log} 2>&1"
 
@@ -73,7 +73,7 @@ rule plot_overlays:
     conda:
         "../envs/newdyn.yaml"
     params:
-        code=PLOT_CODE,
+        code=code_hash("plot"),
     shell:
         "newdyn plot overlays --code-hash {params.code} --measurement {input.measurement} "
         "--output {output.png} {input.grid_results} > {log} 2>&1"
@@ -101,7 +101,7 @@ rule plot_mcmc:
     conda:
         "../envs/newdyn.yaml"
     params:
-        code=PLOT_CODE,
+        code=code_hash("plot"),
     shell:
         "newdyn plot mcmc --code-hash {params.code} --output {output.png} {input} > {log} 2>&1"
 
@@ -124,7 +124,7 @@ rule plot_signatures:
     conda:
         "../envs/newdyn.yaml"
     params:
-        code=PLOT_CODE,
+        code=code_hash("plot"),
     shell:
         "newdyn plot signatures --code-hash {params.code} --snr-db {wildcards.snr} --seed {wildcards.seed} "
         "--output {output.png} {input} > {log} 2>&1"
@@ -145,7 +145,7 @@ rule plot_summary:
     conda:
         "../envs/newdyn.yaml"
     params:
-        code=PLOT_CODE,
+        code=code_hash("plot"),
     shell:
         "newdyn plot summary --code-hash {params.code} --output {output.png} --chi2-output {output.chi2_png} "
         "{input} > {log} 2>&1"

@@ -15,7 +15,7 @@ rule hidden_draw:
         "../envs/newdyn.yaml"
     params:
         spec=hidden_spec,
-        code=HIDDEN_CODE,
+        code=code_hash("hidden-draw", effect_files()),
     shell:
         "newdyn hidden-draw --spec {params.spec:q} --code-hash {params.code} --output {output} > {log} 2>&1"
 
@@ -34,7 +34,7 @@ rule hidden_measurement:
         "../envs/newdyn.yaml"
     params:
         spec=hidden_spec,
-        code=HIDDEN_CODE,
+        code=code_hash("hidden-measurement", effect_files()),
     shell:
         "NUMBA_NUM_THREADS={threads} OPENBLAS_NUM_THREADS={threads} newdyn hidden-measurement --truth {input} --case {wildcards.name} "
         "--spec {params.spec:q} --code-hash {params.code} --output {output} > {log} 2>&1"
@@ -67,7 +67,7 @@ rule hidden_score:
         "../envs/newdyn.yaml"
     params:
         chi2_max=config["calibration"]["chi2_max"],
-        code=SCORE_CODE,
+        code=code_hash("hidden-score", effect_files()),
         effects=" ".join(f"--effect {name}" for name in EFFECTS),
     shell:
         "newdyn hidden-score --truth {input.truth} --chi2-max {params.chi2_max} --code-hash {params.code} {params.effects} "

@@ -11,7 +11,7 @@ rule add_noise:
         "../envs/newdyn.yaml"
     threads: 1
     params:
-        code=NOISE_CODE,
+        code=code_hash("add-noise"),
     shell:
         "NUMBA_NUM_THREADS={threads} OPENBLAS_NUM_THREADS={threads} newdyn add-noise --input {input} --output {output} "
         "--snr-db {wildcards.snr} --seed {wildcards.seed} --code-hash {params.code} > {log} 2>&1"

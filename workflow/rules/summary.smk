@@ -11,6 +11,6 @@ rule summarize:
         "../envs/newdyn.yaml"
     threads: 1
     params:
-        code=SUMMARY_CODE,
+        code=code_hash("summarize"),
     shell:
         "newdyn summarize --code-hash {params.code} --output {output} {input} > {log} 2>&1"

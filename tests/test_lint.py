@@ -1,0 +1,22 @@
+"""The code is lint-clean: ruff on the Python, snakemake --lint and snakefmt on the workflow."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+TOOLS = Path(sys.executable).parent
+
+
+def test_python_is_ruff_clean():
+    ruff = subprocess.run([TOOLS / "ruff", "check", "--no-cache", "src", "tests", "bench", "effects"], cwd=ROOT,
+                          capture_output=True, text=True, check=False)
+    assert ruff.returncode == 0, ruff.stdout + ruff.stderr
+
+
+def test_workflow_is_lint_clean_and_snakefmt_formatted():
+    lint = subprocess.run([sys.executable, "-m", "snakemake", "--lint"], cwd=ROOT, capture_output=True, text=True, check=False)
+    assert lint.returncode == 0 and "Lints for" not in lint.stdout + lint.stderr, lint.stdout + lint.stderr
+    files = [ROOT / "Snakefile", *sorted((ROOT / "workflow" / "rules").glob("*.smk"))]
+    fmt = subprocess.run([TOOLS / "snakefmt", "--check", *map(str, files)], capture_output=True, text=True, check=False)
+    assert fmt.returncode == 0, fmt.stderr
