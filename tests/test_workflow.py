@@ -5,8 +5,10 @@ import json
 import os
 import re
 import shutil
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -24,18 +26,21 @@ TEST_CONFIG = ROOT / ".test" / "config.yaml"
 pytestmark = pytest.mark.workflow
 
 
-def snakemake(workdir, *args, config=TEST_CONFIG, pythonpath=None):
-    """Run snakemake from this interpreter's environment; returns the completed process."""
+def snakemake_command(workdir, *args, config=TEST_CONFIG, pythonpath=None):
+    """(command, environment) that run snakemake from this interpreter's environment."""
     env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"}
     if pythonpath:
         env["PYTHONPATH"] = str(pythonpath)
-    # The timeout only stops a hung run: the CI study shares the cores with the other test worker
-    # (8.4 min of a 13-min suite) and a slower machine must not fail it.
-    return subprocess.run(
-        [sys.executable, "-m", "snakemake", "-s", str(ROOT / "Snakefile"), "-d", str(workdir),
-         "--configfile", str(config), "--cores", "2", *args],
-        capture_output=True, text=True, env=env, timeout=1800, check=False,
-    )
+    return [sys.executable, "-m", "snakemake", "-s", str(ROOT / "Snakefile"), "-d", str(workdir),
+            "--configfile", str(config), "--cores", "2", *args], env
+
+
+def snakemake(workdir, *args, config=TEST_CONFIG, pythonpath=None):
+    """Run snakemake; returns the completed process."""
+    command, env = snakemake_command(workdir, *args, config=config, pythonpath=pythonpath)
+    # The timeout only stops a hung run: the CI study shares the cores with the other test worker and a slower
+    # machine must not fail it.
+    return subprocess.run(command, capture_output=True, text=True, env=env, timeout=1800, check=False)
 
 
 def changed_config(tmp_path, change):
@@ -386,3 +391,43 @@ def test_hidden_measurements_are_diagnosed_without_reading_the_truth_and_then_sc
     assert score["cases"] == 1 and score["correct"] == 1  # the CI demo is one hidden stick-slip case
     measurement = read_measurement(study / "results" / "demo" / "measurements" / "demo_01.nc")
     assert measurement.sigma is None and "snr_db" not in measurement.attrs and "scenario" not in measurement.attrs
+
+
+# A stand-in batch system: every job its own detached process, in its own session so that killing the workflow
+# leaves it running as a cluster's jobs outlive a lost login; its id the process id, also kept in a list.
+STAND_IN_SUBMIT = """#!/usr/bin/env bash
+setsid nohup bash "$1" > "$1.out" 2>&1 < /dev/null &
+echo $! | tee -a {jobs}
+"""
+RESULTS = (".nc", ".json", ".csv")
+
+
+def test_on_a_batch_system_killed_and_resumed_the_study_gives_the_local_results_bit_for_bit(study, tmp_path):
+    """The CI study through Snakemake's cluster-generic executor plugin, every job a separate process started by a
+    submit script, the computing rules on two threads where the local run gave them one.  The workflow is killed
+    (kill -9) once results appear, its jobs left running; then the README's recovery, `snakemake --unlock` and the
+    same command.  Every NetCDF, JSON and CSV result is the local run's, bit for bit."""
+    workdir, jobs, submit = tmp_path / "cluster", tmp_path / "jobs", tmp_path / "submit"
+    workdir.mkdir()
+    write_users_measurements(workdir / "measurements")
+    submit.write_text(STAND_IN_SUBMIT.format(jobs=jobs))
+    submit.chmod(0o755)
+    cluster = ["--executor", "cluster-generic", "--cluster-generic-submit-cmd", str(submit), "--jobs", "2",
+               "--seconds-between-status-checks", "1", "--set-threads", "grid_models=2", "calibrate_grid=2", "diagnose=2"]
+    command, env = snakemake_command(workdir, *cluster)
+    with subprocess.Popen(command, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True) as run:
+        deadline = time.monotonic() + 600
+        while len(list(workdir.glob("results/**/*.nc"))) < 10 and run.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.5)
+        assert run.poll() is None, "the study ended before it could be killed"
+        os.killpg(run.pid, signal.SIGKILL)
+    while any(Path(f"/proc/{pid}").exists() for pid in jobs.read_text().split()):  # the jobs it left finish
+        time.sleep(0.5)
+    assert snakemake(workdir, *cluster).returncode != 0  # locked
+    assert snakemake(workdir, "--unlock").returncode == 0
+    resumed = snakemake(workdir, *cluster)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    local = sorted(p.relative_to(study) for p in (study / "results").rglob("*") if p.suffix in RESULTS)
+    assert sorted(p.relative_to(workdir) for p in (workdir / "results").rglob("*") if p.suffix in RESULTS) == local
+    differ = [str(p) for p in local if (study / p).read_bytes() != (workdir / p).read_bytes()]
+    assert not differ, differ

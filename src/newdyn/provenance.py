@@ -43,6 +43,7 @@ def command_hash(command: str, files: Sequence[str] = ()) -> str:
     return source_hash(*command_modules(command), *imported(*loaded), files=files)
 
 
+@cache
 def command_modules(command: str) -> tuple[str, ...]:
     """The modules ``newdyn <command>`` runs: those its function in ``newdyn.cli`` (the one ``main`` calls when
     ``args.command == command``) and the cli functions it calls import, with ``cli`` and ``main``'s own imports."""
@@ -78,9 +79,15 @@ def imported(*roots: str) -> tuple[str, ...]:
         if _source(name) is None:
             raise ModuleNotFoundError(f"newdyn.{name}")
         found.add(name)
-        is_package = _source(name).name == "__init__.py" and name != ROOT
-        todo += _imports_in(_tree(name), name.split(".") if is_package else name.split(".")[:-1])
+        todo += _module_imports(name)
     return tuple(sorted(found))
+
+
+@cache
+def _module_imports(name: str) -> frozenset[str]:
+    """What the source of ``newdyn.<name>`` imports (:func:`_imports_in`), read once."""
+    is_package = _source(name).name == "__init__.py" and name != ROOT
+    return frozenset(_imports_in(_tree(name), name.split(".") if is_package else name.split(".")[:-1]))
 
 
 def _imports_in(node: ast.AST, package: list[str]) -> set[str]:

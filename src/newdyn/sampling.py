@@ -243,7 +243,11 @@ def diagnostics(idata: az.InferenceData, settings: MCMCSettings) -> dict:
 
 
 def save(idata: az.InferenceData, path: str | os.PathLike) -> None:
-    """Write ``idata`` to a netCDF file atomically: a reader sees the old file or the whole new one."""
+    """Write ``idata`` to a netCDF file atomically: a reader sees the old file or the whole new one.  ArviZ's
+    ``created_at`` stamps are dropped (from ``idata`` too): the wall clock is the one thing that would make two runs
+    of the same study differ, and the file's provenance attributes say what made it."""
+    for group in idata.groups():
+        idata[group].attrs.pop("created_at", None)
     atomic_write(path, idata.to_netcdf)
 
 
