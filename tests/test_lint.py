@@ -1,5 +1,6 @@
 """The code is lint-clean: ruff on the Python, snakemake --lint and snakefmt on the workflow."""
 
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -20,3 +21,10 @@ def test_workflow_is_lint_clean_and_snakefmt_formatted():
     files = [ROOT / "Snakefile", *sorted((ROOT / "workflow" / "rules").glob("*.smk"))]
     fmt = subprocess.run([TOOLS / "snakefmt", "--check", *map(str, files)], capture_output=True, text=True, check=False)
     assert fmt.returncode == 0, fmt.stderr
+
+
+def test_every_rule_keeps_a_log_and_a_benchmark():
+    """Each job's output and its measured time and memory land under results/: what a cluster's resources are sized from."""
+    for path in sorted((ROOT / "workflow" / "rules").glob("*.smk")):
+        for rule, body in re.findall(r"^rule (\w+):\n((?:[ \t]+.*\n|\n)+)", path.read_text(), re.MULTILINE):
+            assert re.search(r"^    log:", body, re.MULTILINE) and re.search(r"^    benchmark:", body, re.MULTILINE), f"{path.name}: rule {rule}"

@@ -9,6 +9,8 @@ rule hidden_draw:
         "results/{set}/truth.json",
     log:
         "results/logs/hidden_draw/{set}.log",
+    benchmark:
+        "results/benchmarks/hidden_draw/{set}.tsv"
     # As the diagnoses they feed: a hidden case's diagnosis, the longest job, starts beside the calibrations.
     priority: 1
     conda:
@@ -63,6 +65,8 @@ rule hidden_score:
         pdf="results/{set}/blind_test.pdf",
     log:
         "results/logs/hidden_score/{set}.log",
+    benchmark:
+        "results/benchmarks/hidden_score/{set}.tsv"
     conda:
         "../envs/newdyn.yaml"
     params:
