@@ -272,7 +272,7 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
     fits = {name: _instruments_checked(fit, data, sigma, settings.evidence_margin) for name, fit in fits.items()}
     if colour is None and settings.noise_colour_order:
         best = max(fits.values(), key=lambda fit: fit.log_evidence)
-        found, level = noise.colour(data - _shown(best, data, sigma), settings.noise_colour_order)
+        found, level = noise.colour(data - _shown(best, data, sigma), settings.noise_colour_order, settings.evidence_margin)
         if not found.white:
             stage(f"noise colour {found.summary(channels)} from the residual of {best.hypothesis.name}: again, whitened")
             return diagnose(measurement, settings, grid_paths, found, level)

@@ -175,17 +175,18 @@ def white(n_channels: int) -> Colour:
     return Colour(np.zeros((n_channels, 0)), np.ones(n_channels))
 
 
-def colour(residual: np.ndarray, max_order: int) -> tuple[Colour, np.ndarray]:
+def colour(residual: np.ndarray, max_order: int, margin: float = 0.0) -> tuple[Colour, np.ndarray]:
     """The noise colour of ``residual`` (C, n), a measurement less a model of it, per channel: the AR order
-    ≤ ``max_order`` that the Bayesian information criterion picks (often 0: white), its Yule–Walker coefficients;
-    and the noise's σ, the level of that broadband part (C,).
+    ≤ ``max_order`` that the Bayesian information criterion picks (often 0: white), at prior odds e^−``margin``
+    against any colour (its BIC must beat white noise's by 2·margin), its Yule–Walker coefficients; and the
+    noise's σ, the level of that broadband part (C,).
 
     A model's misfit is the machine's periodic response, lines in the spectrum, while the noise is broadband:
     the spectrum is read through a window that keeps lines to their own few bins, bins that stand out of the
     running median as no noise could are left out, and the AR spectra are scored by the Whittle likelihood
     of the remaining bins, every :data:`BIN_STRIDE`-th one, as the window correlates neighbours."""
     residual = np.atleast_2d(np.asarray(residual, dtype=float))
-    fitted = [_channel_colour(x, max_order) for x in residual]
+    fitted = [_channel_colour(x, max_order, margin) for x in residual]
     order = max([len(a) for a, _, _ in fitted], default=0)
     ar = np.zeros((len(fitted), order))
     for c, (a, _, _) in enumerate(fitted):
@@ -193,7 +194,7 @@ def colour(residual: np.ndarray, max_order: int) -> tuple[Colour, np.ndarray]:
     return Colour(ar, np.array([ratio for _, ratio, _ in fitted])), np.array([level for _, _, level in fitted])
 
 
-def _channel_colour(x: np.ndarray, max_order: int) -> tuple[np.ndarray, float, float]:
+def _channel_colour(x: np.ndarray, max_order: int, margin: float) -> tuple[np.ndarray, float, float]:
     """(AR coefficients, σ_e/σ_x, σ_x) of one channel's residual."""
     n = x.size
     window = scipy.signal.get_window(LINE_WINDOW, n)
@@ -217,7 +218,7 @@ def _channel_colour(x: np.ndarray, max_order: int) -> tuple[np.ndarray, float, f
         gain = np.abs(1.0 - np.exp(-2j * np.pi * np.outer(kept / n, np.arange(1, order + 1))) @ a) ** 2  # |A(f)|²
         innovation = float(np.mean(periodogram[kept] * gain))  # the Whittle likelihood's maximum over σ_e² given a
         whittle = -kept.size * (math.log(innovation) + 1.0) + float(np.sum(np.log(gain)))
-        bic = -2.0 * whittle + order * math.log(kept.size)
+        bic = -2.0 * whittle + order * math.log(kept.size) + (2.0 * margin if order else 0.0)
         if bic < best_bic:
             # σ_e/σ_x of the AR model itself, Π(1 − k²) over its reflection coefficients, and σ_e from the bins
             # kept: the level of the lowest frequencies, where few cycles fit and lines crowd, does not enter
