@@ -147,9 +147,9 @@ def noise_level(measurement: io.Measurement, rows: Sequence[int], band_hz: float
 def coloured_level(channels: Sequence[str], sigma: np.ndarray, source: str, colour: noise.Colour,
                    level: np.ndarray) -> tuple[np.ndarray, str]:
     """The noise σ of ``channels`` and its source under a ``colour`` read with that broadband ``level``: a coloured
-    channel's σ is its level, from the residual's innovation σ_e (what its likelihood needs, read to ~1.4 % on a
-    1-s record) over the AR model's σ_e/σ_x, so a stated σ's product with that ratio and its error never enters;
-    a white channel keeps ``sigma``."""
+    channel's σ is its level, the residual's innovation σ_e (what its likelihood needs, and what the residual tells
+    best) over the AR model's σ_e/σ_x, so a stated σ times that ratio, with the ratio's error, never enters; a white
+    channel keeps ``sigma``."""
     orders = ", ".join(f"{c} AR({len(found['ar'])})" for c, found in colour.summary(channels).items())
     coloured = np.any(colour.ar != 0, axis=1)
     return np.where(coloured, level, sigma), f"{source} for white channels; the best white-noise fit's residual without its lines for coloured ones ({orders})"

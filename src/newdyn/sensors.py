@@ -14,6 +14,10 @@ design B = [s_o·1, s_g·m(t − τ̂), −s_τ·ṁ(t − τ̂)] (the prior's s
 line is a sum of squares, n + 3 of them per channel: what least squares minimizes.  A scale of zero fits
 nothing (its column drops out); with all zero this is the plain Gaussian likelihood.  The delayed model is
 cubic (four-point Lagrange) interpolation between samples, extrapolated at the record's two ends.
+
+Coloured noise (:class:`newdyn.noise.Colour`, AR per channel) is whitened first: data and model pass through the
+filter W, linear and time-invariant, so the same closed form holds for W y and W m with σ_e for σ, the offset's
+column scaled by W's gain at zero frequency, and the likelihood is that of the samples after the filter's start.
 """
 
 from __future__ import annotations
@@ -86,7 +90,7 @@ class Instruments:
 
     @property
     def presamples(self) -> int:
-        """The samples at each channel's start that only start the whitening filter: the likelihood is theirs' given them."""
+        """The samples at each channel's start that only start the whitening filter: the likelihood is the others' given them."""
         return 0 if self.colour is None else self.colour.order
 
     @property
