@@ -393,12 +393,7 @@ def test_hidden_measurements_are_diagnosed_without_reading_the_truth_and_then_sc
     assert measurement.sigma is None and "snr_db" not in measurement.attrs and "scenario" not in measurement.attrs
 
 
-# A stand-in batch system: every job its own detached process, in its own session so that killing the workflow
-# leaves it running as a cluster's jobs outlive a lost login; its id the process id, also kept in a list.
-STAND_IN_SUBMIT = """#!/usr/bin/env bash
-setsid nohup bash "$1" > "$1.out" 2>&1 < /dev/null &
-echo $! | tee -a {jobs}
-"""
+STAND_IN_SUBMIT = ROOT / ".test" / "stand-in-submit"  # every job a detached process, its id kept in $STAND_IN_JOBS
 RESULTS = (".nc", ".json", ".csv")
 
 
@@ -407,15 +402,13 @@ def test_on_a_batch_system_killed_and_resumed_the_study_gives_the_local_results_
     submit script, the computing rules on two threads where the local run gave them one.  The workflow is killed
     (kill -9) once results appear, its jobs left running; then the README's recovery, `snakemake --unlock` and the
     same command.  Every NetCDF, JSON and CSV result is the local run's, bit for bit."""
-    workdir, jobs, submit = tmp_path / "cluster", tmp_path / "jobs", tmp_path / "submit"
+    workdir, jobs = tmp_path / "cluster", tmp_path / "jobs"
     workdir.mkdir()
     write_users_measurements(workdir / "measurements")
-    submit.write_text(STAND_IN_SUBMIT.format(jobs=jobs))
-    submit.chmod(0o755)
-    cluster = ["--executor", "cluster-generic", "--cluster-generic-submit-cmd", str(submit), "--jobs", "2",
+    cluster = ["--executor", "cluster-generic", "--cluster-generic-submit-cmd", str(STAND_IN_SUBMIT), "--jobs", "2",
                "--seconds-between-status-checks", "1", "--set-threads", "grid_models=2", "calibrate_grid=2", "diagnose=2"]
     command, env = snakemake_command(workdir, *cluster)
-    with subprocess.Popen(command, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True) as run:
+    with subprocess.Popen(command, env={**env, "STAND_IN_JOBS": str(jobs)}, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True) as run:
         deadline = time.monotonic() + 600
         while len(list(workdir.glob("results/**/*.nc"))) < 10 and run.poll() is None and time.monotonic() < deadline:
             time.sleep(0.5)
