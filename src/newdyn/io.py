@@ -195,8 +195,8 @@ def _read_csv(path: Path):
     try:
         with open(path, newline="") as f:
             header = f.readline().strip().split(",")
-            empty = not f.read().strip()
-        data = None if empty else np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+            rows = f.read().splitlines()
+        data = np.loadtxt(rows, delimiter=",", ndmin=2) if any(line.strip() for line in rows) else None
     except (OSError, UnicodeDecodeError, ValueError) as exc:
         raise MeasurementError(path, f"unreadable or truncated CSV ({exc})") from None
     if data is None:

@@ -164,12 +164,6 @@ class Colour:
             ar[i, : len(summary.get(c, {}).get("ar", []))] = summary.get(c, {}).get("ar", [])
         return cls(ar, np.array([float(summary.get(c, {}).get("innovation", 1.0)) for c in channels]))
 
-    def spectrum(self, frequency: np.ndarray, fs: float) -> np.ndarray:
-        """(C, F) the noise's one-sided PSD relative to white noise of the same variance, at ``frequency`` [Hz]."""
-        lags = np.arange(1, self.order + 1)
-        response = 1.0 - np.exp(-2j * np.pi * np.outer(frequency / fs, lags)) @ self.ar.T  # (F, C)
-        return (self.innovation[:, None] ** 2) / np.abs(response.T) ** 2
-
 
 def white(n_channels: int) -> Colour:
     return Colour(np.zeros((n_channels, 0)), np.ones(n_channels))
