@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 import yaml
+from jsonschema.validators import validator_for
 
 from newdyn import config as cfg
 from newdyn import effects, faults, model
@@ -69,6 +70,11 @@ def test_scenario_values_are_exactly_the_model_slots(path):
     config = cfg.load(path, SCHEMA)
     for name in config["scenarios"]:
         assert tuple(cfg.scenario_values(config, name)) == model.slot_names(), name
+
+
+def test_the_schema_with_the_effects_kinds_injected_is_a_valid_json_schema():
+    schema = cfg.load_schema()
+    validator_for(schema).check_schema(schema)
 
 
 def test_default_schema_path_is_the_repository_schema(default_config):
@@ -949,6 +955,24 @@ def test_bad_user_effect_gives_one_line_naming_config_field_and_file(default_con
     err = error_of(_with_ripple(default_config))
     assert_one_line(err, SOURCE, "effects[0]", str(Path("effects") / "torque_ripple.py"), *words)
     assert "torque_ripple" not in effects.active()  # the active set stays as it was
+
+
+def test_an_effect_files_functions_are_called_once_for_its_content(effect_folder, tmp_path, monkeypatch):
+    """Whether a file's functions return numbers is remembered by the file's content in the cache folder: loading it
+    again (the next parse of the Snakefile) calls none of them, while a file with other content is called."""
+    from newdyn.effects import check
+
+    monkeypatch.setenv("NEWDYN_CACHE", str(tmp_path / "cache"))
+    path = effect_folder(RIPPLE)
+    effects.load_file(path)
+    calls = []
+    monkeypatch.setattr(check, "_evaluation_problems", lambda effect: calls.append(effect.name) or iter(()))
+    path.write_text(RIPPLE + "\n", encoding="utf-8")
+    effects.load_file(path)
+    assert calls == ["torque_ripple"]
+    path.write_text(RIPPLE, encoding="utf-8")
+    effects.load_file(path)
+    assert calls == ["torque_ripple"]
 
 
 def test_missing_user_effect_file(default_config, effect_folder):

@@ -2,6 +2,7 @@
 against what Python really loads."""
 
 import json
+import os
 import re
 import subprocess
 import sys
@@ -50,3 +51,21 @@ def test_an_effect_file_brings_its_own_imports():
     loose = effects.active()["loose_bearing"].source
     assert "effects.contact" not in provenance.command_modules("simulate")
     assert provenance.command_hash("simulate", [loose]) != provenance.source_hash(*provenance.command_modules("simulate"), files=[loose])
+
+
+def test_command_hashes_are_remembered_for_the_exact_package(tmp_path):
+    """A later process (the next parse, a cluster job) takes a command's hash from the cache folder, under the hash
+    of the package's files, without reading the import graph; an unreadable remembered file is computed again."""
+    environment = {**os.environ, "NEWDYN_CACHE": str(tmp_path)}
+    hashes = "from newdyn import provenance; print(provenance.command_hash('simulate'), provenance.command_hash('plot'))"
+    no_graph = "from newdyn import provenance; provenance._command_hash = None; " + hashes.split("; ", 1)[1]
+
+    def run(code):
+        return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=environment).stdout
+
+    computed = run(hashes)
+    assert computed.split() == [provenance.command_hash("simulate"), provenance.command_hash("plot")]
+    assert run(no_graph) == computed
+    for remembered in (tmp_path / "code-hashes").glob("*.json"):
+        remembered.write_text("{not json")
+    assert run(hashes) == computed

@@ -11,9 +11,10 @@ from __future__ import annotations
 import json
 import os
 import re
-import tempfile
 from collections.abc import Mapping, Sequence
 from pathlib import Path
+
+from . import cache
 
 SUFFIXES = (".nc", ".csv")
 NAME = re.compile(r"[A-Za-z0-9_.-]+")
@@ -24,7 +25,8 @@ def good_measurements(folder: str | os.PathLike, operating: Mapping[str, float],
     """(name → path of every good measurement in ``folder``, one line per bad file naming it and its problem).
     ``index`` is the JSON file that remembers the checks; it is rewritten only when a check was made."""
     settings = json.dumps({"operating": dict(operating), "channels": list(channels), "band_hz": band_hz}, sort_keys=True)
-    known = _load(index, settings)
+    document = cache.read_json(index)
+    known = document.get("files", {}) if document.get("settings") == settings else {}
     by_name: dict[str, list[Path]] = {}
     for path in sorted(Path(folder).glob("*")):
         if path.suffix.lower() in SUFFIXES:
@@ -47,7 +49,7 @@ def good_measurements(folder: str | os.PathLike, operating: Mapping[str, float],
         else:
             good[name] = str(path)
     if changed or set(checked) != set(known):
-        _save(index, {"settings": settings, "files": checked})
+        cache.write_json(index, {"settings": settings, "files": checked})
     return good, problems
 
 
@@ -59,20 +61,3 @@ def _problem(path: Path, operating, channels, band_hz) -> str | None:
     except io.MeasurementError as error:
         return str(error)
     return None
-
-
-def _load(index, settings: str) -> dict:
-    try:
-        document = json.loads(Path(index).read_text())
-    except (OSError, ValueError):
-        return {}
-    return document.get("files", {}) if document.get("settings") == settings else {}
-
-
-def _save(index, document: Mapping) -> None:
-    """Atomically, so that jobs parsing at the same time never read half an index."""
-    index = Path(index)
-    index.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.NamedTemporaryFile("w", dir=index.parent, prefix=f".{index.name}.", delete=False) as f:
-        json.dump(document, f)
-    os.replace(f.name, index)

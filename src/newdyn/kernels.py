@@ -27,7 +27,7 @@ import numba
 import numpy as np
 from numba import get_num_threads
 
-from . import effects, model
+from . import cache, effects, model
 
 TEMPLATE = Path(__file__).with_name("kernel_template.py")
 
@@ -49,10 +49,6 @@ _TORSIONAL = {
     "load_shaft": ((3, 4), "t_s3", "+"),
     "load": ((4, None), "torque4", "+"),
 }
-
-
-def cache_folder() -> Path:
-    return Path(os.environ.get("NEWDYN_CACHE") or Path.home() / ".cache" / "newdyn")
 
 
 def _coordinate(place: str, src: str) -> tuple[str, str, str]:
@@ -308,7 +304,7 @@ def module(active: dict[str, type[effects.Effect]] | None = None) -> ModuleType:
     if digest in _MODULES:
         _LOADED[key] = _MODULES[digest]
         return _MODULES[digest]
-    folder = cache_folder() / "kernels"
+    folder = cache.folder() / "kernels"
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / f"kernel_{digest}.py"
     if not path.exists():

@@ -4,18 +4,22 @@ Snakemake reruns a job when its rule text or params change but cannot see the mo
 imports; passing :func:`command_hash` of the command a rule runs as a param makes an edit of any module
 that command imports, directly or through others, rerun exactly the jobs that depend on it.  The imports
 are read from the sources (the package's own import graph), nothing is imported: the Snakefile imports this.
+Reading the graph parses every module; its answers are remembered in the cache folder under a hash of the
+package's files, so that a parse of the Snakefile (on a cluster: every job's) reads the package's bytes only.
 """
 
 from __future__ import annotations
 
 import ast
+import functools
 import hashlib
 import json
 import platform
 from collections.abc import Sequence
-from functools import cache
 from importlib import metadata
 from pathlib import Path
+
+from . import cache
 
 _DEPENDENCIES = ("numpy", "scipy", "numba", "xarray", "netCDF4")
 PACKAGE = Path(__file__).resolve().parent
@@ -36,6 +40,16 @@ def source_hash(*modules: str, files: Sequence[str] = ()) -> str:
 def command_hash(command: str, files: Sequence[str] = ()) -> str:
     """:func:`source_hash` of what ``newdyn <command>`` executes with the effect ``files`` it loads: the cli module
     and every module that the command's function, the cli functions it calls and those files import (:func:`imported`)."""
+    key = hashlib.sha256(json.dumps([command, *[[str(Path(p).resolve()), hashlib.sha256(Path(p).read_bytes()).hexdigest()]
+                                                for p in files]]).encode()).hexdigest()
+    known = _remembered()
+    if key not in known:
+        known[key] = _command_hash(command, files)
+        cache.write_json(_remembered_path(), known)
+    return known[key]
+
+
+def _command_hash(command: str, files: Sequence[str]) -> str:
     loaded = set()
     for path in map(Path, files):
         package = list(path.resolve().parent.relative_to(PACKAGE).parts) if path.resolve().is_relative_to(PACKAGE) else []
@@ -43,7 +57,25 @@ def command_hash(command: str, files: Sequence[str] = ()) -> str:
     return source_hash(*command_modules(command), *imported(*loaded), files=files)
 
 
-@cache
+@functools.cache
+def package_digest() -> str:
+    """A hash of this exact package: its files' names and bytes.  Answers about the package are remembered under it."""
+    digest = hashlib.sha256()
+    for path in sorted(PACKAGE.rglob("*.py")):
+        digest.update(path.relative_to(PACKAGE).as_posix().encode() + b"\0" + path.read_bytes() + b"\0")
+    return digest.hexdigest()[:32]
+
+
+def _remembered_path() -> Path:
+    return cache.folder() / "code-hashes" / f"{package_digest()}.json"
+
+
+@functools.cache
+def _remembered() -> dict[str, str]:
+    return cache.read_json(_remembered_path())
+
+
+@functools.cache
 def command_modules(command: str) -> tuple[str, ...]:
     """The modules ``newdyn <command>`` runs: those its function in ``newdyn.cli`` (the one ``main`` calls when
     ``args.command == command``) and the cli functions it calls import, with ``cli`` and ``main``'s own imports."""
@@ -83,7 +115,7 @@ def imported(*roots: str) -> tuple[str, ...]:
     return tuple(sorted(found))
 
 
-@cache
+@functools.cache
 def _module_imports(name: str) -> frozenset[str]:
     """What the source of ``newdyn.<name>`` imports (:func:`_imports_in`), read once."""
     is_package = _source(name).name == "__init__.py" and name != ROOT
@@ -116,7 +148,7 @@ def _imports_in(node: ast.AST, package: list[str]) -> set[str]:
     return found
 
 
-@cache
+@functools.cache
 def _source(module: str) -> Path | None:
     """The file of ``newdyn.<module>`` (:data:`ROOT`: the package's ``__init__``), None when there is none."""
     base = PACKAGE.joinpath(*module.split("."))
@@ -126,7 +158,7 @@ def _source(module: str) -> Path | None:
     return None
 
 
-@cache
+@functools.cache
 def _tree(module: str) -> ast.Module:
     return ast.parse(_source(module).read_bytes(), filename=str(_source(module)))
 

@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import xarray as xr
 
-from .. import effects, hypotheses, io, kernels, model, noise, sensors, simulation
+from .. import cache, effects, hypotheses, io, model, noise, sensors, simulation
 from . import effect_file, search
 
 if TYPE_CHECKING:
@@ -101,7 +101,7 @@ def in_words(section: Mapping, before: float) -> str:
 
 def generic_path(effect_name: str) -> Path:
     """Where a form's generic effect file lives: beside the compiled kernels, which it shares across studies."""
-    return kernels.cache_folder() / "discovery" / f"{effect_name}.py"
+    return cache.folder() / "discovery" / f"{effect_name}.py"
 
 
 def _force_dataset(found: search.Discovery) -> xr.Dataset:

@@ -3,7 +3,9 @@
 Checked without compiling anything, so that a bad file is named before any job runs: the
 declarations (name, description, place, parameters with units, bounds, defaults and ranges, the
 switching functions), then the functions themselves, called as plain Python on the rig's initial
-state, on states around it and on the corners of the prior box, must return finite numbers.
+state, on states around it and on the corners of the prior box, must return finite numbers.  A file whose
+functions passed is remembered in the cache folder by its content (with the package's and numba's), so
+that the next parse of the Snakefile does not call them again.
 """
 
 from __future__ import annotations
@@ -12,10 +14,11 @@ import inspect
 import itertools
 import math
 from collections.abc import Iterator
+from importlib import metadata
 
 import numpy as np
 
-from .. import model
+from .. import cache, model, provenance
 from .base import PLACES, Effect, Kinematics, Parameter, RigValues
 
 _FUNCTIONS = ("force", "event", "switch")
@@ -27,7 +30,14 @@ def problems(effect: type[Effect], stem: str) -> Iterator[str]:
     if declared:
         yield from declared
         return
-    yield from _evaluation_problems(effect)
+    passed = cache.folder() / "effects-checked" / f"{provenance.package_digest()}-numba{metadata.version('numba')}.json"
+    if effect.content_hash and effect.content_hash in cache.read_json(passed):
+        return
+    evaluated = list(_evaluation_problems(effect))
+    if evaluated:
+        yield from evaluated
+    elif effect.content_hash:  # read from a file
+        cache.write_json(passed, {**cache.read_json(passed), effect.content_hash: True})
 
 
 def _number(value) -> bool:

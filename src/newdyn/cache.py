@@ -1,0 +1,41 @@
+"""newdyn's cache folder and the small JSON files that remember answers between processes.
+
+The folder (``NEWDYN_CACHE``, default ``~/.cache/newdyn``) holds the compiled kernels and answers keyed by a
+hash of everything they were computed from, so that any later process that shares it — the next parse of the
+Snakefile, a cluster job on another node — reads them instead of computing them again.  Only the standard
+library is imported here: the Snakefile's parse imports this.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from collections.abc import Mapping
+from pathlib import Path
+
+
+def folder() -> Path:
+    return Path(os.environ.get("NEWDYN_CACHE") or Path.home() / ".cache" / "newdyn")
+
+
+def read_json(path: str | os.PathLike) -> dict:
+    """The JSON object in ``path``; empty when there is none or it cannot be read (it is then computed again)."""
+    try:
+        document = json.loads(Path(path).read_text())
+    except (OSError, ValueError):
+        return {}
+    return document if isinstance(document, dict) else {}
+
+
+def write_json(path: str | os.PathLike, document: Mapping) -> None:
+    """Write atomically, so that processes reading at the same time never see half a file; a folder that cannot be
+    written to only means the answer is computed again next time."""
+    path = Path(path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile("w", dir=path.parent, prefix=f".{path.name}.", delete=False) as f:
+            json.dump(document, f)
+        os.replace(f.name, path)
+    except OSError:
+        pass
