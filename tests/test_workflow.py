@@ -26,18 +26,18 @@ TEST_CONFIG = ROOT / ".test" / "config.yaml"
 pytestmark = pytest.mark.workflow
 
 
-def snakemake_command(workdir, *args, config=TEST_CONFIG, pythonpath=None):
+def snakemake_command(workdir, *args, config=TEST_CONFIG, pythonpath=None, cores=2):
     """(command, environment) that run snakemake from this interpreter's environment."""
     env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"}
     if pythonpath:
         env["PYTHONPATH"] = str(pythonpath)
     return [sys.executable, "-m", "snakemake", "-s", str(ROOT / "Snakefile"), "-d", str(workdir),
-            "--configfile", str(config), "--cores", "2", *args], env
+            "--configfile", str(config), "--cores", str(cores), *args], env
 
 
-def snakemake(workdir, *args, config=TEST_CONFIG, pythonpath=None):
+def snakemake(workdir, *args, config=TEST_CONFIG, pythonpath=None, cores=2):
     """Run snakemake; returns the completed process."""
-    command, env = snakemake_command(workdir, *args, config=config, pythonpath=pythonpath)
+    command, env = snakemake_command(workdir, *args, config=config, pythonpath=pythonpath, cores=cores)
     # The timeout only stops a hung run: the CI study shares the cores with the other test worker and a slower
     # machine must not fail it.
     return subprocess.run(command, capture_output=True, text=True, env=env, timeout=1800, check=False)
@@ -203,6 +203,7 @@ def test_changing_a_rig_value_reruns_every_scenario_of_the_variants_that_use_it(
     assert not any(p.startswith("results/paper/") for p in planned)  # the paper variant sets its own beta
 
 
+RESULTS = (".nc", ".json", ".csv")
 SIMULATED = {"clean.nc", "snr40_seed1.nc"}
 CALIBRATED = {"snr40_seed1_grid.nc", "snr40_seed1_mcmc.nc"}
 GRIDS = {"kT1.nc", "kT3.nc"}
@@ -393,8 +394,35 @@ def test_hidden_measurements_are_diagnosed_without_reading_the_truth_and_then_sc
     assert measurement.sigma is None and "snr_db" not in measurement.attrs and "scenario" not in measurement.attrs
 
 
+def results(workdir):
+    """The NetCDF, JSON and CSV results under ``workdir``, relative to it."""
+    return sorted(p.relative_to(workdir) for p in (workdir / "results").rglob("*") if p.suffix in RESULTS)
+
+
+def test_on_one_core_the_jobs_give_the_two_core_study_bit_for_bit(study, tmp_path):
+    """One core runs the jobs one at a time, in another order than two: a drift's MCMC calibration and all it
+    needs (the scenario's simulations, the coarse grids, its grid calibrations) are the two-core study's bytes."""
+    target = "results/default/calibration/kT1_up/kT1/snr40_seed1_mcmc.nc"
+    run = snakemake(tmp_path, target, cores=1)
+    assert run.returncode == 0, run.stderr[-3000:]
+    made = results(tmp_path)
+    assert {p.name for p in made} == {"kT1.nc", "clean.nc", "snr40_seed1.nc", "snr40_seed1_grid.nc", "snr40_seed1_mcmc.nc"}
+    differ = [str(p) for p in made if (study / p).read_bytes() != (tmp_path / p).read_bytes()]
+    assert not differ, differ
+
+
+def test_the_slurm_profile_asks_for_each_rules_memory_and_time(tmp_path):
+    """Every job the SLURM profile would run asks for the memory [MB] and time [min] its rule declares."""
+    run = snakemake(tmp_path, "--workflow-profile", str(ROOT / "workflow" / "profiles" / "slurm"), "--dry-run")
+    assert run.returncode == 0, run.stderr[-3000:]
+    jobs = re.findall(r"^rule (\w+):\n(?:    .*\n)*?    resources: (.*)$", run.stdout, re.MULTILINE)
+    assert {rule for rule, _ in jobs} >= {"simulate", "calibrate_grid", "calibrate_joint", "diagnose", "plot_summary"}
+    for rule, resources in jobs:
+        if rule != "all":
+            assert re.search(r"\bmem_mb=\d+", resources) and re.search(r"\bruntime=\d+", resources), (rule, resources)
+
+
 STAND_IN_SUBMIT = ROOT / ".test" / "stand-in-submit"  # every job a detached process, its id kept in $STAND_IN_JOBS
-RESULTS = (".nc", ".json", ".csv")
 
 
 def test_on_a_batch_system_killed_and_resumed_the_study_gives_the_local_results_bit_for_bit(study, tmp_path):
@@ -420,7 +448,7 @@ def test_on_a_batch_system_killed_and_resumed_the_study_gives_the_local_results_
     assert snakemake(workdir, "--unlock").returncode == 0
     resumed = snakemake(workdir, *cluster)
     assert resumed.returncode == 0, resumed.stderr[-3000:]
-    local = sorted(p.relative_to(study) for p in (study / "results").rglob("*") if p.suffix in RESULTS)
-    assert sorted(p.relative_to(workdir) for p in (workdir / "results").rglob("*") if p.suffix in RESULTS) == local
+    local = results(study)
+    assert results(workdir) == local
     differ = [str(p) for p in local if (study / p).read_bytes() != (workdir / p).read_bytes()]
     assert not differ, differ
