@@ -23,8 +23,10 @@ def test_workflow_is_lint_clean_and_snakefmt_formatted():
     assert fmt.returncode == 0, fmt.stderr
 
 
-def test_every_rule_keeps_a_log_and_a_benchmark():
-    """Each job's output and its measured time and memory land under results/: what a cluster's resources are sized from."""
+def test_every_rule_keeps_a_log_and_a_benchmark_and_asks_for_memory_and_time():
+    """Each job's output and its measured time and memory land under results/, and each rule asks a cluster for the
+    memory and time sized from them."""
     for path in sorted((ROOT / "workflow" / "rules").glob("*.smk")):
         for rule, body in re.findall(r"^rule (\w+):\n((?:[ \t]+.*\n|\n)+)", path.read_text(), re.MULTILINE):
-            assert re.search(r"^    log:", body, re.MULTILINE) and re.search(r"^    benchmark:", body, re.MULTILINE), f"{path.name}: rule {rule}"
+            for directive in ("log:", "benchmark:", "resources:", "    mem_mb=", "    runtime="):
+                assert re.search(rf"^    {directive}", body, re.MULTILINE), f"{path.name}: rule {rule} has no {directive}"

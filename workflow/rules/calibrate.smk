@@ -11,6 +11,9 @@ rule grid_models:
     conda:
         "../envs/newdyn.yaml"
     threads: 1
+    resources:
+        mem_mb=per_attempt(1024),
+        runtime=per_attempt(10),
     params:
         spec=grid_models_spec,
         code=code_hash("grid-models"),
@@ -32,6 +35,9 @@ rule calibrate_grid:
     conda:
         "../envs/newdyn.yaml"
     threads: 1
+    resources:
+        mem_mb=per_attempt(1024),
+        runtime=per_attempt(10),
     params:
         spec=calibration_spec,
         code=code_hash("calibrate-grid"),
@@ -53,6 +59,9 @@ rule calibrate_mcmc:
     conda:
         "../envs/newdyn.yaml"
     threads: 1
+    resources:
+        mem_mb=per_attempt(1024),
+        runtime=per_attempt(15),
     params:
         spec=mcmc_spec,
         code=code_hash("calibrate-mcmc"),
@@ -78,6 +87,9 @@ rule calibrate_joint:
     conda:
         "../envs/newdyn.yaml"
     threads: 1
+    resources:
+        mem_mb=per_attempt(1024),
+        runtime=per_attempt(20),
     params:
         spec=joint_spec,
         code=code_hash("calibrate-joint"),

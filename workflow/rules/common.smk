@@ -36,6 +36,15 @@ def code_hash(command, files=()):
     return newdyn.provenance.command_hash(command, files)
 
 
+# On a cluster each job asks for its rule's memory [MB] and time [min]: a default study's measured peak
+# (results/benchmarks/, python bench/bench_resources.py) with room for slower nodes and a first kernel compile.
+# The light rules (noise, comparison, summary, figures, a hidden set's draw and score) are local rules: they run
+# where Snakemake runs, as a cluster job's start (its own Snakemake parse) would cost more than they do.
+def per_attempt(amount):
+    """``amount`` of a resource, doubled on each retry (--retries): a job killed for memory or time gets more."""
+    return lambda wildcards, attempt: amount * 2 ** (attempt - 1)
+
+
 def simulation_code(wildcards):
     """The simulator's hash, with the file of the scenario's effect if it has one."""
     fault = (study(wildcards)["scenarios"][wildcards.scenario] or {}).get("fault") or {}

@@ -7,9 +7,13 @@ rule compare:
         "results/logs/compare/{variant}.log",
     benchmark:
         "results/benchmarks/compare/{variant}.tsv"
+    localrule: True
     conda:
         "../envs/newdyn.yaml"
     threads: 1
+    resources:
+        mem_mb=per_attempt(1024),
+        runtime=per_attempt(10),
     params:
         code=code_hash("compare"),
     shell:

@@ -31,6 +31,9 @@ rule diagnose:
     conda:
         "../envs/newdyn.yaml"
     threads: 1
+    resources:
+        mem_mb=per_attempt(2048),
+        runtime=per_attempt(60),
     params:
         spec=diagnosis_spec,
         code=code_hash("diagnose", effect_files()),
@@ -61,8 +64,12 @@ rule plot_diagnosis:
         "{root}/logs/plot_diagnosis/{name}.log",
     benchmark:
         "{root}/benchmarks/plot_diagnosis/{name}.tsv"
+    localrule: True
     conda:
         "../envs/newdyn.yaml"
+    resources:
+        mem_mb=per_attempt(1024),
+        runtime=per_attempt(10),
     params:
         code=code_hash("plot-diagnosis"),
     shell:

@@ -15,8 +15,12 @@ rule plot_posteriors:
         "results/logs/plot_posteriors/{variant}/{scenario}_snr{snr}_seed{seed}.log",
     benchmark:
         "results/benchmarks/plot_posteriors/{variant}/{scenario}_snr{snr}_seed{seed}.tsv"
+    localrule: True
     conda:
         "../envs/newdyn.yaml"
+    resources:
+        mem_mb=per_attempt(1024),
+        runtime=per_attempt(10),
     params:
         code=code_hash("plot"),
     shell:
@@ -45,8 +49,12 @@ rule plot_paper_figure:
         "results/benchmarks/plot_paper_figure/{variant}/{figure}_snr{snr}_seed{seed}.tsv"
     wildcard_constraints:
         figure="|".join(PAPER_FIGURES),
+    localrule: True
     conda:
         "../envs/newdyn.yaml"
+    resources:
+        mem_mb=per_attempt(1024),
+        runtime=per_attempt(10),
     params:
         code=code_hash("plot"),
     shell:
@@ -70,8 +78,12 @@ rule plot_overlays:
         "results/logs/plot_overlays/{variant}/{scenario}_snr{snr}_seed{seed}.log",
     benchmark:
         "results/benchmarks/plot_overlays/{variant}/{scenario}_snr{snr}_seed{seed}.tsv"
+    localrule: True
     conda:
         "../envs/newdyn.yaml"
+    resources:
+        mem_mb=per_attempt(1024),
+        runtime=per_attempt(10),
     params:
         code=code_hash("plot"),
     shell:
@@ -98,8 +110,12 @@ rule plot_mcmc:
         "results/logs/plot_mcmc/{variant}/{scenario}_snr{snr}_seed{seed}.log",
     benchmark:
         "results/benchmarks/plot_mcmc/{variant}/{scenario}_snr{snr}_seed{seed}.tsv"
+    localrule: True
     conda:
         "../envs/newdyn.yaml"
+    resources:
+        mem_mb=per_attempt(1024),
+        runtime=per_attempt(10),
     params:
         code=code_hash("plot"),
     shell:
@@ -121,8 +137,12 @@ rule plot_signatures:
         "results/logs/plot_signatures/{variant}/snr{snr}_seed{seed}.log",
     benchmark:
         "results/benchmarks/plot_signatures/{variant}/snr{snr}_seed{seed}.tsv"
+    localrule: True
     conda:
         "../envs/newdyn.yaml"
+    resources:
+        mem_mb=per_attempt(1024),
+        runtime=per_attempt(10),
     params:
         code=code_hash("plot"),
     shell:
@@ -142,8 +162,12 @@ rule plot_summary:
         "results/logs/plot_summary.log",
     benchmark:
         "results/benchmarks/plot_summary.tsv"
+    localrule: True
     conda:
         "../envs/newdyn.yaml"
+    resources:
+        mem_mb=per_attempt(1024),
+        runtime=per_attempt(10),
     params:
         code=code_hash("plot"),
     shell:

@@ -13,8 +13,12 @@ rule hidden_draw:
         "results/benchmarks/hidden_draw/{set}.tsv"
     # As the diagnoses they feed: a hidden case's diagnosis, the longest job, starts beside the calibrations.
     priority: 1
+    localrule: True
     conda:
         "../envs/newdyn.yaml"
+    resources:
+        mem_mb=per_attempt(1024),
+        runtime=per_attempt(10),
     params:
         spec=hidden_spec,
         code=code_hash("hidden-draw", effect_files()),
@@ -34,6 +38,9 @@ rule hidden_measurement:
     priority: 1
     conda:
         "../envs/newdyn.yaml"
+    resources:
+        mem_mb=per_attempt(1024),
+        runtime=per_attempt(10),
     params:
         spec=hidden_spec,
         code=code_hash("hidden-measurement", effect_files()),
@@ -67,8 +74,12 @@ rule hidden_score:
         "results/logs/hidden_score/{set}.log",
     benchmark:
         "results/benchmarks/hidden_score/{set}.tsv"
+    localrule: True
     conda:
         "../envs/newdyn.yaml"
+    resources:
+        mem_mb=per_attempt(1024),
+        runtime=per_attempt(10),
     params:
         chi2_max=config["calibration"]["chi2_max"],
         code=code_hash("hidden-score", effect_files()),

@@ -7,9 +7,13 @@ rule add_noise:
         "results/logs/add_noise/{variant}/{scenario}/snr{snr}_seed{seed}.log",
     benchmark:
         "results/benchmarks/add_noise/{variant}/{scenario}/snr{snr}_seed{seed}.tsv"
+    localrule: True
     conda:
         "../envs/newdyn.yaml"
     threads: 1
+    resources:
+        mem_mb=per_attempt(1024),
+        runtime=per_attempt(10),
     params:
         code=code_hash("add-noise"),
     shell:

@@ -8,6 +8,9 @@ rule simulate:
     conda:
         "../envs/newdyn.yaml"
     threads: 1
+    resources:
+        mem_mb=per_attempt(1024),
+        runtime=per_attempt(10),
     params:
         spec=simulation_spec,
         code=simulation_code,
