@@ -310,8 +310,8 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
         verdict["converged"] = bool(verdict["effect_fit"]["converged"])
     versions = {name: _shown(fits[hypothesis], data, sigma) for name, hypothesis in verdict["models"].items()}
     for key, version in (("where_nominal_fails", "nominal"), ("where_it_fails", "calibrated"), ("remaining", "after")):
-        verdict[key] = residuals.where_it_fails(colour.whiten(data - versions[version]), sigma * colour.innovation, channels,
-                                                sampling.times[colour.order:], sampling.fs, values["load_freq"])
+        residual, sigma_e, times = colour.seen(data - versions[version], sigma, sampling.times)
+        verdict[key] = residuals.where_it_fails(residual, sigma_e, channels, times, sampling.fs, values["load_freq"])
     verdict["noise"] = {"sigma": dict(zip(channels, sigma.tolist())), "source": noise_source,
                         "colour": colour.summary(channels)}
     effect_file = discovered = forces = None

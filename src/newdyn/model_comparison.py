@@ -33,7 +33,7 @@ def pointwise(data: np.ndarray, sigma: np.ndarray, outputs: np.ndarray, cycle: n
     outputs = sensors.reading(data, outputs, sigma, instruments)
     colour = instruments.colour if instruments is not None else None
     if colour is not None:
-        data, outputs, sigma, cycle = colour.whiten(data), colour.whiten(outputs), sigma * colour.innovation, cycle[colour.order:]
+        (data, sigma, cycle), outputs = colour.seen(data, sigma, cycle), colour.whiten(outputs)
     return np.stack([likelihood.log_likelihood(data[:, cycle == c], outputs[..., cycle == c], sigma, per_channel=True)
                      for c in range(int(cycle.max()) + 1)], axis=-1)
 

@@ -150,6 +150,11 @@ class Colour:
             e -= self.ar[:, j - 1, None] * x[..., self.order - j: x.shape[-1] - j]
         return e
 
+    def seen(self, x: np.ndarray, sigma: np.ndarray, times: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """How a likelihood sees ``x`` (..., C, n), noise of level ``sigma`` (C,) at ``times`` (n,): whitened, the
+        innovation's σ, and the times of the samples it keeps."""
+        return self.whiten(x), sigma * self.innovation, times[self.order:]
+
     def summary(self, channels: Sequence[str]) -> dict[str, dict]:
         """``{channel: {ar, innovation}}`` of the coloured channels, as ``verdict.json`` reports them."""
         return {c: {"ar": a[: np.max(np.flatnonzero(a), initial=-1) + 1].tolist(), "innovation": float(r)}

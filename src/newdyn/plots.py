@@ -297,9 +297,9 @@ def diagnosis_figures(verdict_path: PathLike, diagnosis_path: PathLike, mcmc_pat
     diagnosis_overlays(verdict, result, png_paths["overlays"], code_hash, sources)
     channels = list(result["channel"].values)
     colour = noise.Colour.from_summary(verdict["noise"].get("colour", {}), channels)  # as the verdict judged it
-    residual = colour.whiten(result["y"].values - result["model"].sel(version="calibrated").values)
-    residual_map(residual, result["sigma"].values * colour.innovation, channels, result["time"].values[colour.order:],
-                 float(result.attrs["fs"]), float(result.attrs["load_freq"]), png_paths["residuals"],
+    residual, sigma_e, times = colour.seen(result["y"].values - result["model"].sel(version="calibrated").values,
+                                           result["sigma"].values, result["time"].values)
+    residual_map(residual, sigma_e, channels, times, float(result.attrs["fs"]), float(result.attrs["load_freq"]), png_paths["residuals"],
                  f"{name}: where the calibrated model ({verdict['models']['calibrated']}) fails"
                  + (", noise whitened" if colour.order else ""), code_hash, sources)
     hypothesis_ranking(verdict, result, png_paths["hypotheses"], code_hash, sources)
