@@ -28,8 +28,8 @@ def measured(folders: list[Path]) -> dict[str, dict[str, float]]:
     """rule -> jobs, peak wall time [s] and peak max RSS [MB] over every benchmark file under ``folders``."""
     found: dict[str, dict[str, float]] = {}
     for folder in folders:
-        for path in folder.rglob("benchmarks/*/**/*.tsv"):
-            rule = path.relative_to(path.as_posix().split("/benchmarks/")[0] + "/benchmarks").parts[0]
+        for path in folder.rglob("benchmarks/**/*.tsv"):
+            rule = Path(path.as_posix().split("/benchmarks/", 1)[1]).parts[0].removesuffix(".tsv")
             with path.open() as f:
                 for row in csv.DictReader(f, delimiter="\t"):
                     peak = found.setdefault(rule, {"jobs": 0, "s": 0.0, "max_rss": 0.0})

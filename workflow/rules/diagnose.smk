@@ -33,7 +33,7 @@ rule diagnose:
     threads: 1
     resources:
         mem_mb=per_attempt(2048),
-        runtime=per_attempt(60),
+        runtime=per_attempt(120),
     params:
         spec=diagnosis_spec,
         code=code_hash("diagnose", effect_files()),
