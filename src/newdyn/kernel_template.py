@@ -32,13 +32,15 @@ import numpy as np
 from numba import njit, prange
 
 from newdyn.effects import loaded  # noqa: F401 - the generated effect bindings
-from newdyn.effects.base import Kinematics, RigValues, sincos  # noqa: F401 - used by the generated code
+from newdyn.effects.base import Kinematics, RigValues, kernel_ready  # noqa: F401 - used by the generated code
+from newdyn.effects.base import sincos as _sincos
 
 # Options of every kernel function: 'numpy' error model so that x / 0 gives inf instead of a branch
 # to a ZeroDivisionError (such a branch blocks vectorization); no fast-math, so every operation is
 # the IEEE operation of the scalar original and vector and scalar lanes agree bit for bit.
 _JIT = {"cache": True, "error_model": "numpy"}
 _EFFECT_JIT = {"error_model": "numpy", "inline": "always"}
+sincos = _sincos.compiled()
 
 # @layout@
 

@@ -124,12 +124,13 @@ def render(active: dict[str, type[effects.Effect]]) -> str:
         names = tuple(p.name for p in effect.kernel_parameters()) or ("unused",)
         layout += [
             f"_EFFECT_{i} = loaded({effect.content_hash!r})  # {kind}",
-            f"_force_{i} = njit(**_EFFECT_JIT)(_EFFECT_{i}.force)",
+            f"_force_{i} = njit(**_EFFECT_JIT)(kernel_ready(_EFFECT_{i}.force))",
             f"_P{i} = namedtuple('_P{i}', {names!r})",
             f"_R{i} = namedtuple('_R{i}', {rig_fields(effect) or ('unused',)!r})",
         ]
         if effect.switching():
-            layout += [f"_event_{i} = njit(**_EFFECT_JIT)(_EFFECT_{i}.event)", f"_switch_{i} = njit(**_EFFECT_JIT)(_EFFECT_{i}.switch)"]
+            layout += [f"_event_{i} = njit(**_EFFECT_JIT)(kernel_ready(_EFFECT_{i}.event))",
+                       f"_switch_{i} = njit(**_EFFECT_JIT)(kernel_ready(_EFFECT_{i}.switch))"]
     source = TEMPLATE.read_text(encoding="utf-8").replace("# @layout@", "\n".join(layout))
     return source + "\n\n" + _generated(active, index, switching)
 

@@ -39,6 +39,7 @@ values, used while fitting).
 
 from __future__ import annotations
 
+import functools
 import math
 from collections import namedtuple
 from collections.abc import Callable, Mapping
@@ -46,7 +47,6 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
-from numba import njit
 
 from .. import model
 
@@ -79,9 +79,41 @@ RigValues = namedtuple("RigValues", RIG_FIELDS)
 _FUNCTION_OPTIONS = {"cache": True, "error_model": "numpy", "inline": "always"}
 
 
-def kernel_function(function: Callable) -> Callable:
+class KernelFunction:
+    """A helper of effects' functions: plain Python where Python calls it (the effect files' checks, the SciPy
+    reference), numba's compiled function once a kernel is built from them (:func:`kernel_ready`).  Compiling
+    waits until then, so that reading effect files — as the Snakefile's parse does — does not import numba."""
+
+    def __init__(self, function: Callable):
+        functools.update_wrapper(self, function)
+        self.py_func = function
+        self._compiled = None
+
+    def __call__(self, *args):
+        return self.py_func(*args)
+
+    def compiled(self) -> Callable:
+        if self._compiled is None:
+            from numba import njit
+
+            self._compiled = njit(**_FUNCTION_OPTIONS)(self.py_func)
+            kernel_ready(self.py_func)  # after: the module's globals hold this one too
+        return self._compiled
+
+
+def kernel_function(function: Callable) -> KernelFunction:
     """Make a helper callable from an effect's functions, in the kernel and in plain Python alike."""
-    return njit(**_FUNCTION_OPTIONS)(function)
+    return KernelFunction(function)
+
+
+def kernel_ready(function: Callable) -> Callable:
+    """``function``, its module's kernel functions swapped for their compiled versions: numba resolves the names a
+    function calls through its module's globals when it compiles it."""
+    names = function.__globals__
+    for name, value in list(names.items()):
+        if isinstance(value, KernelFunction):
+            names[name] = value.compiled()
+    return function
 
 
 # --- sin and cos that vectorize -------------------------------------------------------------------
