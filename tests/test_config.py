@@ -5,7 +5,10 @@ from __future__ import annotations
 import copy
 import dataclasses
 import math
+import os
 import re
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -75,6 +78,18 @@ def test_scenario_values_are_exactly_the_model_slots(path):
 def test_the_schema_with_the_effects_kinds_injected_is_a_valid_json_schema():
     schema = cfg.load_schema()
     validator_for(schema).check_schema(schema)
+
+
+def test_checking_a_config_as_the_snakefile_does_leaves_numba_unimported(tmp_path):
+    """The Snakefile's parse (every cluster job's too) imports these modules, checks the config, loads every effect
+    file and takes the code hashes: none of it compiles, so none of it needs numba."""
+    code = ("import sys, newdyn.catalog, newdyn.config, newdyn.effects, newdyn.provenance, newdyn.cli; "
+            f"newdyn.config.load({str(ROOT / 'config' / 'config.yaml')!r}); "
+            "[newdyn.provenance.command_hash(c, [e.source for e in newdyn.effects.active().values()]) for c in ('simulate', 'diagnose')]; "
+            "print(sorted({'numba', 'scipy', 'xarray', 'matplotlib'} & set(sys.modules)))")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         env={**os.environ, "NEWDYN_CACHE": str(tmp_path)})
+    assert run.stdout.split() == ["[]"]
 
 
 def test_default_schema_path_is_the_repository_schema(default_config):
