@@ -4,8 +4,8 @@ Checked without compiling anything, so that a bad file is named before any job r
 declarations (name, description, place, parameters with units, bounds, defaults and ranges, the
 switching functions), then the functions themselves, called as plain Python on the rig's initial
 state, on states around it and on the corners of the prior box, must return finite numbers.  A file whose
-functions passed is remembered in the cache folder by its content (with the package's and numba's), so
-that the next parse of the Snakefile does not call them again.
+functions passed is remembered in the cache folder by its content (under the package's), so that the next
+parse of the Snakefile does not call them again.
 """
 
 from __future__ import annotations
@@ -14,7 +14,6 @@ import inspect
 import itertools
 import math
 from collections.abc import Iterator
-from importlib import metadata
 
 import numpy as np
 
@@ -30,7 +29,7 @@ def problems(effect: type[Effect], stem: str) -> Iterator[str]:
     if declared:
         yield from declared
         return
-    passed = cache.folder() / "effects-checked" / f"{provenance.package_digest()}-numba{metadata.version('numba')}.json"
+    passed = cache.folder() / "effects-checked" / f"{provenance.package_digest()}.json"
     if effect.content_hash and effect.content_hash in cache.read_json(passed):
         return
     evaluated = list(_evaluation_problems(effect))
