@@ -32,8 +32,8 @@ import numpy as np
 from numba import njit, prange
 
 from newdyn.effects import loaded  # noqa: F401 - the generated effect bindings
+from newdyn.effects import sincos as _sincos  # the package's own name: always the helper, never swapped
 from newdyn.effects.base import Kinematics, RigValues, kernel_ready  # noqa: F401 - used by the generated code
-from newdyn.effects.base import sincos as _sincos
 
 # Options of every kernel function: 'numpy' error model so that x / 0 gives inf instead of a branch
 # to a ZeroDivisionError (such a branch blocks vectorization); no fast-math, so every operation is
