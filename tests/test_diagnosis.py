@@ -293,6 +293,12 @@ def test_a_speed_sensor_out_of_its_spec_is_a_sensor_problem_not_a_machine_fault(
         fits = {"healthy": checked, "parameter_change:kT1": drift}
         found = diagnosis._sensor_alternatives(fits, "parameter_change:kT1", data, sigma, instruments, ("b1_x", "w1"), settings)
         assert [row["hypothesis"] for row in found] == named
+    # When the verdict itself reads through the bad sensor, a drift through the same sensor only adds a parameter to
+    # its account: no alternative.
+    nested = replace(checked, hypothesis=hypotheses.Hypothesis("parameter_change:kT1", "parameter_change", "kT1"),
+                     values={"kT1": 3.0e6}, log_evidence=checked.log_evidence - 1.0)
+    assert diagnosis._sensor_alternatives({"healthy": checked, "parameter_change:kT1": nested}, "healthy", data, sigma,
+                                          instruments, ("b1_x", "w1"), settings) == []
     assert found == [] and "explains the data as well through an instrument out of its spec (w1 reads 2.4 % high)" in diagnosis.statement(
         {"verdict": "parameter_change", "effect": "kT1", "equivalent": ["kT1"], "parameters": {}, "chi2_before": 3.0, "chi2_after": 1.0,
          **report, "sensor_problems": [], "sensor_alternatives": [{"hypothesis": "healthy", "sensor_problems": report["sensor_problems"]}]}, 1.1)

@@ -452,16 +452,24 @@ def _sensor_alternatives(fits, after: str, data, sigma, instruments: sensors_mod
     """The fits through an instrument out of its spec that explain the data (χ² ≤ ``chi2_max``) as well as the
     verdict's fit ``after`` but for the prior odds against a bad instrument: within ``evidence_margin`` of its
     evidence once those odds are given back.  A probe's gain and a bearing's stiffness, say, can scale a
-    displacement alike; the data cannot choose, only the odds did."""
+    displacement alike; the data cannot choose, only the odds did.  None when ``after`` itself reads through an
+    instrument out of its spec: a fit through that instrument then only adds parameters to the verdict's account."""
+    if _widened(fits[after], instruments):
+        return []
     best, rows = fits[after].log_evidence, []
     for name, fit in fits.items():
-        widened = 0 if fit.instruments is None else int(np.sum(fit.instruments.scale != instruments.scale))
+        widened = _widened(fit, instruments)
         if name == after or not widened or fit.chi2_red > settings.chi2_max:
             continue
         if fit.log_evidence + settings.evidence_margin * widened >= best - settings.evidence_margin:
             problems = _instrument_report(fit, data, sigma, instruments, channels, settings.evidence_margin)["sensor_problems"]
             rows.append({"hypothesis": name, "log_evidence": fit.log_evidence, "chi2": fit.chi2_red, "sensor_problems": problems})
     return sorted(rows, key=lambda row: -row["log_evidence"])
+
+
+def _widened(fit: hypotheses.Fit, instruments: sensors_module.Instruments) -> int:
+    """How many of a fit's instrument priors were widened beyond the datasheets ``instruments``."""
+    return 0 if fit.instruments is None else int(np.sum(fit.instruments.scale != instruments.scale))
 
 
 def _class(hypothesis: hypotheses.Hypothesis) -> str:
