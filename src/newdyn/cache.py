@@ -31,11 +31,13 @@ def read_json(path: str | os.PathLike) -> dict:
 def write_json(path: str | os.PathLike, document: Mapping) -> None:
     """Write atomically, so that processes reading at the same time never see half a file; a folder that cannot be
     written to only means the answer is computed again next time."""
-    path = Path(path)
+    path, written = Path(path), None
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         with tempfile.NamedTemporaryFile("w", dir=path.parent, prefix=f".{path.name}.", delete=False) as f:
+            written = Path(f.name)
             json.dump(document, f)
-        os.replace(f.name, path)
+        os.replace(written, path)
     except OSError:
-        pass
+        if written is not None:
+            written.unlink(missing_ok=True)
