@@ -112,7 +112,6 @@ NODE_MASSES = ("m_b", "m1", "m_b", "m2", "m3", "m_b", "m4", "m_b")
 
 CHANNELS: tuple[str, ...] = tuple(f"{NODES[n]}_{d}" for n in BEARING_NODES for d in "xy") + ("w1", "w4", "torque_c")
 CHANNEL_UNITS = MappingProxyType({**{c: "m" for c in CHANNELS[:8]}, "w1": "rad/s", "w4": "rad/s", "torque_c": "N·m"})
-DEFAULT_MEASURED_CHANNELS = ("b1_x", "w1")
 
 
 def omega(values: Mapping[str, float]) -> float:
