@@ -11,8 +11,12 @@ from __future__ import annotations
 import json
 import os
 import tempfile
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
+from typing import TypeVar
+
+Answer = TypeVar("Answer")
+_answers: dict[Path, dict] = {}  # each answers file as this process last read or wrote it
 
 
 def folder() -> Path:
@@ -41,3 +45,19 @@ def write_json(path: str | os.PathLike, document: Mapping) -> None:
     except OSError:
         if written is not None:
             written.unlink(missing_ok=True)
+
+
+def remembered(path: str | os.PathLike, key: str, compute: Callable[[], Answer],
+               keep: Callable[[Answer], bool] = lambda answer: True) -> Answer:
+    """The answer under ``key`` in the JSON object ``path`` (read once per process), else ``compute()``'s, added to
+    it when ``keep`` says so.  ``key`` and the file's name must name everything a kept answer depends on; answers
+    are JSON (a tuple comes back as a list)."""
+    path = Path(path)
+    answers = _answers.setdefault(path, read_json(path))
+    if key in answers:
+        return answers[key]
+    answer = compute()
+    if keep(answer):
+        answers[key] = answer
+        write_json(path, answers)
+    return answer

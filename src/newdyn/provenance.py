@@ -42,11 +42,7 @@ def command_hash(command: str, files: Sequence[str] = ()) -> str:
     and every module that the command's function, the cli functions it calls and those files import (:func:`imported`)."""
     key = hashlib.sha256(json.dumps([command, *[[str(Path(p).resolve()), hashlib.sha256(Path(p).read_bytes()).hexdigest()]
                                                 for p in files]]).encode()).hexdigest()
-    known = _remembered()
-    if key not in known:
-        known[key] = _command_hash(command, files)
-        cache.write_json(_remembered_path(), known)
-    return known[key]
+    return cache.remembered(cache.folder() / "code-hashes" / f"{package_digest()}.json", key, lambda: _command_hash(command, files))
 
 
 def _command_hash(command: str, files: Sequence[str]) -> str:
@@ -64,15 +60,6 @@ def package_digest() -> str:
     for path in sorted(PACKAGE.rglob("*.py")):
         digest.update(path.relative_to(PACKAGE).as_posix().encode() + b"\0" + path.read_bytes() + b"\0")
     return digest.hexdigest()[:32]
-
-
-def _remembered_path() -> Path:
-    return cache.folder() / "code-hashes" / f"{package_digest()}.json"
-
-
-@functools.cache
-def _remembered() -> dict[str, str]:
-    return cache.read_json(_remembered_path())
 
 
 @functools.cache

@@ -29,14 +29,12 @@ def problems(effect: type[Effect], stem: str) -> Iterator[str]:
     if declared:
         yield from declared
         return
-    passed = cache.folder() / "effects-checked" / f"{provenance.package_digest()}.json"
-    if effect.content_hash and effect.content_hash in cache.read_json(passed):
+    if not effect.content_hash:  # not read from a file: nothing to remember it by
+        yield from _evaluation_problems(effect)
         return
-    evaluated = list(_evaluation_problems(effect))
-    if evaluated:
-        yield from evaluated
-    elif effect.content_hash:  # read from a file
-        cache.write_json(passed, {**cache.read_json(passed), effect.content_hash: True})
+    # Only a pass is remembered: a failure may come from a helper the file imports, which its content does not name.
+    yield from cache.remembered(cache.folder() / "effects-checked" / f"{provenance.package_digest()}.json", effect.content_hash,
+                                lambda: list(_evaluation_problems(effect)), keep=lambda found: not found)
 
 
 def _number(value) -> bool:
