@@ -973,8 +973,9 @@ def test_bad_user_effect_gives_one_line_naming_config_field_and_file(default_con
 
 
 def test_an_effect_files_functions_are_called_once_for_its_content(effect_folder, tmp_path, monkeypatch):
-    """Whether a file's functions return numbers is remembered by the file's content in the cache folder: loading it
-    again (the next parse of the Snakefile) calls none of them, while a file with other content is called."""
+    """That a file's functions return numbers is remembered by the file's content in the cache folder: loading it
+    again (the next parse of the Snakefile) calls none of them, while a file with other content, or one that failed,
+    is called."""
     from newdyn.effects import check
 
     monkeypatch.setenv("NEWDYN_CACHE", str(tmp_path / "cache"))
@@ -988,6 +989,13 @@ def test_an_effect_files_functions_are_called_once_for_its_content(effect_folder
     path.write_text(RIPPLE, encoding="utf-8")
     effects.load_file(path)
     assert calls == ["torque_ripple"]
+    # A failure is not remembered: it may come from a helper the file imports, which its content does not name.
+    monkeypatch.setattr(check, "_evaluation_problems", lambda effect: calls.append(effect.name) or iter(["force() returned nan"]))
+    path.write_text(RIPPLE + "\n\n", encoding="utf-8")
+    for _ in range(2):
+        with pytest.raises(effects.EffectError, match="returned nan"):
+            effects.load_file(path)
+    assert calls == ["torque_ripple"] * 3
 
 
 def test_missing_user_effect_file(default_config, effect_folder):
