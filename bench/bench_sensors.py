@@ -3,9 +3,9 @@ more diagnosis time), side by side with exact instruments on the stages that eva
 calibration, a fault's fit (breathing crack with the drift, least squares through the windows) and the
 likelihood of an MCMC batch.  Default record (1 s at 40 dB, the config's diagnosis channels), a healthy rig whose
 b1_x reads 0.2 of its std high; the sensor model is the README's (b1_x offset sd 100 nm, gain sd 2 %; w1 0.01 rad/s,
-0.1 %; other channels exact),
-then the same with a delay sd of 0.2 ms on both.  With ``--diagnosis``, whole diagnoses of every scenario of the
-config and of that measurement, with exact instruments and with the config's datasheets (half an hour).
+0.1 %; other channels exact), then the same with a delay sd of 0.2 ms on both.  With ``--diagnosis``, whole
+diagnoses of every scenario of the config and of that measurement, with exact instruments and with the config's
+datasheets (half an hour).
 
 Run: python bench/bench_sensors.py [--diagnosis]
 """
@@ -71,7 +71,7 @@ def main() -> None:
 
 def whole_diagnoses() -> None:
     """Every scenario of the config, and a healthy rig whose b1_x reads 0.2 std high, diagnosed with exact
-    instruments and with the config's datasheets; the total over the measurements whose verdict both agree on (where
+    instruments and with the config's datasheets; the total over the measurements whose two verdicts agree (where
     they differ, the datasheets change what the diagnosis does, not only its cost)."""
     config = yaml.safe_load((ROOT / "config" / "config.yaml").read_text())
     settings = diagnosis.Settings.from_config(config)
