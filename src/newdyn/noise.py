@@ -15,8 +15,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.ndimage
-import scipy.signal
+import scipy  # scipy.signal and scipy.ndimage load on first use: adding noise needs neither
 
 from . import model
 
