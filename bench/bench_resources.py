@@ -16,11 +16,15 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def declared() -> dict[str, dict[str, int]]:
-    """rule -> {"mem_mb": MB, "runtime": minutes} as its first attempt asks for them."""
+    """rule -> {"mem_mb": MB, "runtime": minutes} as its first attempt asks for them; a rule made in a loop (one per
+    variant) goes by the folder of its benchmark files, as its jobs' measurements do."""
     found = {}
+    rules = re.compile(r"^(?P<indent> *)rule(?: (?P<name>\w+))?:\n(?P<body>(?:(?P=indent)[ \t]+.*\n|\n)+)", re.MULTILINE)
     for path in sorted((ROOT / "workflow" / "rules").glob("*.smk")):
-        for rule, body in re.findall(r"^rule (\w+):\n((?:[ \t]+.*\n|\n)+)", path.read_text(), re.MULTILINE):
-            found[rule] = {key: int(value) for key, value in re.findall(r"^        (mem_mb|runtime)=per_attempt\((\d+)\)", body, re.MULTILINE)}
+        for rule in rules.finditer(path.read_text()):
+            body = rule["body"]
+            name = rule["name"] or re.search(r'benchmarks/(\w+)', body).group(1)
+            found[name] = {key: int(value) for key, value in re.findall(r"^ +(mem_mb|runtime)=per_attempt\((\d+)\)", body, re.MULTILINE)}
     return found
 
 

@@ -6,6 +6,7 @@ import logging
 import arviz as az
 import numpy as np
 import pytest
+import xarray as xr
 from scipy import stats
 
 from newdyn import calibration, cli, io, likelihood, mcmc_calibration, model, noise
@@ -181,7 +182,7 @@ def test_too_few_walkers_or_a_missing_sigma_are_refused(kT1_up):
 
 
 def test_cli_round_trip(tmp_path):
-    """grid-models → calibrate-grid per parameter → calibrate-joint, on tiny files; with σ inferred the
+    """grid-models per parameter → calibrate-grid of them all → calibrate-joint, on tiny files; with σ inferred the
     measurement needs no sigma coordinate."""
     window = {"fs": SAMPLING.fs, "t_first": SAMPLING.t_first, "n_samples": float(SAMPLING.n_samples)}
     values = {name: model.DEFAULTS[name] for name in model.OPERATING_PARAMETERS}
@@ -196,15 +197,22 @@ def test_cli_round_trip(tmp_path):
         for spec, prior in zip(GRIDS, PRIORS)
     }
     common = {"values": values, "channels": CHANNELS, "max_step": 1e-4}
-    results = []
+    coarse_grids, results = [], []
     for name, p in parameters.items():
-        coarse, result = tmp_path / f"{name}_models.nc", tmp_path / f"{name}_grid.nc"
+        coarse_grids.append(str(tmp_path / f"{name}_models.nc"))
+        results.append(str(tmp_path / f"{name}_grid.nc"))
         cli.main(["grid-models", "--spec", json.dumps({**common, "parameter": name, "grid": p["grid"], "sampling": window}),
-                  "--output", str(coarse)])
-        spec = {**common, "parameter": name, **p, "refine_points": 21, "chi2_max": 1.1}
-        cli.main(["calibrate-grid", "--measurement", str(with_sigma), "--grid", str(coarse), "--spec", json.dumps(spec),
-                  "--output", str(result)])
-        results.append(str(result))
+                  "--output", coarse_grids[-1]])
+    settings = {**common, "refine_points": 21, "chi2_max": 1.1}
+    spec = {**settings, "parameters": [{"parameter": name, **p} for name, p in parameters.items()]}
+    cli.main(["calibrate-grid", "--measurement", str(with_sigma), "--grids", *coarse_grids, "--spec", json.dumps(spec),
+              "--outputs", *results])
+    for name, result in zip(parameters, results):  # each file keeps its own parameter's settings
+        with xr.open_dataset(result) as done:
+            assert json.loads(done.attrs["settings"]) == {**settings, "parameter": name, **parameters[name]}
+    with pytest.raises(ValueError, match="a coarse grid and an output per parameter"):
+        cli.main(["calibrate-grid", "--measurement", str(with_sigma), "--grids", *coarse_grids, "--spec", json.dumps(spec),
+                  "--outputs", results[0]])
 
     spec = {
         **common, "parameters": parameters, "infer_sigma": True, "chi2_max": 1.1,

@@ -25,8 +25,13 @@ def test_workflow_is_lint_clean_and_snakefmt_formatted():
 
 def test_every_rule_keeps_a_log_and_a_benchmark_and_asks_for_memory_and_time():
     """Each job's output and its measured time and memory land under results/, and each rule asks a cluster for the
-    memory and time sized from them."""
+    memory and time sized from them; rules made in a loop (one per variant) as well."""
+    rules = re.compile(r"^(?P<indent> *)rule(?: (?P<name>\w+))?:\n(?P<body>(?:(?P=indent)[ \t]+.*\n|\n)+)", re.MULTILINE)
     for path in sorted((ROOT / "workflow" / "rules").glob("*.smk")):
-        for rule, body in re.findall(r"^rule (\w+):\n((?:[ \t]+.*\n|\n)+)", path.read_text(), re.MULTILINE):
+        text = path.read_text()
+        assert len(list(rules.finditer(text))) == len(re.findall(r"^ *rule\b", text, re.MULTILINE)), path.name
+        for rule in rules.finditer(text):
+            indent = rule["indent"] + "    "
+            name = rule["name"] or re.search(rf"^{indent}name:\n\s+(.+)$", rule["body"], re.MULTILINE).group(1)
             for directive in ("log:", "benchmark:", "resources:", "    mem_mb=", "    runtime="):
-                assert re.search(rf"^    {directive}", body, re.MULTILINE), f"{path.name}: rule {rule} has no {directive}"
+                assert re.search(rf"^{indent}{directive}", rule["body"], re.MULTILINE), f"{path.name}: rule {name} has no {directive}"

@@ -89,8 +89,21 @@ def simulate_grid_models(spec: dict, output: str, code_hash: str) -> None:
     io.write_netcdf(ds, output)
 
 
+def calibrate_on_grids(measurement_path: str, grid_paths: list[str], spec: dict, outputs: list[str], code_hash: str) -> None:
+    """Write the grid posterior of each parameter of ``spec["parameters"]`` for one measurement, with its summary as
+    attributes: ``grid_paths`` and ``outputs`` are the parameters' coarse grids and result files, in that order.  One
+    process calibrates them all, so that its start and imports are paid once per measurement."""
+    entries = spec["parameters"]
+    if not len(entries) == len(grid_paths) == len(outputs):
+        raise ValueError(f"need a coarse grid and an output per parameter ({len(entries)}), got {len(grid_paths)} and {len(outputs)}")
+    settings = {key: value for key, value in spec.items() if key != "parameters"}
+    for entry, grid_path, output in zip(entries, grid_paths, outputs):
+        calibrate_on_grid(measurement_path, grid_path, {**entry, **settings}, output, code_hash)
+
+
 def calibrate_on_grid(measurement_path: str, grid_path: str, spec: dict, output: str, code_hash: str) -> None:
-    """Write the grid posterior of one parameter for one measurement, with its summary as attributes."""
+    """Write the grid posterior of one parameter for one measurement, with its summary as attributes (``spec``: its
+    ``parameter``, ``prior`` and ``grid`` with the calibration settings, kept as the file's ``settings``)."""
     import xarray as xr
 
     from . import calibration, io, provenance
@@ -393,9 +406,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--snr-db", type=float, required=True)
     p.add_argument("--seed", type=int, required=True)
     command("grid-models", "simulate the coarse likelihood grid of a calibration parameter", "grid spec")
-    p = command("calibrate-grid", "grid posterior of a parameter for a measurement", "calibration spec")
+    p = commands.add_parser("calibrate-grid", help="grid posterior of each parameter for a measurement")
+    p.add_argument("--spec", required=True, help="the parameters (each its parameter, prior and grid) and the "
+                   "calibration settings as JSON (built by the workflow)")
     p.add_argument("--measurement", required=True)
-    p.add_argument("--grid", required=True, help="the parameter's coarse grid (from grid-models)")
+    p.add_argument("--grids", required=True, nargs="+", help="each parameter's coarse grid (from grid-models), in the spec's order")
+    p.add_argument("--outputs", required=True, nargs="+", help="each parameter's grid calibration, in the spec's order")
+    p.add_argument("--code-hash", default="")
     p = command("calibrate-mcmc", "MCMC posterior of a parameter for a measurement", "calibration spec")
     p.add_argument("--measurement", required=True)
     p.add_argument("--grid-result", required=True, help="the same calibration on the grid (starts the walkers)")
@@ -454,7 +471,7 @@ def main(argv: list[str] | None = None) -> int:
     elif args.command == "grid-models":
         simulate_grid_models(json.loads(args.spec), args.output, args.code_hash)
     elif args.command == "calibrate-grid":
-        calibrate_on_grid(args.measurement, args.grid, json.loads(args.spec), args.output, args.code_hash)
+        calibrate_on_grids(args.measurement, args.grids, json.loads(args.spec), args.outputs, args.code_hash)
     elif args.command == "calibrate-mcmc":
         calibrate_with_mcmc(args.measurement, args.grid_result, json.loads(args.spec), args.output, args.code_hash)
     elif args.command == "calibrate-joint":

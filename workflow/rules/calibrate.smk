@@ -22,28 +22,37 @@ rule grid_models:
         "--code-hash {params.code} --output {output} > {log} 2>&1"
 
 
-rule calibrate_grid:
-    input:
-        measurement="results/{variant}/simulations/{scenario}/snr{snr}_seed{seed}.nc",
-        grid="results/{variant}/calibration/grids/{parameter}.nc",
-    output:
-        "results/{variant}/calibration/{scenario}/{parameter}/snr{snr}_seed{seed}_grid.nc",
-    log:
-        "results/logs/calibrate_grid/{variant}/{scenario}/{parameter}/snr{snr}_seed{seed}.log",
-    benchmark:
-        "results/benchmarks/calibrate_grid/{variant}/{scenario}/{parameter}/snr{snr}_seed{seed}.tsv"
-    conda:
-        "../envs/newdyn.yaml"
-    threads: 1
-    resources:
-        mem_mb=per_attempt(1024),
-        runtime=per_attempt(10),
-    params:
-        spec=calibration_spec,
-        code=code_hash("calibrate-grid"),
-    shell:
-        "NUMBA_NUM_THREADS={threads} OPENBLAS_NUM_THREADS={threads} newdyn calibrate-grid --measurement {input.measurement} "
-        "--grid {input.grid} --spec {params.spec:q} --code-hash {params.code} --output {output} > {log} 2>&1"
+# One job per measurement calibrates every parameter of its variant on its grid, as a job's start and imports cost
+# more than one calibration; a variant's parameters fix the job's outputs, so each variant has its rule. A change of
+# one parameter's prior or grid reruns every measurement's job, and so everything that reads its files.
+for variant, variant_config in VARIANTS.items():
+
+    rule:
+        name:
+            f"calibrate_grid_{variant}"
+        input:
+            measurement="results/{variant}/simulations/{scenario}/snr{snr}_seed{seed}.nc",
+            grids=grid_files(variant_config),
+        output:
+            grid_calibration_files(variant_config),
+        log:
+            "results/logs/calibrate_grid/{variant}/{scenario}/snr{snr}_seed{seed}.log",
+        benchmark:
+            "results/benchmarks/calibrate_grid/{variant}/{scenario}/snr{snr}_seed{seed}.tsv"
+        wildcard_constraints:
+            variant=re.escape(variant),
+        conda:
+            "../envs/newdyn.yaml"
+        threads: 1
+        resources:
+            mem_mb=per_attempt(1024),
+            runtime=per_attempt(10),
+        params:
+            spec=grid_calibration_spec,
+            code=code_hash("calibrate-grid"),
+        shell:
+            "NUMBA_NUM_THREADS={threads} OPENBLAS_NUM_THREADS={threads} newdyn calibrate-grid --measurement {input.measurement} "
+            "--grids {input.grids} --spec {params.spec:q} --code-hash {params.code} --outputs {output} > {log} 2>&1"
 
 
 rule calibrate_mcmc:

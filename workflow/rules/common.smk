@@ -1,4 +1,5 @@
 # Config checking and the helpers rules share. Runs at parse time, before any job starts.
+import re
 import sys
 from pathlib import Path
 
@@ -141,23 +142,50 @@ def _calibration_settings(cfg):
     }
 
 
-def calibration_spec(wildcards, mcmc=False):
-    """What one calibration depends on besides its input files (MCMC: also the MCMC settings)."""
+def grid_files(cfg):
+    """The coarse grid of each parameter of the variant ``cfg``, a pattern of {variant}."""
+    return expand(
+        "results/{{variant}}/calibration/grids/{parameter}.nc", parameter=list(cfg["calibration"]["parameters"])
+    )
+
+
+def grid_calibration_files(cfg):
+    """The grid calibration of each parameter of the variant ``cfg`` on one measurement, in the order of
+    grid_calibration_spec's parameters."""
+    return expand(
+        "results/{{variant}}/calibration/{{scenario}}/{parameter}/snr{{snr}}_seed{{seed}}_grid.nc",
+        parameter=list(cfg["calibration"]["parameters"]),
+    )
+
+
+def grid_calibration_spec(wildcards):
+    """What the grid calibrations of one measurement depend on besides its input files: each parameter's prior and
+    grid (in the variant's order), and the calibration settings."""
     cfg = study(wildcards)
-    spec = cfg["calibration"]["parameters"][wildcards.parameter]
     return newdyn.config.canonical_json(
         {
-            **({"mcmc": cfg["calibration"]["mcmc"]} if mcmc else {}),
-            "parameter": wildcards.parameter,
-            "prior": spec["prior"],
-            "grid": spec["grid"],
+            "parameters": [
+                {"parameter": name, "prior": spec["prior"], "grid": spec["grid"]}
+                for name, spec in cfg["calibration"]["parameters"].items()
+            ],
             **_calibration_settings(cfg),
         }
     )
 
 
 def mcmc_spec(wildcards):
-    return calibration_spec(wildcards, mcmc=True)
+    """What one parameter's MCMC calibration depends on besides its input files."""
+    cfg = study(wildcards)
+    spec = cfg["calibration"]["parameters"][wildcards.parameter]
+    return newdyn.config.canonical_json(
+        {
+            "mcmc": cfg["calibration"]["mcmc"],
+            "parameter": wildcards.parameter,
+            "prior": spec["prior"],
+            "grid": spec["grid"],
+            **_calibration_settings(cfg),
+        }
+    )
 
 
 def joint_spec(wildcards):
