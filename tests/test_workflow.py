@@ -192,8 +192,10 @@ def test_changing_one_scenario_reruns_only_that_scenario(study, tmp_path):
     planned = planned_outputs(study, path)
     assert "results/default/simulations/kT1_up/clean.nc" in planned
     assert "results/paper/simulations/kT1_up/clean.nc" in planned
-    for p in planned:  # its own files, and the study-wide tables and figures that read them
-        assert "kT1_up" in p or "/comparison/" in p or "summary" in p or "signatures" in p or "fig3" in p, p
+    # its own files, the study-wide tables that read them, and the figures: one job per stage draws them all
+    for p in planned:
+        assert "kT1_up" in p or "/comparison/" in p or "summary" in p or "/figures/" in p, p
+    assert "results/default/calibration/healthy/kT1/snr40_seed1_mcmc.nc" not in planned
 
 
 def test_changing_a_rig_value_reruns_every_scenario_of_the_variants_that_use_it(study, tmp_path):

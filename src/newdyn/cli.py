@@ -304,22 +304,29 @@ def compare(paths: list[str], output: str, code_hash: str) -> None:
     log.info("compared %d posteriors into %s", len(posteriors), output)
 
 
-def plot(kind: str, inputs: list[str], output: str, code_hash: str, measurement: str | None = None,
-         chi2_output: str | None = None, snr_db: float | None = None, seed: int | None = None) -> None:
+def plot_figures(kind: str, figures: list[dict], code_hash: str) -> None:
+    """Draw the figures of one stage of the study (each a PNG and a PDF), in one process so that matplotlib and ArviZ
+    are imported once: ``figures`` as :func:`plot` takes them, each its ``png``, ``inputs`` and the drawing's settings."""
+    for figure in figures:
+        plot(kind, code_hash=code_hash, **figure)
+
+
+def plot(kind: str, png: str, inputs: list[str], code_hash: str, measurement: str | None = None,
+         chi2_png: str | None = None, snr_db: float | None = None, seed: int | None = None) -> None:
     """Draw one figure of the study (PNG and PDF) with :mod:`newdyn.plots`."""
     from . import plots
 
     if kind == "posteriors":
-        plots.posterior_panels(inputs, output, code_hash=code_hash)
+        plots.posterior_panels(inputs, png, code_hash=code_hash)
     elif kind == "overlays":
-        plots.model_overlays(measurement, inputs, output, code_hash=code_hash)
+        plots.model_overlays(measurement, inputs, png, code_hash=code_hash)
     elif kind == "mcmc":
-        plots.mcmc_diagnostics(inputs, output, code_hash=code_hash)
+        plots.mcmc_diagnostics(inputs, png, code_hash=code_hash)
     elif kind == "signatures":
-        plots.signature_heatmaps(inputs[0], output, snr_db, seed, code_hash=code_hash)
+        plots.signature_heatmaps(inputs[0], png, snr_db, seed, code_hash=code_hash)
     elif kind == "summary":
-        plots.summary_heatmaps(inputs[0], output, chi2_output, code_hash=code_hash)
-    log.info("drew %s into %s", kind, output)
+        plots.summary_heatmaps(inputs[0], png, chi2_png, code_hash=code_hash)
+    log.info("drew %s into %s", kind, png)
 
 
 def diagnose_measurement(measurement_path: str, grid_paths: list[str], spec: dict, verdict: str, table: str,
@@ -423,14 +430,14 @@ def main(argv: list[str] | None = None) -> int:
                    help="each parameter's grid calibration, in the spec's parameter order (they start the walkers)")
     p = command("compare", "Hellinger distances between all scenarios' grid posteriors")
     p.add_argument("inputs", nargs="+", help="grid calibration files of one study variant")
-    p = command("plot", "draw a figure (PNG, and PDF beside it)")
+    p = commands.add_parser("plot", help="draw figures of one kind (each a PNG, and a PDF beside it)")
     p.add_argument("kind", choices=["posteriors", "overlays", "mcmc", "signatures", "summary"])
-    p.add_argument("inputs", nargs="+", help="grid calibrations (posteriors, overlays), a measurement's MCMC results, "
-                   "the comparison file (signatures) or the summary table")
-    p.add_argument("--measurement", help="overlays: the measurement the grid calibrations fitted")
-    p.add_argument("--chi2-output", help="summary: the χ² heatmap (--output gets the Hellinger one)")
-    p.add_argument("--snr-db", type=float, help="signatures: which SNR")
-    p.add_argument("--seed", type=int, help="signatures: which seed")
+    p.add_argument("--figures", required=True, help="the figures as JSON (built by the workflow), a list of objects: "
+                   "png, the PNG to write; inputs, the grid calibrations (posteriors, overlays), a measurement's MCMC "
+                   "results, the comparison file (signatures) or the summary table; measurement (overlays), the "
+                   "measurement the grid calibrations fitted; snr_db and seed (signatures), which SNR and seed; "
+                   "chi2_png (summary), the χ² heatmap (png gets the Hellinger one)")
+    p.add_argument("--code-hash", default="")
     p = commands.add_parser("diagnose", help="diagnose a measurement: which hypothesis explains it")
     p.add_argument("--measurement", required=True)
     p.add_argument("--spec", required=True, help="the diagnosis settings as JSON (built by the workflow)")
@@ -479,7 +486,7 @@ def main(argv: list[str] | None = None) -> int:
     elif args.command == "compare":
         compare(args.inputs, args.output, args.code_hash)
     elif args.command == "plot":
-        plot(args.kind, args.inputs, args.output, args.code_hash, args.measurement, args.chi2_output, args.snr_db, args.seed)
+        plot_figures(args.kind, json.loads(args.figures), args.code_hash)
     elif args.command == "diagnose":
         diagnose_measurement(args.measurement, args.grids, json.loads(args.spec), args.verdict, args.table, args.netcdf,
                              args.mcmc, args.discovery, args.code_hash)

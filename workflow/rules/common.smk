@@ -232,46 +232,137 @@ def all_calibration_targets():
     return [path for variant in VARIANTS for path in calibration_targets(variant)]
 
 
-# --- figures
+# --- figures: one job per stage draws every figure of that stage (figures.smk), each with its own inputs
 PAPER_FIGURES = {"fig3": ("kT1_up", ["kT1"]), "fig4": ("stick_slip", ["kT1", "kT3"])}
 
 
-def _figure(stem, caption, category, **labels):
-    """A figure's PNG (in the report, captioned) and its PDF."""
+def _figure(stem, caption, category, subcategory=None, labels=None, inputs=(), **drawing):
+    """A figure: its PNG (in the report, captioned) and PDF, the files it is drawn from and what else its drawing
+    takes (newdyn plot's --figures)."""
     png = report(
-        f"{stem}.png", caption=f"../report/{caption}.rst", category=category, subcategory="{variant}", labels=labels
+        f"{stem}.png", caption=f"../report/{caption}.rst", category=category, subcategory=subcategory, labels=labels
     )
-    return {"png": png, "pdf": f"{stem}.pdf"}
+    return {"png": png, "pdf": f"{stem}.pdf", "inputs": list(inputs), **drawing}
 
 
-def _grid_results(wildcards, parameters=None):
-    cfg = study(wildcards)
-    return expand(
-        "results/{{variant}}/calibration/{{scenario}}/{parameter}/snr{{snr}}_seed{{seed}}_grid.nc",
-        parameter=parameters or list(cfg["calibration"]["parameters"]),
+def _measurement_figures(variant, cfg, scenario, snr, seed):
+    """The figures of one measurement: its posteriors, its best fits against it and, with MCMC runs, their diagnostics."""
+    measurement = f"results/{variant}/simulations/{scenario}/snr{snr}_seed{seed}.nc"
+    results = f"results/{variant}/calibration/{scenario}/{{parameter}}/snr{snr}_seed{seed}_{{method}}.nc"
+    grid = expand(results, parameter=list(cfg["calibration"]["parameters"]), method="grid")
+    stem = f"results/{variant}/figures/{{kind}}/{scenario}_snr{snr}_seed{seed}"
+    labels = {"scenario": scenario, "snr_dB": snr, "seed": seed}
+    figures = {
+        "posteriors": [_figure(stem.format(kind="posteriors"), "posteriors", "2 Calibration", variant, labels, grid)],
+        "overlays": [
+            _figure(
+                stem.format(kind="overlays"),
+                "overlays",
+                "3 Model vs data",
+                variant,
+                labels,
+                grid,
+                measurement=measurement,
+            )
+        ],
+    }
+    if mcmc_runs(cfg):
+        runs = expand(results, parameter=mcmc_runs(cfg), method="mcmc")
+        figures["mcmc"] = [_figure(stem.format(kind="mcmc"), "mcmc", "4 MCMC diagnostics", variant, labels, runs)]
+    return figures
+
+
+def _variant_figures(variant, cfg):
+    """stage -> the figures of one variant."""
+    stages = {"posteriors": [], "overlays": [], "mcmc": [], "signatures": []}
+    for scenario in cfg["scenarios"]:
+        for snr in _snrs(cfg):
+            for seed in SEEDS:
+                for stage, figures in _measurement_figures(variant, cfg, scenario, snr, seed).items():
+                    stages[stage] += figures
+    for snr in _snrs(cfg):
+        for seed in SEEDS:
+            for figure, (scenario, parameters) in PAPER_FIGURES.items():
+                if scenario in cfg["scenarios"] and all(p in cfg["calibration"]["parameters"] for p in parameters):
+                    grid = expand(
+                        f"results/{variant}/calibration/{scenario}/{{parameter}}/snr{snr}_seed{seed}_grid.nc",
+                        parameter=parameters,
+                    )
+                    stages["posteriors"].append(
+                        _figure(
+                            f"results/{variant}/figures/{figure}_snr{snr}_seed{seed}",
+                            f"paper_{figure}",
+                            "1 The paper's figures",
+                            variant,
+                            {"figure": figure, "snr_dB": snr, "seed": seed},
+                            grid,
+                        )
+                    )
+            stages["signatures"].append(
+                _figure(
+                    f"results/{variant}/figures/signatures_snr{snr}_seed{seed}",
+                    "signatures",
+                    "5 Comparison",
+                    variant,
+                    {"snr_dB": snr, "seed": seed},
+                    [f"results/{variant}/comparison/hellinger.nc"],
+                    snr_db=float(snr),
+                    seed=int(seed),
+                )
+            )
+    return stages
+
+
+def _study_figures():
+    """stage -> every figure of the study that its job draws, the variants' in turn."""
+    stages = {"posteriors": [], "overlays": [], "mcmc": [], "signatures": []}
+    for variant, cfg in VARIANTS.items():
+        for stage, figures in _variant_figures(variant, cfg).items():
+            stages[stage] += figures
+    summary = _figure("results/figures/summary_hellinger", "summary", "0 Summary", inputs=["results/summary.csv"])
+    chi2 = report("results/figures/summary_chi2.png", caption="../report/summary.rst", category="0 Summary")
+    stages["summary"] = [{**summary, "chi2_png": chi2, "chi2_pdf": "results/figures/summary_chi2.pdf"}]
+    return stages
+
+
+STUDY_FIGURES = _study_figures()
+
+
+def figure_inputs(stage):
+    """Every file the figures of ``stage`` are drawn from."""
+    return sorted(
+        {path for figure in STUDY_FIGURES[stage] for path in [*figure["inputs"], figure.get("measurement")] if path}
+    )
+
+
+def figure_files(stage):
+    """The PNG (marked for the report) and PDF of every figure of ``stage``."""
+    return [
+        figure[key]
+        for figure in STUDY_FIGURES[stage]
+        for key in ("png", "pdf", "chi2_png", "chi2_pdf")
+        if key in figure
+    ]
+
+
+def figure_plan(stage):
+    """The figures of ``stage`` as ``newdyn plot --figures`` takes them: each its PNG, input files and drawing's settings."""
+    return newdyn.config.canonical_json(
+        [
+            {key: value for key, value in figure.items() if key not in ("pdf", "chi2_pdf")}
+            for figure in STUDY_FIGURES[stage]
+        ]
     )
 
 
 def figure_targets():
-    targets = ["results/figures/summary_hellinger.png", "results/figures/summary_chi2.png"]
-    for variant, cfg in VARIANTS.items():
-        scenarios, parameters = cfg["scenarios"], cfg["calibration"]["parameters"]
-        common = dict(variant=variant, snr=_snrs(cfg), seed=SEEDS)
-        targets += expand("results/{variant}/figures/signatures_snr{snr}_seed{seed}.png", **common)
-        for kind in ("posteriors", "overlays"):
-            targets += expand(
-                f"results/{{variant}}/figures/{kind}/{{scenario}}_snr{{snr}}_seed{{seed}}.png",
-                scenario=list(scenarios),
-                **common,
-            )
-        if mcmc_runs(cfg):
-            targets += expand(
-                "results/{variant}/figures/mcmc/{scenario}_snr{snr}_seed{seed}.png", scenario=list(scenarios), **common
-            )
-        for figure, (scenario, needed) in PAPER_FIGURES.items():
-            if scenario in scenarios and all(p in parameters for p in needed):
-                targets += expand("results/{variant}/figures/{figure}_snr{snr}_seed{seed}.png", figure=figure, **common)
-    return targets
+    return [
+        figure[key]
+        for figures in STUDY_FIGURES.values()
+        for figure in figures
+        for key in ("png", "chi2_png")
+        if key in figure
+    ]
 
 
 # --- diagnosis of measurements: users' files in measurements/, and hidden-effect sets drawn from a seed

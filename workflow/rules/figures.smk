@@ -1,20 +1,20 @@
-# Figures (PNG for the report, PDF beside each) and the report's grouping: one category per stage.
+# Figures (PNG for the report, PDF beside each) and the report's grouping: one category per stage. One job per stage
+# draws every figure of it across the study, so that matplotlib (and for MCMC, ArviZ) is imported once rather than
+# for every figure; a change of any of a stage's inputs redraws the whole stage, which costs little once imported.
+# Captions cannot name a figure's wildcards: its labels (scenario, SNR, seed) and subcategory (variant) do.
+
+
+# posteriors: prior, likelihood and posterior of each measurement's grid calibrations, and the paper's
+# Figs. 3 and 4 (drawn the same way)
 rule plot_posteriors:
     input:
-        _grid_results,
+        figure_inputs("posteriors"),
     output:
-        **_figure(
-            "results/{variant}/figures/posteriors/{scenario}_snr{snr}_seed{seed}",
-            "posteriors",
-            "2 Calibration",
-            scenario="{scenario}",
-            snr_dB="{snr}",
-            seed="{seed}",
-        ),
+        figure_files("posteriors"),
     log:
-        "results/logs/plot_posteriors/{variant}/{scenario}_snr{snr}_seed{seed}.log",
+        "results/logs/plot_posteriors.log",
     benchmark:
-        "results/benchmarks/plot_posteriors/{variant}/{scenario}_snr{snr}_seed{seed}.tsv"
+        "results/benchmarks/plot_posteriors.tsv"
     localrule: True
     conda:
         "../envs/newdyn.yaml"
@@ -22,62 +22,22 @@ rule plot_posteriors:
         mem_mb=per_attempt(1024),
         runtime=per_attempt(10),
     params:
+        figures=figure_plan("posteriors"),
         code=code_hash("plot"),
     shell:
-        "newdyn plot posteriors --code-hash {params.code} --output {output.png} {input} > {log} 2>&1"
+        "newdyn plot posteriors --figures {params.figures:q} --code-hash {params.code} > {log} 2>&1"
 
 
-rule plot_paper_figure:
-    input:
-        lambda wildcards: expand(
-            "results/{{variant}}/calibration/{scenario}/{parameter}/snr{{snr}}_seed{{seed}}_grid.nc",
-            scenario=PAPER_FIGURES[wildcards.figure][0],
-            parameter=PAPER_FIGURES[wildcards.figure][1],
-        ),
-    output:
-        png=report(
-            "results/{variant}/figures/{figure}_snr{snr}_seed{seed}.png",
-            caption="../report/paper_figures.rst",
-            category="1 The paper's figures",
-            subcategory="{variant}",
-            labels={"figure": "{figure}", "snr_dB": "{snr}", "seed": "{seed}"},
-        ),
-        pdf="results/{variant}/figures/{figure}_snr{snr}_seed{seed}.pdf",
-    log:
-        "results/logs/plot_paper_figure/{variant}/{figure}_snr{snr}_seed{seed}.log",
-    benchmark:
-        "results/benchmarks/plot_paper_figure/{variant}/{figure}_snr{snr}_seed{seed}.tsv"
-    wildcard_constraints:
-        figure="|".join(PAPER_FIGURES),
-    localrule: True
-    conda:
-        "../envs/newdyn.yaml"
-    resources:
-        mem_mb=per_attempt(1024),
-        runtime=per_attempt(10),
-    params:
-        code=code_hash("plot"),
-    shell:
-        "newdyn plot posteriors --code-hash {params.code} --output {output.png} {input} > {log} 2>&1"
-
-
+# overlays: each measurement against its best fits, in time and spectrum
 rule plot_overlays:
     input:
-        measurement="results/{variant}/simulations/{scenario}/snr{snr}_seed{seed}.nc",
-        grid_results=_grid_results,
+        figure_inputs("overlays"),
     output:
-        **_figure(
-            "results/{variant}/figures/overlays/{scenario}_snr{snr}_seed{seed}",
-            "overlays",
-            "3 Model vs data",
-            scenario="{scenario}",
-            snr_dB="{snr}",
-            seed="{seed}",
-        ),
+        figure_files("overlays"),
     log:
-        "results/logs/plot_overlays/{variant}/{scenario}_snr{snr}_seed{seed}.log",
+        "results/logs/plot_overlays.log",
     benchmark:
-        "results/benchmarks/plot_overlays/{variant}/{scenario}_snr{snr}_seed{seed}.tsv"
+        "results/benchmarks/plot_overlays.tsv"
     localrule: True
     conda:
         "../envs/newdyn.yaml"
@@ -85,31 +45,22 @@ rule plot_overlays:
         mem_mb=per_attempt(1024),
         runtime=per_attempt(10),
     params:
+        figures=figure_plan("overlays"),
         code=code_hash("plot"),
     shell:
-        "newdyn plot overlays --code-hash {params.code} --measurement {input.measurement} "
-        "--output {output.png} {input.grid_results} > {log} 2>&1"
+        "newdyn plot overlays --figures {params.figures:q} --code-hash {params.code} > {log} 2>&1"
 
 
+# mcmc: trace and rank plots of each measurement's MCMC calibrations
 rule plot_mcmc:
     input:
-        lambda wildcards: expand(
-            "results/{{variant}}/calibration/{{scenario}}/{parameter}/snr{{snr}}_seed{{seed}}_mcmc.nc",
-            parameter=mcmc_runs(study(wildcards)),
-        ),
+        figure_inputs("mcmc"),
     output:
-        **_figure(
-            "results/{variant}/figures/mcmc/{scenario}_snr{snr}_seed{seed}",
-            "mcmc",
-            "4 MCMC diagnostics",
-            scenario="{scenario}",
-            snr_dB="{snr}",
-            seed="{seed}",
-        ),
+        figure_files("mcmc"),
     log:
-        "results/logs/plot_mcmc/{variant}/{scenario}_snr{snr}_seed{seed}.log",
+        "results/logs/plot_mcmc.log",
     benchmark:
-        "results/benchmarks/plot_mcmc/{variant}/{scenario}_snr{snr}_seed{seed}.tsv"
+        "results/benchmarks/plot_mcmc.tsv"
     localrule: True
     conda:
         "../envs/newdyn.yaml"
@@ -117,26 +68,22 @@ rule plot_mcmc:
         mem_mb=per_attempt(1024),
         runtime=per_attempt(10),
     params:
+        figures=figure_plan("mcmc"),
         code=code_hash("plot"),
     shell:
-        "newdyn plot mcmc --code-hash {params.code} --output {output.png} {input} > {log} 2>&1"
+        "newdyn plot mcmc --figures {params.figures:q} --code-hash {params.code} > {log} 2>&1"
 
 
+# signatures: the Hellinger matrices of each variant, SNR and seed
 rule plot_signatures:
     input:
-        "results/{variant}/comparison/hellinger.nc",
+        figure_inputs("signatures"),
     output:
-        **_figure(
-            "results/{variant}/figures/signatures_snr{snr}_seed{seed}",
-            "signatures",
-            "5 Comparison",
-            snr_dB="{snr}",
-            seed="{seed}",
-        ),
+        figure_files("signatures"),
     log:
-        "results/logs/plot_signatures/{variant}/snr{snr}_seed{seed}.log",
+        "results/logs/plot_signatures.log",
     benchmark:
-        "results/benchmarks/plot_signatures/{variant}/snr{snr}_seed{seed}.tsv"
+        "results/benchmarks/plot_signatures.tsv"
     localrule: True
     conda:
         "../envs/newdyn.yaml"
@@ -144,20 +91,18 @@ rule plot_signatures:
         mem_mb=per_attempt(1024),
         runtime=per_attempt(10),
     params:
+        figures=figure_plan("signatures"),
         code=code_hash("plot"),
     shell:
-        "newdyn plot signatures --code-hash {params.code} --snr-db {wildcards.snr} --seed {wildcards.seed} "
-        "--output {output.png} {input} > {log} 2>&1"
+        "newdyn plot signatures --figures {params.figures:q} --code-hash {params.code} > {log} 2>&1"
 
 
+# summary: Hellinger distance to healthy and reduced χ² of every grid calibration
 rule plot_summary:
     input:
-        "results/summary.csv",
+        figure_inputs("summary"),
     output:
-        png=report("results/figures/summary_hellinger.png", caption="../report/summary.rst", category="0 Summary"),
-        chi2_png=report("results/figures/summary_chi2.png", caption="../report/summary.rst", category="0 Summary"),
-        pdf="results/figures/summary_hellinger.pdf",
-        chi2_pdf="results/figures/summary_chi2.pdf",
+        figure_files("summary"),
     log:
         "results/logs/plot_summary.log",
     benchmark:
@@ -169,7 +114,7 @@ rule plot_summary:
         mem_mb=per_attempt(1024),
         runtime=per_attempt(10),
     params:
+        figures=figure_plan("summary"),
         code=code_hash("plot"),
     shell:
-        "newdyn plot summary --code-hash {params.code} --output {output.png} --chi2-output {output.chi2_png} "
-        "{input} > {log} 2>&1"
+        "newdyn plot summary --figures {params.figures:q} --code-hash {params.code} > {log} 2>&1"
