@@ -2,12 +2,17 @@
 cluster-generic executor plugin with the stand-in batch system of the tests (.test/stand-in-submit: every job
 a separate process with its own Snakemake start and parse), side by side (goal: at most 1.5 times the local
 time).  Each run starts from an empty folder; the kernels' cache is shared, so no run compiles for the other.
+With --baseline REV the same two runs of a fresh clone of that revision (its newdyn first on PYTHONPATH) go
+beside those of the working tree, in turns, so that the machine's drift touches both alike.
 
-Run: python bench/bench_cluster.py   (a few minutes; needs snakemake-executor-plugin-cluster-generic)
+Run: python bench/bench_cluster.py [--baseline REV]   (a few minutes, twice that with a baseline; needs
+snakemake-executor-plugin-cluster-generic)
 """
 
 from __future__ import annotations
 
+import argparse
+import os
 import subprocess
 import sys
 import tempfile
@@ -16,26 +21,47 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 GOAL = 1.5
-CLUSTER = ["--executor", "cluster-generic", "--cluster-generic-submit-cmd", str(ROOT / ".test" / "stand-in-submit"),
-           "--jobs", "2", "--seconds-between-status-checks", "1"]
 
 
-def study_time(*args: str) -> float:
-    """Wall time of the CI study in a fresh folder, run with ``args``."""
+def cluster(root: Path) -> list[str]:
+    return ["--executor", "cluster-generic", "--cluster-generic-submit-cmd", str(root / ".test" / "stand-in-submit"),
+            "--jobs", "2", "--seconds-between-status-checks", "1"]
+
+
+def study_time(root: Path, *args: str) -> float:
+    """Wall time of the CI study of the repository ``root`` in a fresh folder, run with ``args``."""
+    environment = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"}
+    if root != ROOT:
+        environment["PYTHONPATH"] = str(root / "src")
     with tempfile.TemporaryDirectory() as folder:
         start = time.perf_counter()
-        subprocess.run([sys.executable, "-m", "snakemake", "-s", str(ROOT / "Snakefile"), "-d", folder, "--configfile",
-                        str(ROOT / ".test" / "config.yaml"), "--cores", "2", "--quiet", *args],
-                       check=True, capture_output=True)
+        subprocess.run([sys.executable, "-m", "snakemake", "-s", str(root / "Snakefile"), "-d", folder, "--configfile",
+                        str(root / ".test" / "config.yaml"), "--cores", "2", "--quiet", *args],
+                       check=True, capture_output=True, env=environment)
         return time.perf_counter() - start
 
 
 def main() -> None:
-    study_time()  # the kernels compiled once, for both
-    local, cluster = study_time(), study_time(*CLUSTER)
-    print("CI study, 2 cores")
-    print(f"{'local (--cores 2)':34s} {local:7.0f} s")
-    print(f"{'cluster-generic stand-in (--jobs 2)':34s} {cluster:7.0f} s   {cluster / local:.2f}x   goal <= {GOAL:.1f}x")
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--baseline", help="a revision to measure beside the working tree")
+    args = parser.parse_args()
+    with tempfile.TemporaryDirectory() as scratch:
+        roots = {"working tree": ROOT}
+        if args.baseline:
+            clone = Path(scratch) / "baseline"
+            subprocess.run(["git", "clone", "--quiet", str(ROOT), str(clone)], check=True)
+            subprocess.run(["git", "-C", str(clone), "checkout", "--quiet", args.baseline], check=True)
+            roots = {f"baseline {args.baseline}": clone, **roots}
+        for root in roots.values():
+            study_time(root)  # the kernels compiled once, for both of its runs
+        local = {label: study_time(root) for label, root in roots.items()}
+        remote = {label: study_time(root, *cluster(root)) for label, root in roots.items()}
+    print(f"CI study, 2 cores, {time.strftime('%Y-%m-%d')}")
+    print(f"{'':36s}" + "".join(f"{label:>22s}" for label in roots))
+    print(f"{'local (--cores 2)':36s}" + "".join(f"{local[label]:21.0f}s" for label in roots))
+    print(f"{'cluster-generic stand-in (--jobs 2)':36s}" + "".join(f"{remote[label]:21.0f}s" for label in roots))
+    print(f"{'cluster / local':36s}" + "".join(f"{remote[label] / local[label]:21.2f}x" for label in roots)
+          + f"   goal <= {GOAL:.1f}x")
 
 
 if __name__ == "__main__":
