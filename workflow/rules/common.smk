@@ -142,11 +142,14 @@ def _calibration_settings(cfg):
     }
 
 
+def _grid_parameters(cfg):
+    """The parameters the variant ``cfg`` calibrates on grids, by name (the config's order of keys changes nothing)."""
+    return sorted(cfg["calibration"]["parameters"])
+
+
 def grid_files(cfg):
     """The coarse grid of each parameter of the variant ``cfg``, a pattern of {variant}."""
-    return expand(
-        "results/{{variant}}/calibration/grids/{parameter}.nc", parameter=list(cfg["calibration"]["parameters"])
-    )
+    return expand("results/{{variant}}/calibration/grids/{parameter}.nc", parameter=_grid_parameters(cfg))
 
 
 def grid_calibration_files(cfg):
@@ -154,19 +157,19 @@ def grid_calibration_files(cfg):
     grid_calibration_spec's parameters."""
     return expand(
         "results/{{variant}}/calibration/{{scenario}}/{parameter}/snr{{snr}}_seed{{seed}}_grid.nc",
-        parameter=list(cfg["calibration"]["parameters"]),
+        parameter=_grid_parameters(cfg),
     )
 
 
 def grid_calibration_spec(wildcards):
     """What the grid calibrations of one measurement depend on besides its input files: each parameter's prior and
-    grid (in the variant's order), and the calibration settings."""
+    grid (in the order of grid_calibration_files), and the calibration settings."""
     cfg = study(wildcards)
     return newdyn.config.canonical_json(
         {
             "parameters": [
-                {"parameter": name, "prior": spec["prior"], "grid": spec["grid"]}
-                for name, spec in cfg["calibration"]["parameters"].items()
+                {"parameter": name, **{key: cfg["calibration"]["parameters"][name][key] for key in ("prior", "grid")}}
+                for name in _grid_parameters(cfg)
             ],
             **_calibration_settings(cfg),
         }
@@ -314,7 +317,7 @@ def _variant_figures(variant, cfg):
 
 
 def _study_figures():
-    """stage -> every figure of the study that its job draws, the variants' in turn."""
+    """stage -> every figure of the study that its job draws, by file name (the config's order of keys changes nothing)."""
     stages = {"posteriors": [], "overlays": [], "mcmc": [], "signatures": []}
     for variant, cfg in VARIANTS.items():
         for stage, figures in _variant_figures(variant, cfg).items():
@@ -322,7 +325,7 @@ def _study_figures():
     summary = _figure("results/figures/summary_hellinger", "summary", "0 Summary", inputs=["results/summary.csv"])
     chi2 = report("results/figures/summary_chi2.png", caption="../report/summary.rst", category="0 Summary")
     stages["summary"] = [{**summary, "chi2_png": chi2, "chi2_pdf": "results/figures/summary_chi2.pdf"}]
-    return stages
+    return {stage: sorted(figures, key=lambda figure: figure["png"]) for stage, figures in stages.items()}
 
 
 STUDY_FIGURES = _study_figures()
@@ -356,8 +359,9 @@ def figure_plan(stage):
 
 
 def figure_targets():
+    """Every figure's PNG, as a plain path: the report marks belong to the rules that draw them."""
     return [
-        figure[key]
+        str(figure[key])
         for figures in STUDY_FIGURES.values()
         for figure in figures
         for key in ("png", "chi2_png")
