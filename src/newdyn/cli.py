@@ -13,7 +13,7 @@ import sys
 import time
 
 log = logging.getLogger("newdyn")
-DIAGNOSIS_FIGURES = ("overlays", "residuals", "hypotheses", "error_fall", "discovery", "effect_mcmc")
+DIAGNOSIS_FIGURES = ("overlays", "residuals", "hypotheses", "error_fall", "discovery", "effect_posterior")
 
 
 def simulate_scenario(spec: dict, output: str, code_hash: str) -> None:
@@ -310,8 +310,8 @@ def plot(kind: str, inputs: list[str], output: str, code_hash: str, measurement:
 
 
 def diagnose_measurement(measurement_path: str, grid_paths: list[str], spec: dict, verdict: str, table: str,
-                         netcdf: str, mcmc: str, discovery: str, code_hash: str) -> None:
-    """Diagnose one measurement file: verdict (JSON), model versions and posteriors (NetCDF), MCMC of the effect,
+                         netcdf: str, posterior: str, discovery: str, code_hash: str) -> None:
+    """Diagnose one measurement file: verdict (JSON), model versions and posteriors (NetCDF), the effect's posterior,
     and a folder with the discovered term's effect file when nothing of the library explains it."""
     from . import config, diagnosis, io, model
 
@@ -322,13 +322,13 @@ def diagnose_measurement(measurement_path: str, grid_paths: list[str], spec: dic
     v = result.verdict
     log.info("%s: %s %s (chi2 %.4g -> %.4g) in %.1f s", measurement_path, v["verdict"], v["effect"], v["chi2_before"],
              v["chi2_after"], time.perf_counter() - start)
-    diagnosis.write(result, verdict, table, netcdf, mcmc, discovery, config.canonical_json(spec), code_hash)
+    diagnosis.write(result, verdict, table, netcdf, posterior, discovery, config.canonical_json(spec), code_hash)
 
 
-def plot_diagnosis(verdict: str, netcdf: str, mcmc: str, outputs: dict, code_hash: str) -> None:
+def plot_diagnosis(verdict: str, netcdf: str, posterior: str, outputs: dict, code_hash: str) -> None:
     from . import plots
 
-    plots.diagnosis_figures(verdict, netcdf, mcmc, outputs, code_hash)
+    plots.diagnosis_figures(verdict, netcdf, posterior, outputs, code_hash)
 
 
 def draw_hidden(spec: dict, output: str, code_hash: str) -> None:
@@ -419,11 +419,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--spec", required=True, help="the diagnosis settings as JSON (built by the workflow)")
     p.add_argument("--grids", nargs="*", default=[], help="the study's coarse grid files, in the spec's calibration "
                    "parameter order (reused when their condition is the measurement's)")
-    for output in ("verdict", "table", "netcdf", "mcmc", "discovery"):
+    for output in ("verdict", "table", "netcdf", "posterior", "discovery"):
         p.add_argument(f"--{output}", required=True)
     p.add_argument("--code-hash", default="")
     p = commands.add_parser("plot-diagnosis", help="the figures of one diagnosis")
-    for name in ("verdict", "netcdf", "mcmc", *DIAGNOSIS_FIGURES):
+    for name in ("verdict", "netcdf", "posterior", *DIAGNOSIS_FIGURES):
         p.add_argument(f"--{name.replace('_', '-')}", required=True)
     p.add_argument("--code-hash", default="")
     command("hidden-draw", "draw a hidden set's cases and write their truth", "hidden-set spec")
@@ -465,9 +465,9 @@ def main(argv: list[str] | None = None) -> int:
         plot(args.kind, args.inputs, args.output, args.code_hash, args.measurement, args.chi2_output, args.snr_db, args.seed)
     elif args.command == "diagnose":
         diagnose_measurement(args.measurement, args.grids, json.loads(args.spec), args.verdict, args.table, args.netcdf,
-                             args.mcmc, args.discovery, args.code_hash)
+                             args.posterior, args.discovery, args.code_hash)
     elif args.command == "plot-diagnosis":
-        plot_diagnosis(args.verdict, args.netcdf, args.mcmc, {name: getattr(args, name) for name in DIAGNOSIS_FIGURES},
+        plot_diagnosis(args.verdict, args.netcdf, args.posterior, {name: getattr(args, name) for name in DIAGNOSIS_FIGURES},
                        args.code_hash)
     elif args.command == "hidden-draw":
         draw_hidden(json.loads(args.spec), args.output, args.code_hash)

@@ -43,7 +43,20 @@ import xarray as xr
 from scipy.integrate import trapezoid
 from scipy.special import logsumexp
 
-from . import calibration, comparison, effects, hypotheses, io, likelihood, mcmc_calibration, model, noise, residuals, simulation
+from . import (
+    calibration,
+    comparison,
+    effects,
+    hypotheses,
+    importance,
+    io,
+    likelihood,
+    mcmc_calibration,
+    model,
+    noise,
+    residuals,
+    simulation,
+)
 from . import sensors as sensors_module
 from .discovery import verify
 from .hypotheses import HEALTHY, PARAMETER_CHANGE
@@ -71,6 +84,7 @@ class Settings:
     refine_points: int
     max_step: float
     mcmc: Mapping[str, float | int | str] = field(default_factory=dict)
+    importance: Mapping[str, float | int] = field(default_factory=dict)  # importance.ISSettings' fields
     discovery: str = "unexplained"  # or "always"
     sensors: Mapping[str, sensors_module.Sensor] = field(default_factory=dict)  # instrument errors per channel
     noise_colour_order: int = 0  # highest AR order of the noise's colour; 0: white
@@ -98,6 +112,7 @@ class Settings:
             refine_points=int(c["refine_points"]),
             max_step=float(config["simulation"]["max_step"]),
             mcmc={**{k: c["mcmc"][k] for k in ("rhat_max", "ess_min", "move", "max_rounds")}, **d["mcmc"]},
+            importance={"seed": d["mcmc"]["seed"], "ess_min": c["mcmc"]["ess_min"], **d.get("importance", {})},
             discovery=d.get("discovery", "unexplained"),
             sensors={c: sensors_module.Sensor(**spec) for c, spec in d.get("sensors", {}).items()},
             noise_colour_order=int(d.get("noise_colour_order", 0)),
@@ -209,7 +224,7 @@ class Diagnosis:
     signatures: xr.DataArray  # Hellinger distance (signature, parameter)
     verdict: dict
     versions: dict[str, np.ndarray]  # model version name -> outputs (channel, time)
-    effect_mcmc: object  # arviz.InferenceData of the best fault model
+    effect_posterior: object  # arviz.InferenceData of the best fault model's parameters (importance sampling or MCMC)
     effect_file: tuple[str, str] | None = None  # (name, content) of the discovered term's effect file
     forces: xr.Dataset | None = None  # discovery's force estimate at each place (place, pulse)
     pointwise: xr.DataArray | None = None  # each version's log-likelihood (comparison_version, comparison_draw, channel, load_cycle)
@@ -284,16 +299,10 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
         discovery = verify.discover(measurement.name, fits[_best_of(fits, "parameter_change")], data, sigma, values, sampling, settings)
         stage(f"discovery ({len(discovery[0]['candidates'])} candidates)")
     ahead = _explaining_ahead(fits, calibrations, best_fault, settings.chi2_max, discovery and discovery[2])
+    effect_posterior = _effect_posterior(fits[best_fault], data, sigma, values, sampling, channels, settings, ahead)
     if ahead is None:
-        effect_mcmc, fits[best_fault] = _sample_and_polish(fits[best_fault], data, sigma, values, sampling, channels, settings, instruments)
-    else:
-        # The verdict rests on another hypothesis: one round shows the fault's posterior (how much of it the data
-        # leave room for), the rounds towards convergence and the polish would change nothing.
-        effect_mcmc = _sample_effect(fits[best_fault], data, sigma, values, sampling, channels,
-                                     replace(settings, mcmc={**settings.mcmc, "max_rounds": 1}))
-        if not effect_mcmc.attrs["converged"]:
-            effect_mcmc.attrs["reason"] = f"one round only, as {ahead} explains the data with more evidence; {effect_mcmc.attrs['reason']}"
-    stage(f"MCMC of {best_fault}" + (f" (one round: {ahead} explains the data ahead of it)" if ahead else ""))
+        fits[best_fault] = _polished(fits[best_fault], effect_posterior, data, sigma, values, sampling, channels, settings, instruments)
+    stage(f"posterior of {best_fault} by {effect_posterior.attrs['method']}" + (f" ({ahead} explains the data ahead of it)" if ahead else ""))
 
     verdict = _verdict(fits, calibrations, signatures, settings, values, sampling, data, sigma)
     if instruments is not None and np.any(instruments.scale > 0):
@@ -302,8 +311,9 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
             verdict["verdict"] = SENSOR_PROBLEM
         verdict["sensor_alternatives"] = _sensor_alternatives(fits, verdict["models"]["after"], data, sigma, instruments, channels, settings)
     verdict["effect_fit"] = {
-        "hypothesis": best_fault, "parameters": _mcmc_parameters(effect_mcmc, hyps[best_fault].parameters),
-        **{key: effect_mcmc.attrs[key] for key in ("converged", "rhat", "ess_bulk", "reason") if key in effect_mcmc.attrs},
+        "hypothesis": best_fault, "parameters": _posterior_parameters(effect_posterior, hyps[best_fault].parameters),
+        **{key: effect_posterior.attrs[key] for key in ("method", "converged", "rhat", "ess_bulk", "pareto_k", "reason")
+           if key in effect_posterior.attrs},
     }
     if verdict["verdict"] == "new_dynamics" and verdict["effect"] == best_fault:
         verdict["parameters"] = verdict["effect_fit"]["parameters"]
@@ -322,18 +332,18 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
             versions["discovered"] = _shown(discovered, data, sigma)
             verdict["models"]["discovered"] = discovered.hypothesis.name
             verdict["model_versions"].append(_version_row("+ discovered", discovered, versions["discovered"], data, channels))
-    verdict["model_comparison"], pointwise = _compare_versions(verdict, fits, calibrations, effect_mcmc, discovered, data, sigma,
+    verdict["model_comparison"], pointwise = _compare_versions(verdict, fits, calibrations, effect_posterior, discovered, data, sigma,
                                                                values, sampling, settings)
     stage("model versions compared by PSIS-LOO")
     verdict["statement"] = statement(verdict, settings.chi2_max)
     return Diagnosis(measurement, channels, data, sigma, noise_source, calibrations, fits, signatures, verdict,
-                     versions, effect_mcmc, effect_file, forces, pointwise)
+                     versions, effect_posterior, effect_file, forces, pointwise)
 
 
-def _compare_versions(verdict, fits, calibrations, effect_mcmc, discovered, data, sigma, values, sampling, settings: Settings):
+def _compare_versions(verdict, fits, calibrations, effect_posterior, discovered, data, sigma, values, sampling, settings: Settings):
     """``az.compare`` of the model versions by PSIS-LOO over blocks of one channel and load cycle, and their
     pointwise log-likelihoods (version, draw, channel, cycle).  Draws: the drift's grid posterior, the
-    library effect's MCMC, the discovered term's Laplace approximation; the nominal model has none."""
+    library effect's posterior, the discovered term's Laplace approximation; the nominal model has none."""
     from . import model_comparison
 
     rng = np.random.default_rng(int(settings.mcmc.get("seed", 0)))
@@ -351,7 +361,7 @@ def _compare_versions(verdict, fits, calibrations, effect_mcmc, discovered, data
         cdf = posterior.cdf
         theta = np.interp(rng.uniform(0, cdf[-1], n), cdf, posterior.grid)[:, None]
         evaluators["calibrated"] = version(calibrated, theta)
-    stacked = np.column_stack([effect_mcmc.posterior[name].values.ravel() for name in effect.hypothesis.parameters])
+    stacked = np.column_stack([effect_posterior.posterior[name].values.ravel() for name in effect.hypothesis.parameters])
     evaluators["effect"] = version(effect, stacked[rng.choice(len(stacked), n, replace=len(stacked) < n)])
     cycle = model_comparison.cycles(sampling.times, values["load_freq"])
     idata = model_comparison.evaluate_versions(evaluators, data, sigma, cycle, settings.channels)
@@ -399,20 +409,49 @@ def _drift_fit(hypothesis: hypotheses.Hypothesis, cal: calibration.Calibration, 
                           instruments=instruments)
 
 
-def _sample_and_polish(fit: hypotheses.Fit, data, sigma, values, sampling, channels, settings: Settings, instruments):
-    """MCMC of a fault model for its parameters' uncertainty, and the fit again (through the datasheets'
-    ``instruments``, then checked) from the chains' best draw when that beats it: stick-slip's misfit has narrow
-    valleys the least squares may miss."""
+def _effect_posterior(fit: hypotheses.Fit, data, sigma, values, sampling, channels, settings: Settings, ahead: str | None):
+    """The posterior of a fault model's parameters (InferenceData): importance sampling from its fit's Laplace
+    approximation where Pareto smoothing verifies it; else, where the verdict may rest on the fault (nothing
+    without it explains the data ``ahead`` of it), emcee to convergence, up to ``max_rounds`` rounds."""
     hypothesis = fit.hypothesis
-    idata = _sample_effect(fit, data, sigma, values, sampling, channels, settings)
-    best = _best_draw(idata, hypothesis.parameters)
-    if float(idata.sample_stats["log_likelihood"].max()) > fit.log_likelihood:
-        polished = _instruments_checked(hypotheses.fit(hypothesis, data, sigma, values, sampling, channels,
-                                                       [dict(zip(hypothesis.parameters, best))], settings.max_step, search=False,
-                                                       instruments=instruments), data, sigma, settings.evidence_margin)
-        if polished.log_likelihood > fit.log_likelihood:
-            return idata, polished
-    return idata, fit
+
+    def log_likelihood(rows):
+        ll = likelihood.log_likelihood(data, hypotheses.evaluate(hypothesis, rows, values, sampling, channels, settings.max_step), sigma,
+                                       instruments=fit.instruments)
+        return np.where(np.isnan(ll), -np.inf, ll)
+
+    observed = {"y": xr.DataArray(data, dims=("channel", "time"), coords={"channel": list(channels), "time": sampling.times})}
+    support = {p.name: [p.low, p.high] for p in hypothesis.priors}
+    posterior = importance.sample(log_likelihood, hypothesis.log_prior, hypothesis.parameters, fit.theta, fit.covariance,
+                                  importance.ISSettings(**settings.importance), observed=observed,
+                                  attrs={"hypothesis": hypothesis.name, "support": support})
+    if posterior.attrs["converged"]:
+        return posterior
+    if ahead is not None:
+        # The verdict rests on another hypothesis: the unverified answer shows how much of the fault the data leave
+        # room for, and sampling it to convergence would change nothing.
+        posterior.attrs["reason"] = f"{ahead} explains the data with more evidence; {posterior.attrs['reason']}"
+        return posterior
+    return _sample_effect(fit, log_likelihood, observed, support, settings,
+                          f"importance sampling unverified ({posterior.attrs['reason']})")
+
+
+# A posterior draw that beats the fit by more than this log-likelihood shows least squares stopped short of the
+# optimum; below it the draws merely scatter about the optimum it found.
+POLISH_MARGIN = 1.0
+
+
+def _polished(fit: hypotheses.Fit, posterior, data, sigma, values, sampling, channels, settings: Settings, instruments) -> hypotheses.Fit:
+    """``fit`` again (through the datasheets' ``instruments``, then checked) from the posterior's best draw where that
+    beats it by more than :data:`POLISH_MARGIN`: stick-slip's misfit has narrow valleys the least squares may miss."""
+    if float(posterior.sample_stats["log_likelihood"].max()) <= fit.log_likelihood + POLISH_MARGIN:
+        return fit
+    hypothesis = fit.hypothesis
+    best = _best_draw(posterior, hypothesis.parameters)
+    polished = _instruments_checked(hypotheses.fit(hypothesis, data, sigma, values, sampling, channels,
+                                                   [dict(zip(hypothesis.parameters, best))], settings.max_step, search=False,
+                                                   instruments=instruments), data, sigma, settings.evidence_margin)
+    return polished if polished.log_likelihood > fit.log_likelihood else fit
 
 
 def _instruments_checked(fit: hypotheses.Fit, data, sigma, margin: float) -> hypotheses.Fit:
@@ -647,7 +686,7 @@ def _separating_channels(equivalent: Sequence[hypotheses.Fit], values, sampling,
     return sorted(rows, key=lambda r: -r["expected_log_bayes_factor"])
 
 
-def _sample_effect(fit: hypotheses.Fit, data, sigma, values, sampling, channels, settings: Settings):
+def _sample_effect(fit: hypotheses.Fit, log_likelihood, observed, support, settings: Settings, why: str):
     """emcee posterior (InferenceData) of a fault model's parameters, started from its Laplace approximation."""
     from .sampling import MCMCSettings
 
@@ -660,22 +699,16 @@ def _sample_effect(fit: hypotheses.Fit, data, sigma, values, sampling, channels,
                                   mcmc_calibration.JOINT_COORDINATE if p.name in settings.drift else "linear", mirrored=True)
         for p in hypothesis.priors
     ]
-
-    def log_likelihood(rows):
-        ll = likelihood.log_likelihood(data, hypotheses.evaluate(hypothesis, rows, values, sampling, channels, settings.max_step), sigma,
-                                       instruments=fit.instruments)
-        return np.where(np.isnan(ll), -np.inf, ll)
-
     rng = np.random.default_rng(mcmc.seed)
     low, high = np.array([[p.low, p.high] for p in hypothesis.priors]).T
     initial = mcmc_calibration.sampled_rows(variables, mcmc_calibration.draw_inside(
         lambda n: rng.multivariate_normal(fit.theta, fit.covariance, n), low, high, mcmc.n_walkers))
-    return mcmc_calibration.sample_posterior(
-        variables, log_likelihood, initial, mcmc, rng,
-        {"y": xr.DataArray(data, dims=("channel", "time"), coords={"channel": list(channels), "time": sampling.times})},
-        {"hypothesis": hypothesis.name, "start": "Laplace approximation at the least-squares fit",
-         "support": {p.name: [p.low, p.high] for p in hypothesis.priors}},
+    idata = mcmc_calibration.sample_posterior(
+        variables, log_likelihood, initial, mcmc, rng, observed,
+        {"hypothesis": hypothesis.name, "start": "Laplace approximation at the least-squares fit", "support": support, "why": why},
     )
+    idata.attrs["method"] = "mcmc"
+    return idata
 
 
 def _best_draw(idata, names) -> np.ndarray:
@@ -684,7 +717,7 @@ def _best_draw(idata, names) -> np.ndarray:
     return np.array([float(idata.posterior[n].values[chain, draw]) for n in names])
 
 
-def _mcmc_parameters(idata, names) -> dict:
+def _posterior_parameters(idata, names) -> dict:
     import arviz as az
 
     best = _best_draw(idata, names)
@@ -693,18 +726,18 @@ def _mcmc_parameters(idata, names) -> dict:
         draws = idata.posterior[name].values.ravel()
         low, high = az.hdi(draws, hdi_prob=likelihood.HDI_PROB)
         rows[name] = {"map": float(b), "mean": float(draws.mean()), "sd": float(draws.std(ddof=1)),
-                      "hdi_low": float(low), "hdi_high": float(high), "method": "mcmc"}
+                      "hdi_low": float(low), "hdi_high": float(high), "method": idata.attrs["method"]}
     return rows
 
 
 VERSION_COLUMNS = ("version", "hypothesis", "chi2_red", "log_evidence")
 
 
-def write(diagnosis: Diagnosis, verdict_path, table_path, netcdf_path, mcmc_path, discovery_folder, settings_json: str,
+def write(diagnosis: Diagnosis, verdict_path, table_path, netcdf_path, posterior_path, discovery_folder, settings_json: str,
           code_hash: str) -> None:
     """Write the verdict (JSON), the model versions' errors (CSV: χ², log-evidence, RMSE per channel),
-    the data, model versions, posteriors and signature distances (NetCDF), the effect model's MCMC
-    posterior (ArviZ NetCDF), each file atomically, and the folder ``discovery_folder`` with the
+    the data, model versions, posteriors and signature distances (NetCDF), the effect model's posterior
+    (ArviZ NetCDF), each file atomically, and the folder ``discovery_folder`` with the
     discovered term's effect file (empty when discovery did not run)."""
     from pathlib import Path
 
@@ -751,4 +784,4 @@ def write(diagnosis: Diagnosis, verdict_path, table_path, netcdf_path, mcmc_path
         ds["pointwise_log_likelihood"] = diagnosis.pointwise.assign_attrs(
             long_name="log-likelihood of the data in one channel over one load cycle, at each version's posterior draws")
     io.write_netcdf(ds, netcdf_path)
-    sampling.save(diagnosis.effect_mcmc, mcmc_path)
+    sampling.save(diagnosis.effect_posterior, posterior_path)

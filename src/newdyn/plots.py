@@ -286,9 +286,10 @@ def model_overlays(
     return fig
 
 
-def diagnosis_figures(verdict_path: PathLike, diagnosis_path: PathLike, mcmc_path: PathLike, png_paths: dict, code_hash: str = "") -> None:
+def diagnosis_figures(verdict_path: PathLike, diagnosis_path: PathLike, posterior_path: PathLike, png_paths: dict,
+                      code_hash: str = "") -> None:
     """The figures of one diagnosis: ``png_paths`` maps overlays, residuals, hypotheses, error_fall,
-    discovery and effect_mcmc to their PNG paths."""
+    discovery and effect_posterior to their PNG paths."""
     with open(verdict_path) as f:
         verdict = json.load(f)
     result = _load(diagnosis_path)
@@ -305,7 +306,36 @@ def diagnosis_figures(verdict_path: PathLike, diagnosis_path: PathLike, mcmc_pat
     hypothesis_ranking(verdict, result, png_paths["hypotheses"], code_hash, sources)
     error_fall(verdict, result, png_paths["error_fall"], code_hash, sources)
     discovered_force(verdict, result, png_paths["discovery"], code_hash, sources)
-    mcmc_diagnostics([mcmc_path], png_paths["effect_mcmc"], code_hash)
+    effect_posterior(posterior_path, png_paths["effect_posterior"], code_hash)
+
+
+def effect_posterior(posterior_path: PathLike, png_path: PathLike, code_hash: str = "") -> Figure:
+    """The fault model's posterior: MCMC's diagnostics (:func:`mcmc_diagnostics`) where it was sampled by MCMC, else
+    the importance-sampled draws' marginals and pairs, titled with Pareto k̂ and the effective sample size."""
+    import arviz as az  # slow to import: only this figure needs it
+
+    from . import sampling
+
+    idata = sampling.load(posterior_path)
+    attrs = idata.attrs
+    if attrs.get("method") == "mcmc":
+        return mcmc_diagnostics([posterior_path], png_path, code_hash)
+    names = list(idata.posterior.data_vars)
+    size = max(2.6 * len(names) + 1, 6.0)
+    fig = Figure(figsize=(size, size), layout="constrained")
+    axes = np.atleast_2d(fig.subplots(len(names), len(names), squeeze=False))
+    if len(names) > 1:
+        az.plot_pair(idata, var_names=names, kind="kde", marginals=True, ax=axes)
+    else:
+        az.plot_posterior(idata, var_names=names, ax=axes[0, 0], hdi_prob=0.94)
+    verified = bool(int(float(attrs["converged"])))
+    title = (f"posterior of {attrs['hypothesis']} by {attrs['method']}\nPareto k = {float(attrs['pareto_k']):.2f}, "
+             f"ESS = {float(attrs['ess_bulk']):.0f} of {int(attrs['n_proposals'])} proposals")
+    if not verified:
+        title += f"\nUNVERIFIED: {attrs['reason']}"
+    fig.suptitle(title, color="black" if verified else MARK_COLOR, fontweight="normal" if verified else "bold")
+    save(fig, png_path, code_hash, [posterior_path])
+    return fig
 
 
 def _version_label(verdict: dict, version: str) -> str:

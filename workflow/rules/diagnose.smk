@@ -19,7 +19,7 @@ rule diagnose:
             labels={"measurement": "{name}", "figure": "model versions (table)"},
         ),
         netcdf="{root}/diagnosis/{name}/diagnosis.nc",
-        mcmc="{root}/diagnosis/{name}/effect_mcmc.nc",
+        posterior="{root}/diagnosis/{name}/effect_posterior.nc",
         discovery=directory("{root}/diagnosis/{name}/discovery"),
     log:
         "{root}/logs/diagnose/{name}.log",
@@ -40,14 +40,14 @@ rule diagnose:
     shell:
         "NUMBA_NUM_THREADS={threads} OPENBLAS_NUM_THREADS={threads} newdyn diagnose --measurement {input.measurement} "
         "--grids {input.grids} --spec {params.spec:q} --code-hash {params.code} --verdict {output.verdict} --table {output.table} "
-        "--netcdf {output.netcdf} --mcmc {output.mcmc} --discovery {output.discovery} > {log} 2>&1"
+        "--netcdf {output.netcdf} --posterior {output.posterior} --discovery {output.discovery} > {log} 2>&1"
 
 
 rule plot_diagnosis:
     input:
         verdict="{root}/diagnosis/{name}/verdict.json",
         netcdf="{root}/diagnosis/{name}/diagnosis.nc",
-        mcmc="{root}/diagnosis/{name}/effect_mcmc.nc",
+        posterior="{root}/diagnosis/{name}/effect_posterior.nc",
     output:
         **{
             figure: report(
@@ -73,7 +73,7 @@ rule plot_diagnosis:
     params:
         code=code_hash("plot-diagnosis"),
     shell:
-        "newdyn plot-diagnosis --verdict {input.verdict} --netcdf {input.netcdf} --mcmc {input.mcmc} "
+        "newdyn plot-diagnosis --verdict {input.verdict} --netcdf {input.netcdf} --posterior {input.posterior} "
         "--overlays {output.overlays} --residuals {output.residuals} --hypotheses {output.hypotheses} "
-        "--error-fall {output.error_fall} --discovery {output.discovery} --effect-mcmc {output.effect_mcmc} "
+        "--error-fall {output.error_fall} --discovery {output.discovery} --effect-posterior {output.effect_posterior} "
         "--code-hash {params.code} > {log} 2>&1"
