@@ -46,6 +46,7 @@ from scipy.special import logsumexp
 from . import (
     calibration,
     comparison,
+    concurrency,
     effects,
     hypotheses,
     importance,
@@ -278,12 +279,21 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
                                     instruments=instruments)}
     fits.update({f"{PARAMETER_CHANGE}:{p}": _drift_fit(hyps[f"{PARAMETER_CHANGE}:{p}"], cal, instruments) for p, cal in calibrations.items()})
     closest = signatures.mean("parameter")
-    for kind in settings.fault_ranges:
+
+    def fault_fit(kind):
+        started = time.perf_counter()
         mine = closest.where(signatures["hypothesis"] == kind, drop=True)
         start = json.loads(str(mine["values"].values[int(np.argmin(mine.values))]))
-        fits[kind] = hypotheses.fit(hyps[kind], data, sigma, values, sampling, channels, [start], settings.max_step,
-                                    instruments=instruments)
-        stage(f"fit of {kind} ({fits[kind].n_simulations} simulations, chi2 {fits[kind].chi2_red:.4g})")
+        fit = hypotheses.fit(hyps[kind], data, sigma, values, sampling, channels, [start], settings.max_step, instruments=instruments)
+        log.info("%s: fit of %s (%d simulations, chi2 %.4g) in %.1f s", measurement.name, kind, fit.n_simulations, fit.chi2_red,
+                 time.perf_counter() - started)
+        return fit
+
+    # The largest searches first, so that the longest fit does not start last.
+    fitted = concurrency.in_parallel({kind: lambda kind=kind: fault_fit(kind)
+                           for kind in sorted(settings.fault_ranges, key=lambda kind: -len(hyps[kind].priors))})
+    fits.update({kind: fitted[kind] for kind in settings.fault_ranges})
+    stage(f"fits of {', '.join(settings.fault_ranges)}")
     fits = {name: _instruments_checked(fit, data, sigma, settings.evidence_margin) for name, fit in fits.items()}
     if colour is None and settings.noise_colour_order:
         best = max(fits.values(), key=lambda fit: fit.log_evidence)

@@ -18,7 +18,7 @@ import numpy as np
 from scipy import optimize
 from scipy.special import erfinv
 
-from . import effects, faults, likelihood, model, sensors, simulation
+from . import concurrency, effects, faults, likelihood, model, sensors, simulation
 
 HEALTHY = "healthy"
 PARAMETER_CHANGE = faults.PARAMETER_CHANGE
@@ -242,17 +242,16 @@ def fit(
     precision 12 added, so an irrelevant parameter costs no spurious Occam factor nor makes H singular.
     """
     k = len(hypothesis.priors)
-    n_runs = 0
+    runs = []  # simulations per call (appended from the threads the starts are followed in)
 
     def simulate(theta, window=sampling):
-        nonlocal n_runs
-        n_runs += len(theta)
+        runs.append(len(theta))
         return evaluate(hypothesis, theta, base, window, channels, max_step)
 
     if k == 0:
         best = simulate(np.zeros((1, 0)))[0]
         ll = float(likelihood.log_likelihood(data, best, sigma, instruments=instruments))
-        return Fit(hypothesis, {}, best, ll, float(likelihood.reduced_chi2(data, best, sigma, instruments=instruments)), ll, n_runs,
+        return Fit(hypothesis, {}, best, ll, float(likelihood.reduced_chi2(data, best, sigma, instruments=instruments)), ll, sum(runs),
                    instruments=instruments)
 
     low = np.array([p.low for p in hypothesis.priors])
@@ -294,17 +293,20 @@ def fit(
                 u0 = result.x
         return result
 
-    best = None
-    for number, (u0, first) in enumerate(u_starts):
+    def chain(u0, first, given_start):
         result = follow(u0, first)
-        # A given start that is already good over the whole record (the truth, an MCMC chain's best
+        # A given start that is already good over the whole record (the truth, a posterior's best
         # draw) can be led off by the short windows into a minimum of the record's start only.
-        if number < len(given) and len(windows) > 1 and (
+        if given_start and len(windows) > 1 and (
             result.cost > 0.5 * np.sum(residuals(np.clip(u0, 1e-6, 1 - 1e-6)[None], windows[-1]) ** 2)
         ):
             result = follow(u0, len(windows) - 1)
-        if best is None or result.cost < best.cost:
-            best = result
+        return result
+
+    # Each start's chain of least squares runs few simulations at a time: the chains side by side fill the cores.
+    chains = concurrency.in_parallel({number: lambda number=number, u0=u0, first=first: chain(u0, first, number < len(given))
+                                      for number, (u0, first) in enumerate(u_starts)})
+    best = min(chains.values(), key=lambda result: result.cost)  # the first of equals, as the starts are ordered
     u_star = best.x
     theta_star = low + u_star * span
     model_star = simulate(theta_star[None])[0]
@@ -318,6 +320,6 @@ def fit(
     covariance_u = 0.5 * (covariance_u + covariance_u.T)  # symmetric as H is, not just to rounding
     return Fit(
         hypothesis, hypothesis.effective_values(theta_star, base), model_star, ll,
-        float(likelihood.reduced_chi2(data, model_star, sigma, n_fitted=k, instruments=instruments)), float(log_evidence), n_runs, at_bound,
+        float(likelihood.reduced_chi2(data, model_star, sigma, n_fitted=k, instruments=instruments)), float(log_evidence), sum(runs), at_bound,
         span[:, None] * covariance_u * span[None, :], instruments,
     )

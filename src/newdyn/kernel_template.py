@@ -599,7 +599,8 @@ def _simulate_block(params, sims, t_first, fs, n_samples, substeps, codes, out):
         _record(w, codes, out, sims, k, n_lanes, t)
 
 
-@njit(cache=True, error_model="numpy", parallel=True)
+# nogil: a diagnosis fits its hypotheses in threads of its own, each calling the kernel.
+@njit(cache=True, error_model="numpy", parallel=True, nogil=True)
 def _simulate_batch(params, order, starts, counts, substeps, t_first, fs, n_samples, codes):
     """Simulate the blocks of rows order[starts[b] : starts[b] + counts[b]] of ``params`` in parallel,
     block b with substeps[b] RK4 steps per sample interval."""
