@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import yaml
 
-from newdyn import calibration, diagnosis, effects, faults, hypotheses, io, likelihood, model, noise, sampling, simulation
+from newdyn import calibration, diagnosis, effects, faults, hypotheses, io, likelihood, model, noise, sampling, signatures, simulation
 from newdyn.effects.library import stick_slip
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -143,7 +143,7 @@ def test_signatures_vary_each_effects_severity_across_its_range_the_rest_at_defa
     defaults (mid-range without one), the drift parameters at the rig's values."""
     values = model.complete({})
     hyps = {h.name: h for h in SETTINGS.hypotheses()}
-    entries = diagnosis._signature_entries(SETTINGS, hyps, values)
+    entries = signatures.entries(hyps, list(SETTINGS.grids), SETTINGS.drift_sizes, SETTINGS.fault_ranges, SETTINGS.severities, values)
     assert {name for name, _ in entries} == set(hyps)
     for kind, ranges in SETTINGS.fault_ranges.items():
         effect = effects.active()[kind]

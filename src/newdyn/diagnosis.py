@@ -45,7 +45,6 @@ from scipy.special import logsumexp
 
 from . import (
     calibration,
-    comparison,
     concurrency,
     effects,
     hypotheses,
@@ -56,15 +55,14 @@ from . import (
     model,
     noise,
     residuals,
-    simulation,
 )
 from . import sensors as sensors_module
+from . import signatures as signature_module
 from .discovery import verify
 from .hypotheses import HEALTHY, PARAMETER_CHANGE
 from .verdicts import SENSOR_PROBLEM
 
 log = logging.getLogger("newdyn")
-SIGNATURE_REFINE_POINTS = 21  # refined runs per likelihood maximum of a signature (the measurement's use the config's)
 
 
 @dataclass(frozen=True)
@@ -178,39 +176,6 @@ def _grid_evidence(posterior: likelihood.GridPosterior) -> float:
     return peak + math.log(trapezoid(np.exp(log_integrand - peak), posterior.grid))
 
 
-def _signature_entries(settings: Settings, hyps: Mapping[str, hypotheses.Hypothesis],
-                       values: Mapping[str, float]) -> list[tuple[str, dict[str, float]]]:
-    """(hypothesis name, all its fitted values) of every signature: the healthy rig, each calibration
-    parameter drifted by each of ``drift_sizes``, and each effect at ``severities`` values of its
-    severity (its first fitted parameter, in the effect's declaration order) across its range (cell
-    centres), with its other parameters at their defaults (mid-range for one without a default) and
-    the drift parameters at the rig's values."""
-    entries = [(HEALTHY, {})]
-    for p in settings.grids:
-        entries += [(f"{PARAMETER_CHANGE}:{p}", {p: values[p] * (1 + size)}) for size in settings.drift_sizes]
-    for kind in settings.fault_ranges:
-        hypothesis = hyps[kind]
-        effect = effects.active()[kind]
-        severity = next((prior for prior in hypothesis.priors if prior.name in effect.parameter_names()), None)
-        fixed = {prior.name: _default(effect, prior, values) for prior in hypothesis.priors if prior is not severity}
-        if severity is None:  # nothing of the effect fitted: it has one signature, at its defaults
-            entries.append((kind, fixed))
-            continue
-        low, high = severity.low, severity.high
-        entries += [(kind, {severity.name: low + (i + 0.5) / settings.severities * (high - low), **fixed})
-                    for i in range(settings.severities)]
-    return entries
-
-
-def _default(effect: type[effects.Effect], prior: hypotheses.Prior, values: Mapping[str, float]) -> float:
-    """A fitted parameter's value where a signature does not vary it: the effect's default (the middle
-    of its range for a parameter without one), else the rig's value (a drift parameter)."""
-    if prior.name not in effect.parameter_names():
-        return float(values[prior.name])
-    parameter = effect.parameter(prior.name)
-    return parameter.default_value(values) if parameter.default is not None else 0.5 * (prior.low + prior.high)
-
-
 @dataclass
 class Diagnosis:
     """Everything a diagnosis found; :func:`write` turns it into files."""
@@ -232,9 +197,10 @@ class Diagnosis:
 
 
 def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mapping[str, str] | None = None,
-             colour: noise.Colour | None = None, level: np.ndarray | None = None) -> Diagnosis:
+             colour: noise.Colour | None = None, level: np.ndarray | None = None, library_path: str | None = None) -> Diagnosis:
     """Diagnose ``measurement`` (already read and checked); ``grid_paths`` are the study's shared
-    coarse-grid files per calibration parameter, reused when their condition is the measurement's.  ``colour``
+    coarse-grid files per calibration parameter and ``library_path`` its signature library, each reused when its
+    condition is the measurement's (else computed here).  ``colour``
     (with the coloured channels' σ ``level``) is the noise's, when a first pass found it; without it, a first pass
     fits under white noise and, when its best fit's residual reads coloured, the diagnosis runs again whitened."""
     check_measurement(measurement, settings.channels, settings.noise_band_hz)
@@ -270,8 +236,8 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
     calibrations = calibrate_all(data, settings.refine_points)
     stage(f"noise level from {noise_source}, grid calibrations of {', '.join(settings.grids)}")
 
-    signatures = _signature_distances(settings, hyps, values, calibrations, lambda y: calibrate_all(y, SIGNATURE_REFINE_POINTS),
-                                      sampling, channels)
+    library = signature_library(library_path, settings, hyps, values, sampling, coarse)
+    signatures = signature_module.distances(library, calibrations, sigma, settings.priors)
     stage(f"{signatures.sizes['signature']} signatures")
 
     # Fits: healthy as it is, drifts from their grids (exact), faults from their closest signature and a global search.
@@ -300,7 +266,7 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
         found, level = noise.colour(data - _shown(best, data, sigma), settings.noise_colour_order, settings.evidence_margin)
         if not found.white:
             stage(f"noise colour {found.summary(channels)} from the residual of {best.hypothesis.name}: again, whitened")
-            return diagnose(measurement, settings, grid_paths, found, level)
+            return diagnose(measurement, settings, grid_paths, found, level, library_path)
     colour = colour or noise.white(len(channels))
 
     best_fault = max(settings.fault_ranges, key=lambda kind: fits[kind].log_evidence)
@@ -386,28 +352,24 @@ def _compare_versions(verdict, fits, calibrations, effect_posterior, discovered,
     return model_comparison.compare(idata), pointwise.rename({"draw": "comparison_draw", "cycle": "load_cycle"})
 
 
-def _signature_distances(settings: Settings, hyps, values, calibrations, calibrate_all, sampling, channels) -> xr.DataArray:
-    """Steps 1 and 3: each signature simulated noise-free and calibrated like the measurement; the
-    Hellinger distance between its posterior and the measurement's, per calibration parameter."""
-    entries = _signature_entries(settings, hyps, values)
-    clean = simulation.simulate_batch(
-        np.vstack([hyps[name].parameter_rows(np.array([[v[p] for p in hyps[name].parameters]]), values) for name, v in entries]),
-        sampling, channels, settings.max_step,
-    )
-    distances = [
-        [comparison.hellinger_densities(calibrations[p].posterior.grid, calibrations[p].posterior.density,
-                                        signature.posterior.grid, signature.posterior.density)
-         for p, signature in calibrate_all(signal).items()]
-        for signal in clean
-    ]
-    return xr.DataArray(
-        np.array(distances), dims=("signature", "parameter"),
-        coords={"signature": [" ".join([name] + [f"{k}={x:.4g}" for k, x in sorted(v.items())]) for name, v in entries],
-                "hypothesis": ("signature", [name for name, _ in entries]),
-                "values": ("signature", [json.dumps(v, sort_keys=True) for _, v in entries]),
-                "parameter": list(settings.grids)},
-        attrs={"long_name": "Hellinger distance between the measurement's posterior and a noise-free signature's", "units": "1"},
-    )
+def signature_library(path: str | None, settings: Settings, hyps: Mapping[str, hypotheses.Hypothesis], values: Mapping[str, float],
+                      sampling: model.Sampling, coarse: Mapping[str, np.ndarray] | None = None) -> xr.Dataset:
+    """The signature library (:mod:`newdyn.signatures`) at the rig ``values`` and record ``sampling``: the file at ``path``
+    (the study's, made by :func:`write_signature_library`) when it was made for them, else built here on the coarse
+    grid runs ``coarse`` (simulated when not given)."""
+    entries = signature_module.entries(hyps, list(settings.grids), settings.drift_sizes, settings.fault_ranges, settings.severities, values)
+    instruments = settings.instruments(sampling.fs)  # the datasheets; the library's noise is white
+    spec = signature_module.spec(hyps, entries, values, sampling, settings.channels, settings.grids, settings.priors, instruments,
+                                 settings.max_step)
+    if path is not None:
+        with xr.open_dataset(path, engine="netcdf4") as library:
+            if library.attrs.get("key") == signature_module.key(spec):
+                return library.load()
+        log.info("%s was made for another condition or settings: the signatures are computed here", path)
+    if coarse is None:
+        coarse = {p: calibration.simulate_grid(values, p, g.axis, sampling, settings.channels, settings.max_step) for p, g in settings.grids.items()}
+    return signature_module.build(hyps, entries, values, sampling, settings.channels, settings.grids, settings.priors, coarse, instruments,
+                                  settings.max_step)
 
 
 def _drift_fit(hypothesis: hypotheses.Hypothesis, cal: calibration.Calibration, instruments) -> hypotheses.Fit:
