@@ -8,7 +8,20 @@ import numpy as np
 import pytest
 import yaml
 
-from newdyn import calibration, diagnosis, effects, faults, hypotheses, io, likelihood, model, noise, sampling, signatures, simulation
+from newdyn import (
+    calibration,
+    diagnosis,
+    effects,
+    faults,
+    hypotheses,
+    io,
+    likelihood,
+    model,
+    noise,
+    sampling,
+    signatures,
+    simulation,
+)
 from newdyn.effects.library import stick_slip
 
 ROOT = Path(__file__).resolve().parents[1]
