@@ -48,7 +48,6 @@ from . import (
     concurrency,
     effects,
     hypotheses,
-    importance,
     io,
     likelihood,
     mcmc_calibration,
@@ -56,6 +55,7 @@ from . import (
     noise,
     residuals,
 )
+from . import posterior as posterior_module
 from . import sensors as sensors_module
 from . import signatures as signature_module
 from .discovery import verify
@@ -83,7 +83,7 @@ class Settings:
     refine_points: int
     max_step: float
     mcmc: Mapping[str, float | int | str] = field(default_factory=dict)
-    importance: Mapping[str, float | int] = field(default_factory=dict)  # importance.ISSettings' fields
+    posterior: Mapping[str, float | int] = field(default_factory=dict)  # posterior.PosteriorSettings' fields
     discovery: str = "unexplained"  # or "always"
     sensors: Mapping[str, sensors_module.Sensor] = field(default_factory=dict)  # instrument errors per channel
     noise_colour_order: int = 0  # highest AR order of the noise's colour; 0: white
@@ -111,7 +111,7 @@ class Settings:
             refine_points=int(c["refine_points"]),
             max_step=float(config["simulation"]["max_step"]),
             mcmc={**{k: c["mcmc"][k] for k in ("rhat_max", "ess_min", "move", "max_rounds")}, **d["mcmc"]},
-            importance={"seed": d["mcmc"]["seed"], "ess_min": c["mcmc"]["ess_min"], **d.get("importance", {})},
+            posterior={"seed": d["mcmc"]["seed"], "ess_min": c["mcmc"]["ess_min"], **d.get("posterior", {})},
             discovery=d.get("discovery", "unexplained"),
             sensors={c: sensors_module.Sensor(**spec) for c, spec in d.get("sensors", {}).items()},
             noise_colour_order=int(d.get("noise_colour_order", 0)),
@@ -288,7 +288,7 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
         verdict["sensor_alternatives"] = _sensor_alternatives(fits, verdict["models"]["after"], data, sigma, instruments, channels, settings)
     verdict["effect_fit"] = {
         "hypothesis": best_fault, "parameters": _posterior_parameters(effect_posterior, hyps[best_fault].parameters),
-        **{key: effect_posterior.attrs[key] for key in ("method", "converged", "rhat", "ess_bulk", "pareto_k", "reason")
+        **{key: effect_posterior.attrs[key] for key in ("method", "converged", "rhat", "ess_bulk", "pareto_k", "step", "reason")
            if key in effect_posterior.attrs},
     }
     if verdict["verdict"] == "new_dynamics" and verdict["effect"] == best_fault:
@@ -382,9 +382,9 @@ def _drift_fit(hypothesis: hypotheses.Hypothesis, cal: calibration.Calibration, 
 
 
 def _effect_posterior(fit: hypotheses.Fit, data, sigma, values, sampling, channels, settings: Settings, ahead: str | None):
-    """The posterior of a fault model's parameters (InferenceData): importance sampling from its fit's Laplace
-    approximation where Pareto smoothing verifies it; else, where the verdict may rest on the fault (nothing
-    without it explains the data ``ahead`` of it), emcee to convergence, up to ``max_rounds`` rounds."""
+    """The posterior of a fault model's parameters (InferenceData) from its fit's Laplace approximation, by quadrature or
+    importance sampling (:mod:`newdyn.posterior`) where that is verified; else, where the verdict may rest on the fault
+    (nothing without it explains the data ``ahead`` of it), emcee to convergence, up to ``max_rounds`` rounds."""
     hypothesis = fit.hypothesis
 
     def log_likelihood(rows):
@@ -394,9 +394,9 @@ def _effect_posterior(fit: hypotheses.Fit, data, sigma, values, sampling, channe
 
     observed = {"y": xr.DataArray(data, dims=("channel", "time"), coords={"channel": list(channels), "time": sampling.times})}
     support = {p.name: [p.low, p.high] for p in hypothesis.priors}
-    posterior = importance.sample(log_likelihood, hypothesis.log_prior, hypothesis.parameters, fit.theta, fit.covariance,
-                                  importance.ISSettings(**settings.importance), observed=observed,
-                                  attrs={"hypothesis": hypothesis.name, "support": support})
+    posterior = posterior_module.sample(log_likelihood, hypothesis.log_prior, hypothesis.parameters, fit.theta, fit.covariance,
+                                        posterior_module.PosteriorSettings(**settings.posterior), observed=observed,
+                                        attrs={"hypothesis": hypothesis.name, "support": support})
     if posterior.attrs["converged"]:
         return posterior
     if ahead is not None:
@@ -405,7 +405,7 @@ def _effect_posterior(fit: hypotheses.Fit, data, sigma, values, sampling, channe
         posterior.attrs["reason"] = f"{ahead} explains the data with more evidence; {posterior.attrs['reason']}"
         return posterior
     return _sample_effect(fit, log_likelihood, observed, support, settings,
-                          f"importance sampling unverified ({posterior.attrs['reason']})")
+                          f"{posterior.attrs['method']} unverified ({posterior.attrs['reason']})")
 
 
 # A posterior draw that beats the fit by more than this log-likelihood shows least squares stopped short of the

@@ -311,7 +311,8 @@ def diagnosis_figures(verdict_path: PathLike, diagnosis_path: PathLike, posterio
 
 def effect_posterior(posterior_path: PathLike, png_path: PathLike, code_hash: str = "") -> Figure:
     """The fault model's posterior: MCMC's diagnostics (:func:`mcmc_diagnostics`) where it was sampled by MCMC, else
-    the importance-sampled draws' marginals and pairs, titled with Pareto k̂ and the effective sample size."""
+    its draws' marginals and pairs, titled with how they were verified (Pareto k̂ and the effective sample size of
+    importance sampling, or quadrature's lattice step)."""
     import arviz as az  # slow to import: only this figure needs it
 
     from . import sampling
@@ -329,8 +330,10 @@ def effect_posterior(posterior_path: PathLike, png_path: PathLike, code_hash: st
     else:
         az.plot_posterior(idata, var_names=names, ax=axes[0, 0], hdi_prob=0.94)
     verified = bool(int(float(attrs["converged"])))
-    title = (f"posterior of {attrs['hypothesis']} by {attrs['method']}\nPareto k = {float(attrs['pareto_k']):.2f}, "
-             f"ESS = {float(attrs['ess_bulk']):.0f} of {int(attrs['n_proposals'])} proposals")
+    title = f"posterior of {attrs['hypothesis']} by {attrs['method']}\n" + (
+        f"Pareto k = {float(attrs['pareto_k']):.2f}, ESS = {float(attrs['ess_bulk']):.0f} of {int(attrs['n_proposals'])} proposals"
+        if "pareto_k" in attrs else
+        f"{int(attrs['n_points'])} lattice points, step {float(attrs['step']):g} sd of the Laplace approximation")
     if not verified:
         title += f"\nUNVERIFIED: {attrs['reason']}"
     fig.suptitle(title, color="black" if verified else MARK_COLOR, fontweight="normal" if verified else "bold")

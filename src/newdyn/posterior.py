@@ -1,0 +1,269 @@
+"""The posterior of a fitted hypothesis's parameters from its Laplace approximation, verified: by quadrature for one
+or two parameters, by importance sampling for more; where neither can be verified the caller samples by MCMC.
+
+Both work in the Laplace approximation's whitened coordinates z, θ = θ* + s ⊙ (L z) with s the marginal sds and L L'
+their correlation, so that z ~ N(0, I) under the approximation and scales as far apart as a stiffness of 1e6 and a
+ratio of 1 stay well conditioned.
+
+Quadrature (one or two parameters): the posterior on a lattice of step :data:`STEP` over ±:data:`HALF_WIDTH` in z,
+widened on every side whose outermost row holds more than :data:`EDGE_MASS` of it, then halved where the posterior
+lies within :data:`LOG_DROP` of its peak, until the mean and sd of every parameter agree between two steps to
+:data:`RESOLUTION` of its sd.  Exact to the lattice's resolution whatever the posterior's shape: where a drift trades
+off with an effect along a thin curved ridge (cubic coupling's γ against kT1), a Gaussian proposal's draws miss the
+ridge's ends and importance sampling understates the spread.
+
+Importance sampling (three or more): draws of a Student-t with the approximation's mean and covariance, weighted by
+posterior over proposal and Pareto-smoothed (:func:`arviz.psislw`, Vehtari et al. 2024), a batch at a time until the
+smoothed weights' effective sample size reaches its target.  Its k̂ says whether the estimate can be trusted (at most
+:attr:`PosteriorSettings.pareto_k_max`); more draws of a proposal that misses the posterior would not mend it.
+
+The result is an :class:`arviz.InferenceData` shaped like :func:`newdyn.sampling.run`'s: a ``posterior`` of one chain
+of equally weighted draws, ``sample_stats`` with their ``lp`` and ``log_likelihood``, a ``weighted`` group with every
+lattice point or proposal inside the prior's support, its normalized log weight and log-likelihood, and attributes
+``method``, ``converged`` (1 when verified, as netCDF has no booleans) and ``reason``; importance sampling adds
+``pareto_k``, ``ess_bulk`` (the weights' effective sample size) and ``n_proposals``, quadrature ``step``,
+``edge_mass`` and ``n_points``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from collections.abc import Callable, Mapping, Sequence
+
+import numpy as np
+import xarray as xr
+from scipy import stats
+from scipy.special import logsumexp
+
+from .io import netcdf_attribute
+
+QUADRATURE, IMPORTANCE = "quadrature", "importance sampling"
+MAX_QUADRATURE_PARAMETERS = 2  # a lattice in more dimensions costs more simulations than importance sampling
+BatchFn = Callable[[np.ndarray], np.ndarray]  # theta (n, k) -> (n,)
+
+STEP = 0.5  # the first lattice's step in z: two points per sd of the approximation
+HALF_WIDTH = 6.0  # its first extent
+WIDEN = 3.0  # added to a side whose outermost row holds more than EDGE_MASS
+MAX_HALF_WIDTH = 30.0  # beyond this the approximation is no guide: unverified
+EDGE_MASS = 1e-4
+LOG_DROP = 20.0  # a lattice point this far below the peak's log posterior carries no weight worth refining
+RESOLUTION = 0.05  # mean and sd of every parameter agree between two steps to this fraction of its sd
+MAX_REFINEMENTS = 3
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class PosteriorSettings:
+    """How many draws, from which proposal, and when an importance-sampled answer counts as verified."""
+
+    seed: int
+    batch: int = 1000  # draws proposed at a time, and the equally weighted draws kept
+    max_draws: int = 8000  # proposals at most before an importance-sampled answer is unverified
+    df: float = 5.0  # the Student-t proposal's degrees of freedom: tails heavier than the Laplace approximation's
+    pareto_k_max: float = 0.7  # PSIS's bound on k̂ for a reliable estimate
+    ess_min: float = 400.0  # effective sample size of the smoothed weights to reach
+
+    def __post_init__(self):
+        if self.batch < 1 or self.max_draws < self.batch:
+            raise ValueError(f"need 1 <= batch <= max_draws, got batch {self.batch}, max_draws {self.max_draws}")
+        if not self.df > 0:
+            raise ValueError(f"df must be > 0, got {self.df}")
+
+
+@dataclasses.dataclass(frozen=True)
+class _Whitened:
+    """θ ↔ z of a Laplace approximation."""
+
+    mean: np.ndarray
+    scale: np.ndarray
+    chol: np.ndarray
+
+    @classmethod
+    def of(cls, mean, covariance) -> _Whitened:
+        scale = np.sqrt(np.diag(covariance))
+        return cls(np.asarray(mean, dtype=float), scale, np.linalg.cholesky(covariance / np.outer(scale, scale)))
+
+    def theta(self, z: np.ndarray) -> np.ndarray:
+        return self.mean + (z @ self.chol.T) * self.scale
+
+
+def sample(
+    log_likelihood_batch: BatchFn,
+    log_prior_batch: BatchFn,
+    names: Sequence[str],
+    mean: np.ndarray,
+    covariance: np.ndarray,
+    settings: PosteriorSettings,
+    *,
+    observed: Mapping[str, xr.DataArray] | None = None,
+    attrs: Mapping[str, object] | None = None,
+):
+    """The posterior of ``names`` around the Laplace approximation (``mean``, ``covariance``): by quadrature for up to
+    :data:`MAX_QUADRATURE_PARAMETERS`, else by importance sampling.  ``log_prior_batch`` is −inf outside the prior's
+    support, where the likelihood is never called; the likelihood must return −inf, never NaN, where a simulation
+    fails."""
+    whitened = _Whitened.of(mean, covariance)
+
+    def log_posterior(theta):  # (log prior + log-likelihood, log-likelihood), the likelihood only inside the support
+        lp = np.asarray(log_prior_batch(theta), dtype=float)
+        ll = np.full(len(theta), -np.inf)
+        inside = np.isfinite(lp)
+        if inside.any():
+            ll[inside] = log_likelihood_batch(theta[inside])
+        return lp + ll, ll
+
+    run = _quadrature if len(names) <= MAX_QUADRATURE_PARAMETERS else _importance
+    theta, log_weight, log_post, log_like, found = run(log_posterior, whitened, settings)
+    rng = np.random.default_rng(settings.seed)
+    picked = _systematic(np.exp(log_weight), settings.batch, rng)
+    draws = theta[picked] + (_jitter(found["step"], len(picked), whitened, rng) if "step" in found else 0.0)
+    kept = np.isfinite(log_weight)
+    return _inference_data(names, draws, log_post[picked], log_like[picked], theta[kept], log_weight[kept], log_like[kept],
+                           {**(attrs or {}), **found}, observed, settings)
+
+
+def _quadrature(log_posterior, whitened: _Whitened, settings: PosteriorSettings):
+    """The posterior on a lattice in z (module docstring): (points θ, normalized log weights, log posteriors,
+    log-likelihoods, what it found)."""
+    k = len(whitened.mean)
+    known: dict[tuple[int, ...], tuple[float, float]] = {}  # lattice index at the finest step -> (log posterior, log-likelihood)
+    finest = STEP / 2**MAX_REFINEMENTS
+
+    def evaluate(z):
+        keys = [tuple(row) for row in np.rint(z / finest).astype(np.int64)]
+        new = [i for i, key in enumerate(keys) if key not in known]
+        if new:
+            values = log_posterior(whitened.theta(z[new]))
+            known.update({keys[i]: (values[0][j], values[1][j]) for j, i in enumerate(new)})
+        return np.array([known[key] for key in keys]).reshape(len(z), 2)
+
+    low, high = np.full(k, -HALF_WIDTH), np.full(k, HALF_WIDTH)
+    while True:  # widen the first lattice until its edges hold no weight
+        axes = [np.arange(round(low[i] / STEP), round(high[i] / STEP) + 1) * STEP for i in range(k)]
+        z = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, k)
+        values = evaluate(z)
+        weight = _normalized(values[:, 0]).reshape([len(a) for a in axes])
+        edges = [(i, side) for i in range(k) for side in (0, -1) if np.take(weight, side, axis=i).sum() > EDGE_MASS
+                 and (low[i] if side == 0 else -high[i]) > -MAX_HALF_WIDTH]
+        if not edges:
+            break
+        for i, side in edges:
+            if side == 0:
+                low[i] = max(low[i] - WIDEN, -MAX_HALF_WIDTH)
+            else:
+                high[i] = min(high[i] + WIDEN, MAX_HALF_WIDTH)
+    edge_mass = max((float(np.take(weight, side, axis=i).sum()) for i in range(k) for side in (0, -1)), default=0.0)
+    step, moments = STEP, _moments(whitened.theta(z), values[:, 0])
+    converged = False
+    for _ in range(MAX_REFINEMENTS):  # halve the step where the posterior has weight, until the moments settle
+        peak = np.max(values[:, 0])
+        heavy = z[values[:, 0] >= peak - LOG_DROP]
+        step /= 2
+        offsets = np.stack(np.meshgrid(*[np.arange(-2, 3) * step] * k, indexing="ij"), axis=-1).reshape(-1, k)
+        finer = np.unique(np.rint((heavy[:, None, :] + offsets[None]).reshape(-1, k) / step).astype(np.int64), axis=0) * step
+        z, values = finer, evaluate(finer)
+        refined = _moments(whitened.theta(z), values[:, 0])
+        converged = bool(np.all(np.abs(refined[0] - moments[0]) <= RESOLUTION * refined[1])
+                         and np.all(np.abs(refined[1] - moments[1]) <= RESOLUTION * refined[1]))
+        moments = refined
+        if converged:
+            break
+    failed = []
+    if edge_mass > EDGE_MASS:
+        failed.append(f"{edge_mass:.2g} of the posterior at the lattice's edge {MAX_HALF_WIDTH:g} sds from the Laplace approximation")
+    if not converged:
+        failed.append(f"mean or sd still moved by more than {RESOLUTION:g} sd at step {step:g}")
+    found = {"method": QUADRATURE, "converged": not failed, "reason": "; ".join(failed), "step": step, "edge_mass": edge_mass,
+             "n_points": len(known)}
+    return whitened.theta(z), _normalized(values[:, 0], log=True), values[:, 0], values[:, 1], found
+
+
+def _importance(log_posterior, whitened: _Whitened, settings: PosteriorSettings):
+    """Importance sampling from a Student-t around the approximation (module docstring): (proposals θ, smoothed
+    normalized log weights, log posteriors, log-likelihoods, what it found)."""
+    import arviz as az
+
+    k = len(whitened.mean)
+    proposal = stats.multivariate_t(loc=np.zeros(k), shape=np.eye(k), df=settings.df)
+    rng = np.random.default_rng(settings.seed)
+    theta, log_q, log_post, log_like = np.empty((0, k)), np.empty(0), np.empty(0), np.empty(0)
+    while True:
+        t = np.asarray(proposal.rvs(settings.batch, random_state=rng)).reshape(settings.batch, k)
+        post, like = log_posterior(whitened.theta(t))
+        theta = np.vstack([theta, whitened.theta(t)])
+        log_q, log_post, log_like = (np.concatenate([a, b]) for a, b in ((log_q, proposal.logpdf(t).reshape(-1)),
+                                                                          (log_post, post), (log_like, like)))
+        raw = log_post - log_q
+        finite = np.isfinite(raw)
+        log_weight = np.full(raw.shape, -np.inf)
+        pareto_k, ess = math.inf, 0.0
+        if finite.sum() >= 2:
+            log_weight[finite], pareto_k = az.psislw(raw[finite])
+            ess = float(1.0 / np.sum(np.exp(2 * log_weight[finite])))
+        failed = []
+        if not pareto_k <= settings.pareto_k_max:
+            failed.append(f"pareto_k {pareto_k:.2f} > {settings.pareto_k_max:g}: the Laplace approximation misses the posterior")
+        if not ess >= settings.ess_min:
+            failed.append(f"ess {ess:.0f} < {settings.ess_min:g}")
+        if not failed or len(theta) + settings.batch > settings.max_draws or pareto_k > settings.pareto_k_max:
+            break
+    found = {"method": IMPORTANCE, "converged": not failed, "reason": "; ".join(failed), "pareto_k": float(pareto_k),
+             "ess_bulk": ess, "n_proposals": len(theta)}
+    return theta, log_weight, log_post, log_like, found
+
+
+def _normalized(log_values: np.ndarray, log: bool = False) -> np.ndarray:
+    """Weights ∝ exp(log_values) summing to 1 (their logs with ``log``); −inf stays weightless."""
+    log_weight = log_values - logsumexp(log_values)
+    return log_weight if log else np.exp(log_weight)
+
+
+def _moments(theta: np.ndarray, log_values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(mean, sd) per parameter under weights ∝ exp(log_values)."""
+    weight = _normalized(log_values)
+    mean = weight @ theta
+    return mean, np.sqrt(weight @ (theta - mean) ** 2)
+
+
+def _jitter(step: float, n: int, whitened: _Whitened, rng: np.random.Generator) -> np.ndarray:
+    """Offsets in θ that spread each resampled lattice point uniformly over its cell."""
+    z = rng.uniform(-step / 2, step / 2, (n, len(whitened.mean)))
+    return whitened.theta(z) - whitened.mean
+
+
+def _systematic(weights: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+    """Indices of ``n`` equally weighted draws resampled from ``weights`` (normalized), systematically: each
+    draw is picked within one of its expected count."""
+    edges = np.cumsum(weights)
+    edges[-1] = 1.0
+    return np.searchsorted(edges, (rng.uniform() + np.arange(n)) / n)
+
+
+def _inference_data(names, draws, log_post, log_like, points, log_weight, point_log_like, found, observed, settings):
+    import arviz as az
+
+    def chain(values):  # (draw,) -> (chain, draw)
+        return np.asarray(values)[None]
+
+    groups = {
+        "posterior": az.dict_to_dataset({name: chain(draws[:, i]) for i, name in enumerate(names)}),
+        "sample_stats": az.dict_to_dataset({"lp": chain(log_post), "log_likelihood": chain(log_like)}),
+        "weighted": xr.Dataset(
+            {**{name: ("point", points[:, i]) for i, name in enumerate(names)},
+             "log_weight": ("point", log_weight), "log_likelihood": ("point", point_log_like)},
+            attrs={"long_name": "every lattice point or proposal inside the prior's support, with its normalized log weight"},
+        ),
+    }
+    if observed is not None:
+        groups["observed_data"] = xr.Dataset(dict(observed))
+    idata = az.InferenceData(**groups)
+    idata.attrs = {
+        **{key: netcdf_attribute(value) for key, value in found.items()},
+        "posterior_settings": json.dumps(dataclasses.asdict(settings)),
+        "arviz_version": az.__version__,
+        "n_draws": len(draws),
+    }
+    if found["method"] == IMPORTANCE:
+        idata.attrs["proposal"] = f"multivariate Student-t (df {settings.df:g}) with the Laplace approximation's mean and covariance"
+    return idata
