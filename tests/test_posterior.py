@@ -72,7 +72,7 @@ def test_quadrature_of_a_posterior_cut_by_its_prior_bound_has_the_truncated_norm
     exact = stats.truncnorm((0 - mu) / sigma, (1 - mu) / sigma, loc=mu, scale=sigma)
     got = idata.posterior["alpha"].values.ravel()
     assert idata.attrs["converged"] == 1
-    assert got.min() >= -0.5 * posterior.STEP * sigma  # within half a cell of the bound, where the lattice's jitter reaches
+    assert got.min() >= 0.0  # draws spread over their cells stay inside the support
     assert got.mean() == pytest.approx(exact.mean(), abs=4 * exact.std() / np.sqrt(SETTINGS.batch))
 
 
