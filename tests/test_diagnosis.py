@@ -9,6 +9,7 @@ import pytest
 import yaml
 
 from newdyn import (
+    bank,
     calibration,
     diagnosis,
     effects,
@@ -228,6 +229,39 @@ def test_a_stick_slip_fit_over_several_load_cycles_reaches_the_misfit_of_the_tru
     at_truth = hypotheses.fit(stick, y, sigma, model.complete({}), record, CHANNELS[:2], [{**truth, "kT1": 3e6}], search=False)
     assert fit.chi2_red < at_truth.chi2_red + 0.05 < 1.1
     assert fit.values["T_max"] * fit.values["r_k"] == pytest.approx(2024.0 * 0.90, rel=0.005)
+
+
+def test_a_two_parameter_fit_from_the_banks_members_reaches_the_searchs_optimum_with_far_fewer_simulations():
+    """A breathing crack with a kT1 drift: least squares from the best of the bank's members on each search window
+    ends where it ends from the differential evolution there."""
+    m = measurement("crack", fault("breathing_crack", alpha=0.35, kT3=2.5e6), seed=6)
+    crack = next(h for h in SETTINGS.hypotheses() if h.name == "breathing_crack")
+    values, channels = model.complete({}), CHANNELS[:2]
+    hyps = {h.name: h for h in SETTINGS.hypotheses()}
+    sets = bank.member_sets(hyps, ["breathing_crack", "stick_slip"], values, SAMPLING, channels, simulation.DEFAULT_MAX_STEP)
+    assert list(sets) == ["breathing_crack"]  # stick-slip fits four parameters: its fits keep their search
+    members = sets["breathing_crack"]
+    assert members.unit.shape == (bank.MEMBERS, 2) and members.outputs.shape[1:] == (2, hypotheses.fit_windows(SAMPLING)[1])
+    searched = hypotheses.fit(crack, m.y[:2], m.sigma[:2], values, SAMPLING, channels)
+    started = hypotheses.fit(crack, m.y[:2], m.sigma[:2], values, SAMPLING, channels, members=members)
+    assert started.log_likelihood == pytest.approx(searched.log_likelihood, abs=0.05)
+    assert started.values["alpha"] == pytest.approx(searched.values["alpha"], rel=1e-3)
+    assert started.n_simulations < searched.n_simulations / 3
+
+
+def test_a_bank_is_reused_only_at_the_condition_and_settings_it_was_made_for(tmp_path):
+    hyps = {h.name: h for h in SETTINGS.hypotheses()}
+    values = model.complete({})
+    study = diagnosis.study_bank(None, SETTINGS, hyps, values, SAMPLING)
+    path = tmp_path / "bank.nc"
+    io.write_netcdf(study, path)
+    again = diagnosis.study_bank(str(path), SETTINGS, hyps, values, SAMPLING)
+    assert again.attrs["key"] == study.attrs["key"]
+    np.testing.assert_array_equal(again["log_likelihood"].values, study["log_likelihood"].values)
+    for kind in bank.banked(hyps, list(SETTINGS.fault_ranges)):
+        np.testing.assert_array_equal(bank.members(again, kind).outputs, bank.members(study, kind).outputs)
+    other = diagnosis.study_bank(str(path), SETTINGS, hyps, model.complete({"T0": 1500.0}), SAMPLING)
+    assert other.attrs["key"] != study.attrs["key"]
 
 
 def test_a_parameter_the_data_ignore_costs_at_most_a_nat_of_evidence():

@@ -309,7 +309,7 @@ def plot(kind: str, inputs: list[str], output: str, code_hash: str, measurement:
     log.info("drew %s into %s", kind, output)
 
 
-def diagnose_measurement(measurement_path: str, grid_paths: list[str], library_path: str | None, spec: dict, verdict: str, table: str,
+def diagnose_measurement(measurement_path: str, grid_paths: list[str], bank_path: str | None, spec: dict, verdict: str, table: str,
                          netcdf: str, posterior: str, discovery: str, code_hash: str) -> None:
     """Diagnose one measurement file: verdict (JSON), model versions and posteriors (NetCDF), the effect's posterior,
     and a folder with the discovered term's effect file when nothing of the library explains it."""
@@ -319,16 +319,16 @@ def diagnose_measurement(measurement_path: str, grid_paths: list[str], library_p
     measurement = io.read_measurement(measurement_path, {k: spec["operating"][k] for k in model.OPERATING_PARAMETERS})
     start = time.perf_counter()
     result = diagnosis.diagnose(measurement, settings, dict(zip(settings.grids, grid_paths)) if grid_paths else None,
-                                library_path=library_path)
+                                bank_path=bank_path)
     v = result.verdict
     log.info("%s: %s %s (chi2 %.4g -> %.4g) in %.1f s", measurement_path, v["verdict"], v["effect"], v["chi2_before"],
              v["chi2_after"], time.perf_counter() - start)
     diagnosis.write(result, verdict, table, netcdf, posterior, discovery, config.canonical_json(spec), code_hash)
 
 
-def write_signature_library(spec: dict, grid_paths: list[str], output: str, code_hash: str) -> None:
-    """The signature library of a diagnosis spec at its operating condition and record (``spec["sampling"]``), on the
-    study's coarse grids where they hold its channels, which every diagnosis at that condition reuses."""
+def write_bank(spec: dict, grid_paths: list[str], output: str, code_hash: str) -> None:
+    """The study's bank (newdyn.bank) for a diagnosis spec at its operating condition and record (``spec["sampling"]``),
+    on the study's coarse grids where they hold its channels: every diagnosis at that condition reuses it."""
     from . import calibration, diagnosis, io, model, provenance
 
     settings = diagnosis.Settings.from_config(spec)
@@ -337,10 +337,11 @@ def write_signature_library(spec: dict, grid_paths: list[str], output: str, code
     coarse = {p: calibration.coarse_models(path, settings.grids[p], values, sampling, settings.channels, settings.max_step)
               for p, path in zip(settings.grids, grid_paths)} if grid_paths else None
     start = time.perf_counter()
-    library = diagnosis.signature_library(None, settings, {h.name: h for h in settings.hypotheses()}, values, sampling, coarse)
-    log.info("%d signatures on %d grids in %.1f s", library.sizes["signature"], library.sizes["parameter"], time.perf_counter() - start)
-    library.attrs.update(provenance.attributes(code_hash))
-    io.write_netcdf(library, output)
+    bank = diagnosis.study_bank(None, settings, {h.name: h for h in settings.hypotheses()}, values, sampling, coarse)
+    log.info("%d signatures on %d grids and the members of %d hypotheses in %.1f s", bank.sizes["signature"], bank.sizes["parameter"],
+             sum(name.startswith("members_") for name in bank.data_vars), time.perf_counter() - start)
+    bank.attrs.update(provenance.attributes(code_hash))
+    io.write_netcdf(bank, output)
 
 
 def plot_diagnosis(verdict: str, netcdf: str, posterior: str, outputs: dict, code_hash: str) -> None:
@@ -437,11 +438,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--spec", required=True, help="the diagnosis settings as JSON (built by the workflow)")
     p.add_argument("--grids", nargs="*", default=[], help="the study's coarse grid files, in the spec's calibration "
                    "parameter order (reused when their condition is the measurement's)")
-    p.add_argument("--signatures", help="the study's signature library (reused when its condition is the measurement's)")
+    p.add_argument("--bank", help="the study's bank: signatures and members (reused when its condition is the measurement's)")
     for output in ("verdict", "table", "netcdf", "posterior", "discovery"):
         p.add_argument(f"--{output}", required=True)
     p.add_argument("--code-hash", default="")
-    p = command("signature-library", "the signatures every diagnosis at one condition compares with", "diagnosis spec")
+    p = command("bank", "the signatures and members every diagnosis at one condition reuses", "diagnosis spec")
     p.add_argument("--grids", nargs="*", default=[], help="the study's coarse grid files, in the spec's calibration parameter order")
     p = commands.add_parser("plot-diagnosis", help="the figures of one diagnosis")
     for name in ("verdict", "netcdf", "posterior", *DIAGNOSIS_FIGURES):
@@ -485,10 +486,10 @@ def main(argv: list[str] | None = None) -> int:
     elif args.command == "plot":
         plot(args.kind, args.inputs, args.output, args.code_hash, args.measurement, args.chi2_output, args.snr_db, args.seed)
     elif args.command == "diagnose":
-        diagnose_measurement(args.measurement, args.grids, args.signatures, json.loads(args.spec), args.verdict, args.table, args.netcdf,
+        diagnose_measurement(args.measurement, args.grids, args.bank, json.loads(args.spec), args.verdict, args.table, args.netcdf,
                              args.posterior, args.discovery, args.code_hash)
-    elif args.command == "signature-library":
-        write_signature_library(json.loads(args.spec), args.grids, args.output, args.code_hash)
+    elif args.command == "bank":
+        write_bank(json.loads(args.spec), args.grids, args.output, args.code_hash)
     elif args.command == "plot-diagnosis":
         plot_diagnosis(args.verdict, args.netcdf, args.posterior, {name: getattr(args, name) for name in DIAGNOSIS_FIGURES},
                        args.code_hash)

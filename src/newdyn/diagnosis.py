@@ -43,6 +43,7 @@ import xarray as xr
 from scipy.integrate import trapezoid
 from scipy.special import logsumexp
 
+from . import bank as bank_module
 from . import (
     calibration,
     concurrency,
@@ -197,9 +198,9 @@ class Diagnosis:
 
 
 def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mapping[str, str] | None = None,
-             colour: noise.Colour | None = None, level: np.ndarray | None = None, library_path: str | None = None) -> Diagnosis:
+             colour: noise.Colour | None = None, level: np.ndarray | None = None, bank_path: str | None = None) -> Diagnosis:
     """Diagnose ``measurement`` (already read and checked); ``grid_paths`` are the study's shared
-    coarse-grid files per calibration parameter and ``library_path`` its signature library, each reused when its
+    coarse-grid files per calibration parameter and ``bank_path`` its bank (:mod:`newdyn.bank`), each reused when its
     condition is the measurement's (else computed here).  ``colour``
     (with the coloured channels' σ ``level``) is the noise's, when a first pass found it; without it, a first pass
     fits under white noise and, when its best fit's residual reads coloured, the diagnosis runs again whitened."""
@@ -236,8 +237,8 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
     calibrations = calibrate_all(data, settings.refine_points)
     stage(f"noise level from {noise_source}, grid calibrations of {', '.join(settings.grids)}")
 
-    library = signature_library(library_path, settings, hyps, values, sampling, coarse)
-    signatures = signature_module.distances(library, calibrations, sigma, settings.priors)
+    bank = study_bank(bank_path, settings, hyps, values, sampling, coarse)
+    signatures = signature_module.distances(bank, calibrations, sigma, settings.priors)
     stage(f"{signatures.sizes['signature']} signatures")
 
     # Fits: healthy as it is, drifts from their grids (exact), faults from their closest signature and a global search.
@@ -250,7 +251,8 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
         started = time.perf_counter()
         mine = closest.where(signatures["hypothesis"] == kind, drop=True)
         start = json.loads(str(mine["values"].values[int(np.argmin(mine.values))]))
-        fit = hypotheses.fit(hyps[kind], data, sigma, values, sampling, channels, [start], settings.max_step, instruments=instruments)
+        fit = hypotheses.fit(hyps[kind], data, sigma, values, sampling, channels, [start], settings.max_step, instruments=instruments,
+                             members=bank_module.members(bank, kind))
         log.info("%s: fit of %s (%d simulations, chi2 %.4g) in %.1f s", measurement.name, kind, fit.n_simulations, fit.chi2_red,
                  time.perf_counter() - started)
         return fit
@@ -266,7 +268,7 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
         found, level = noise.colour(data - _shown(best, data, sigma), settings.noise_colour_order, settings.evidence_margin)
         if not found.white:
             stage(f"noise colour {found.summary(channels)} from the residual of {best.hypothesis.name}: again, whitened")
-            return diagnose(measurement, settings, grid_paths, found, level, library_path)
+            return diagnose(measurement, settings, grid_paths, found, level, bank_path)
     colour = colour or noise.white(len(channels))
 
     best_fault = max(settings.fault_ranges, key=lambda kind: fits[kind].log_evidence)
@@ -352,24 +354,24 @@ def _compare_versions(verdict, fits, calibrations, effect_posterior, discovered,
     return model_comparison.compare(idata), pointwise.rename({"draw": "comparison_draw", "cycle": "load_cycle"})
 
 
-def signature_library(path: str | None, settings: Settings, hyps: Mapping[str, hypotheses.Hypothesis], values: Mapping[str, float],
-                      sampling: model.Sampling, coarse: Mapping[str, np.ndarray] | None = None) -> xr.Dataset:
-    """The signature library (:mod:`newdyn.signatures`) at the rig ``values`` and record ``sampling``: the file at ``path``
-    (the study's, made by :func:`write_signature_library`) when it was made for them, else built here on the coarse
-    grid runs ``coarse`` (simulated when not given)."""
+def study_bank(path: str | None, settings: Settings, hyps: Mapping[str, hypotheses.Hypothesis], values: Mapping[str, float],
+               sampling: model.Sampling, coarse: Mapping[str, np.ndarray] | None = None) -> xr.Dataset:
+    """The study's bank (:mod:`newdyn.bank`) at the rig ``values`` and record ``sampling``: the file at ``path`` (made
+    by the workflow's bank rule) when it was made for them, else built here on the coarse grid runs ``coarse``
+    (simulated when not given)."""
     entries = signature_module.entries(hyps, list(settings.grids), settings.drift_sizes, settings.fault_ranges, settings.severities, values)
     instruments = settings.instruments(sampling.fs)  # the datasheets; the library's noise is white
-    spec = signature_module.spec(hyps, entries, values, sampling, settings.channels, settings.grids, settings.priors, instruments,
-                                 settings.max_step)
+    spec = bank_module.spec(hyps, entries, list(settings.fault_ranges), values, sampling, settings.channels, settings.grids,
+                            settings.priors, instruments, settings.max_step)
     if path is not None:
-        with xr.open_dataset(path, engine="netcdf4") as library:
-            if library.attrs.get("key") == signature_module.key(spec):
-                return library.load()
-        log.info("%s was made for another condition or settings: the signatures are computed here", path)
+        with xr.open_dataset(path, engine="netcdf4") as bank:
+            if bank.attrs.get("key") == bank_module.key(spec):
+                return bank.load()
+        log.info("%s was made for another condition or settings: the bank is built here", path)
     if coarse is None:
         coarse = {p: calibration.simulate_grid(values, p, g.axis, sampling, settings.channels, settings.max_step) for p, g in settings.grids.items()}
-    return signature_module.build(hyps, entries, values, sampling, settings.channels, settings.grids, settings.priors, coarse, instruments,
-                                  settings.max_step)
+    return bank_module.build(hyps, entries, list(settings.fault_ranges), values, sampling, settings.channels, settings.grids,
+                             settings.priors, coarse, instruments, settings.max_step)
 
 
 def _drift_fit(hypothesis: hypotheses.Hypothesis, cal: calibration.Calibration, instruments) -> hypotheses.Fit:

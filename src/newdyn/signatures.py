@@ -13,7 +13,6 @@ coarse grid one many times wider.
 
 from __future__ import annotations
 
-import hashlib
 import json
 from collections.abc import Mapping, Sequence
 
@@ -59,16 +58,10 @@ def _default(effect: type[effects.Effect], prior: hypotheses.Prior, values: Mapp
     return parameter.default_value(values) if parameter.default is not None else 0.5 * (prior.low + prior.high)
 
 
-def key(spec: Mapping) -> str:
-    """The name of a library: a hash of everything it depends on (``spec``: the rig at the condition, the record,
-    channels, grids, priors, the hypotheses and their effects' files, the datasheets, the step)."""
-    return hashlib.sha256(json.dumps(spec, sort_keys=True, default=str).encode()).hexdigest()[:16]
-
-
 def spec(hyps: Mapping[str, hypotheses.Hypothesis], signature_entries, values: Mapping[str, float], sampling: model.Sampling,
          channels: Sequence[str], grids: Mapping[str, calibration.GridSpec], priors: Mapping[str, calibration.NormalPrior],
          instruments: sensors.Instruments | None, max_step: float) -> dict:
-    """What a library depends on, as plain data (see :func:`key`)."""
+    """What a library depends on, as plain data."""
     kinds = sorted({name for name, _ in signature_entries} & set(effects.active()))
     return {
         "values": dict(model.complete(values)), "fs": sampling.fs, "t_first": sampling.t_first, "n_samples": sampling.n_samples,
@@ -105,7 +98,6 @@ def build(hyps: Mapping[str, hypotheses.Hypothesis], signature_entries, values: 
             n = len(calibrations[p].posterior.grid)
             grid[i, j, :n] = calibrations[p].posterior.grid
             per_channel[i, j, :n] = calibrations[p].channel_log_likelihood
-    library_spec = spec(hyps, signature_entries, values, sampling, channels, grids, priors, instruments, max_step)
     return xr.Dataset(
         {"grid": (("signature", "parameter", "point"), grid),
          "log_likelihood": (("signature", "parameter", "point", "channel"), per_channel),
@@ -114,8 +106,7 @@ def build(hyps: Mapping[str, hypotheses.Hypothesis], signature_entries, values: 
                 "hypothesis": ("signature", [name for name, _ in signature_entries]),
                 "values": ("signature", [json.dumps(v, sort_keys=True) for _, v in signature_entries]),
                 "parameter": list(grids), "channel": list(channels)},
-        attrs={"title": "newdyn signature library", "key": key(library_spec), "spec": json.dumps(library_spec, sort_keys=True),
-               "reference_snr_db": REFERENCE_SNR_DB},
+        attrs={"title": "newdyn signature library", "reference_snr_db": REFERENCE_SNR_DB},
     )
 
 

@@ -5,15 +5,15 @@ wildcard_constraints:
     name=r"[A-Za-z0-9_.-]+",
 
 
-rule signature_library:
+rule bank:
     input:
         grids=study_grids,
     output:
-        "results/signatures.nc",
+        "results/bank.nc",
     log:
-        "results/logs/signature_library.log",
+        "results/logs/bank.log",
     benchmark:
-        "results/benchmarks/signature_library.tsv"
+        "results/benchmarks/bank.tsv"
     # First, as every diagnosis waits on it.
     priority: 2
     conda:
@@ -24,9 +24,9 @@ rule signature_library:
         runtime=per_attempt(10),
     params:
         spec=diagnosis_spec,
-        code=code_hash("signature-library", effect_files()),
+        code=code_hash("bank", effect_files()),
     shell:
-        "NUMBA_NUM_THREADS={threads} OPENBLAS_NUM_THREADS={threads} newdyn signature-library --grids {input.grids} "
+        "NUMBA_NUM_THREADS={threads} OPENBLAS_NUM_THREADS={threads} newdyn bank --grids {input.grids} "
         "--spec {params.spec:q} --code-hash {params.code} --output {output} > {log} 2>&1"
 
 
@@ -34,7 +34,7 @@ rule diagnose:
     input:
         measurement=measurement_file,
         grids=study_grids,
-        signatures="results/signatures.nc",
+        bank="results/bank.nc",
     output:
         verdict="{root}/diagnosis/{name}/verdict.json",
         table=report(
@@ -64,7 +64,7 @@ rule diagnose:
         code=code_hash("diagnose", effect_files()),
     shell:
         "NUMBA_NUM_THREADS={threads} OPENBLAS_NUM_THREADS={threads} newdyn diagnose --measurement {input.measurement} "
-        "--grids {input.grids} --signatures {input.signatures} --spec {params.spec:q} --code-hash {params.code} "
+        "--grids {input.grids} --bank {input.bank} --spec {params.spec:q} --code-hash {params.code} "
         "--verdict {output.verdict} --table {output.table} "
         "--netcdf {output.netcdf} --posterior {output.posterior} --discovery {output.discovery} > {log} 2>&1"
 
