@@ -152,8 +152,8 @@ def calibrate_with_mcmc(measurement_path: str, grid_result_path: str, spec: dict
 
 
 def calibrate_jointly(measurement_path: str, grid_result_paths: list[str], spec: dict, output: str, code_hash: str) -> None:
-    """Write the joint MCMC posterior (ArviZ InferenceData) of several parameters, with the channels'
-    noise σ known or inferred (``infer_sigma``), for one measurement; the summary rows
+    """Write the joint posterior (ArviZ InferenceData; :func:`mcmc_calibration.calibrate_joint`) of several parameters,
+    with the channels' noise σ known or inferred (``infer_sigma``), for one measurement; the summary rows
     (:func:`mcmc_calibration.joint_summary`, χ² against the file's σ when it has one) are the ``summary``
     attribute as JSON.  ``grid_result_paths`` are the parameters' grid calibrations, in the order of
     ``spec["parameters"]``."""
@@ -175,8 +175,9 @@ def calibrate_jointly(measurement_path: str, grid_result_paths: list[str], spec:
         attrs={"settings": json.dumps(spec, sort_keys=True), **provenance.attributes(code_hash)},
     )
     rows = mcmc_calibration.joint_summary(idata, dict(zip(names, priors)), spec["chi2_max"], sigma)
-    log.info("joint MCMC of %s on %s in %.1f s: %s", idata.attrs["jointly"], measurement.name, time.perf_counter() - start, rows)
-    idata.attrs.update({**_labels(measurement), "method": "mcmc", "summary": json.dumps(rows)})
+    log.info("joint posterior of %s on %s by %s in %.1f s: %s", idata.attrs["jointly"], measurement.name, idata.attrs["method"],
+             time.perf_counter() - start, rows)
+    idata.attrs.update({**_labels(measurement), "summary": json.dumps(rows)})
     mcmc.save(idata, output)
 
 

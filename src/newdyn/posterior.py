@@ -105,11 +105,13 @@ def sample(
     *,
     observed: Mapping[str, xr.DataArray] | None = None,
     attrs: Mapping[str, object] | None = None,
+    to_values: BatchFn | None = None,
 ):
     """The posterior of ``names`` around the Laplace approximation (``mean``, ``covariance``): by quadrature for up to
     :data:`MAX_QUADRATURE_PARAMETERS`, else by importance sampling.  ``log_prior_batch`` is −inf outside the prior's
     support, where the likelihood is never called; the likelihood must return −inf, never NaN, where a simulation
-    fails."""
+    fails.  With ``to_values`` the functions and the approximation are in coordinates of the caller's choosing (the
+    prior's density with its Jacobian), where a ridge may be straighter, and the draws are mapped to the values by it."""
     whitened = _Whitened.of(mean, covariance)
 
     def log_posterior(theta):  # (log prior + log-likelihood, log-likelihood), the likelihood only inside the support
@@ -138,7 +140,10 @@ def sample(
         inside = np.isfinite(np.asarray(log_prior_batch(spread), dtype=float))
         draws = np.where(inside[:, None], spread, draws)
     kept = np.isfinite(log_weight)
-    return _inference_data(names, draws, log_post[picked], log_like[picked], theta[kept], log_weight[kept], log_like[kept],
+    points = theta[kept]
+    if to_values is not None:
+        draws, points = (np.asarray(to_values(x), dtype=float) for x in (draws, points))
+    return _inference_data(names, draws, log_post[picked], log_like[picked], points, log_weight[kept], log_like[kept],
                            {**(attrs or {}), **found}, observed, settings)
 
 
