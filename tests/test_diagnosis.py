@@ -1,13 +1,15 @@
 """Diagnosis of a measurement against known truths, on the short record of the CI config (0.1 s)."""
 
+import json
 import re
-from dataclasses import replace
+from dataclasses import fields, replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
 
+import newdyn.config
 from newdyn import (
     bank,
     calibration,
@@ -293,6 +295,16 @@ def test_effect_mcmc_rounds_default_to_the_calibrations_and_can_be_set_apart():
     assert SETTINGS.mcmc["max_rounds"] == CONFIG["calibration"]["mcmc"]["max_rounds"]
     config = {**CONFIG, "diagnosis": {**CONFIG["diagnosis"], "mcmc": {**CONFIG["diagnosis"]["mcmc"], "max_rounds": 5}}}
     assert sampling.MCMCSettings.from_config(diagnosis.Settings.from_config(config).mcmc).max_rounds == 5
+
+
+def test_settings_from_the_workflows_json_spec_keep_whole_numbers_whole():
+    # The workflow hands the diagnosis its settings as canonical JSON, where every number is a float.
+    spec = diagnosis.Settings.from_config(json.loads(newdyn.config.canonical_json(CONFIG)))
+    assert spec.posterior == SETTINGS.posterior
+    for field in fields(SETTINGS.posterior):
+        value = getattr(spec.posterior, field.name)
+        assert type(value) is type(getattr(SETTINGS.posterior, field.name)), field.name
+    assert np.random.default_rng(spec.posterior.seed).integers(10) == np.random.default_rng(SETTINGS.posterior.seed).integers(10)
 
 
 def test_the_fault_posterior_is_left_unverified_behind_a_discovered_term_that_explains_where_the_library_does_not():

@@ -83,8 +83,8 @@ class Settings:
     chi2_max: float
     refine_points: int
     max_step: float
+    posterior: posterior_module.PosteriorSettings
     mcmc: Mapping[str, float | int | str] = field(default_factory=dict)
-    posterior: Mapping[str, float | int] = field(default_factory=dict)  # posterior.PosteriorSettings' fields
     discovery: str = "unexplained"  # or "always"
     sensors: Mapping[str, sensors_module.Sensor] = field(default_factory=dict)  # instrument errors per channel
     noise_colour_order: int = 0  # highest AR order of the noise's colour; 0: white
@@ -112,7 +112,8 @@ class Settings:
             refine_points=int(c["refine_points"]),
             max_step=float(config["simulation"]["max_step"]),
             mcmc={**{k: c["mcmc"][k] for k in ("rhat_max", "ess_min", "move", "max_rounds")}, **d["mcmc"]},
-            posterior={"seed": d["mcmc"]["seed"], "ess_min": c["mcmc"]["ess_min"], **d.get("posterior", {})},
+            posterior=posterior_module.PosteriorSettings.from_config(d["mcmc"]["seed"], c["mcmc"]["ess_min"],
+                                                                     d.get("posterior", {})),
             discovery=d.get("discovery", "unexplained"),
             sensors={c: sensors_module.Sensor(**spec) for c, spec in d.get("sensors", {}).items()},
             noise_colour_order=int(d.get("noise_colour_order", 0)),
@@ -397,7 +398,7 @@ def _effect_posterior(fit: hypotheses.Fit, data, sigma, values, sampling, channe
     observed = {"y": xr.DataArray(data, dims=("channel", "time"), coords={"channel": list(channels), "time": sampling.times})}
     support = {p.name: [p.low, p.high] for p in hypothesis.priors}
     posterior = posterior_module.sample(log_likelihood, hypothesis.log_prior, hypothesis.parameters, fit.theta, fit.covariance,
-                                        posterior_module.PosteriorSettings(**settings.posterior), observed=observed,
+                                        settings.posterior, observed=observed,
                                         attrs={"hypothesis": hypothesis.name, "support": support})
     if posterior.attrs["converged"]:
         return posterior

@@ -68,6 +68,13 @@ class PosteriorSettings:
     pareto_k_max: float = 0.7  # PSIS's bound on k̂ for a reliable estimate
     ess_min: float = 400.0  # effective sample size of the smoothed weights to reach
 
+    @classmethod
+    def from_config(cls, seed, ess_min, posterior: Mapping[str, float]) -> PosteriorSettings:
+        """From a study's numbers, whole or not (a spec's JSON carries every number as a float)."""
+        whole = {"batch", "max_draws"}
+        return cls(seed=int(seed), ess_min=float(ess_min),
+                   **{key: int(value) if key in whole else float(value) for key, value in posterior.items()})
+
     def __post_init__(self):
         if self.batch < 1 or self.max_draws < self.batch:
             raise ValueError(f"need 1 <= batch <= max_draws, got batch {self.batch}, max_draws {self.max_draws}")
