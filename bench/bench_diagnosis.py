@@ -1,49 +1,145 @@
-"""Speed of diagnosing one measurement (goal: <= 3 minutes on 2 cores), against that goal, for
-a measurement of each kind: healthy, a parameter change, new dynamics, and new dynamics without a
-noise level in the file (σ from the noise floor).
+"""Diagnosis speed, the old pipeline against the new, over the blind sets (and the open-world set), verdicts compared.
 
-Run: python bench/bench_diagnosis.py   (needs no study results: it simulates its own measurements)
+Each revision runs from a git worktree of its own in a fresh folder, through Snakemake on 2 cores as a user runs it
+(``snakemake --cores 2 results/<set>/score.json``, its own rules and command line), with the package of that
+worktree (PYTHONPATH); the times are the workflow's own job times (``<root>/benchmarks/diagnose/<case>.tsv``, wall
+seconds).  The old revision runs first, then the new, in one run of this script: the machine's speed drifts between
+days, so only ratios measured side by side count.  The open-world cases are drawn by this checkout's generator
+(``bench/open_world/run.py``), written into each revision's ``measurements/`` and diagnosed as a user's files.
+
+Run: python bench/bench_diagnosis.py [--before 4e27334] [--after HEAD] [--sets blind instruments] [--open-world]
+                                     [--keep DIR]   (an hour and more: the old pipeline takes 1-10 min a diagnosis)
+With ``--keep DIR`` the worktrees and their results stay in DIR, and a revision whose results are there already is
+not run again (its times are those of that earlier run: say so when quoting them).
 """
 
 from __future__ import annotations
 
-import logging
-import time
+import argparse
+import csv
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
 from pathlib import Path
 
-import numba
-import yaml
+ROOT = Path(__file__).resolve().parents[1]
+OPEN_WORLD = ROOT / "bench" / "open_world" / "run.py"
+OPEN_WORLD_CASES, OPEN_WORLD_SEED = 12, 2026
 
-from newdyn import diagnosis, faults, io, model, noise, simulation
 
-GOAL_SECONDS = 180.0
-STICK_SLIP = {"fault": {"kind": "stick_slip", "parameters": {"T_max": 1854.95, "r_k": 1.0}}}
-CASES = {  # name -> (scenario, the file states its noise level)
-    "healthy": ({}, True),
-    "kT1 +8 %": ({"overrides": {"kT1": 3.25e6}}, True),
-    "stick-slip": (STICK_SLIP, True),
-    "stick-slip, no σ in file": (STICK_SLIP, False),
-}
+def run(*command, cwd=None, env=None) -> None:
+    subprocess.run([str(c) for c in command], cwd=cwd, env=env, check=True)
+
+
+def revision_env(repo: Path) -> dict:
+    return {**os.environ, "PYTHONPATH": str(repo / "src")}
+
+
+def prepare(folder: Path, revision: str) -> Path:
+    """A worktree of ``revision`` in ``folder`` (kept if there)."""
+    if not folder.exists():
+        run("git", "-C", ROOT, "worktree", "add", "--detach", folder, revision)
+    return folder
+
+
+def study(repo: Path, sets: list[str], open_world: bool) -> None:
+    """Diagnose the sets (and the open-world cases) in ``repo`` as its own workflow does."""
+    targets = [f"results/{name}/score.json" for name in sets]
+    if open_world:
+        truth = repo / "open_world_truth.json"
+        if not truth.exists():
+            run(sys.executable, OPEN_WORLD, "draw", repo / "measurements", truth, "--cases", OPEN_WORLD_CASES, "--seed", OPEN_WORLD_SEED)
+        targets += [f"results/diagnosis/{case['name']}/verdict.json" for case in json.loads(truth.read_text())]
+    run(sys.executable, "-m", "snakemake", "--snakefile", repo / "Snakefile", "-d", repo, "--cores", "2", "--quiet",
+        "progress", *targets, env=revision_env(repo))
+
+
+def job_seconds(tsv: Path) -> float:
+    with open(tsv) as f:
+        return float(next(csv.DictReader(f, delimiter="\t"))["s"])
+
+
+def cases(repo: Path, sets: list[str], open_world: bool) -> dict[str, dict]:
+    """Per case: its set, class, job time and verdict."""
+    found = {}
+    for name in sets:
+        truth = json.loads((repo / f"results/{name}/truth.json").read_text())["cases"]
+        for case in truth:
+            root = repo / f"results/{name}"
+            found[case["name"]] = {"set": name, "class": case["class"],
+                                   "seconds": job_seconds(root / f"benchmarks/diagnose/{case['name']}.tsv"),
+                                   "verdict": json.loads((root / f"diagnosis/{case['name']}/verdict.json").read_text())}
+    if open_world:
+        for case in json.loads((repo / "open_world_truth.json").read_text()):
+            root = repo / "results"
+            found[case["name"]] = {"set": "open world", "class": case["class"],
+                                   "seconds": job_seconds(root / f"benchmarks/diagnose/{case['name']}.tsv"),
+                                   "verdict": json.loads((root / f"diagnosis/{case['name']}/verdict.json").read_text())}
+    return found
+
+
+def label(verdict: dict) -> str:
+    return f"{verdict['verdict']} {verdict.get('effect') or ''}".strip()
+
+
+def scores(repo: Path, sets: list[str], open_world: bool) -> dict[str, str]:
+    """Each set's score in one line: the hidden-score's, the open-world script's."""
+    found = {}
+    for name in sets:
+        s = json.loads((repo / f"results/{name}/score.json").read_text())
+        inst = s["instruments"]
+        found[name] = (f"{s['correct']}/{s['cases']} right, truth in 94 % HDI {s['hdi_coverage']:.0%}, "
+                       f"fault fits explaining {s['fault_fit']['explained']}/{s['fault_fit']['cases']}"
+                       + (f", out of spec named {inst['named']}/{inst['out_of_spec']}, false alarms {inst['false_alarms']}"
+                          if inst["cases"] else ""))
+    if open_world:
+        out = subprocess.run([sys.executable, OPEN_WORLD, "score", repo / "open_world_truth.json", repo / "results" / "diagnosis"],
+                             capture_output=True, text=True, check=True).stdout.strip().splitlines()
+        share = json.loads(out[-1])["share"]
+        rows = [json.loads(line) for line in out[:-1]]
+        found["open world"] = (f"right family and frequency {share['right_family_and_frequency']:.0%}, chi2 <= 1.1 after adding "
+                               f"{share['chi2_after_ok']:.0%}, place among equivalent {share['place_among_equivalent']:.0%} "
+                               f"({len(rows)} cases)")
+    return found
 
 
 def main() -> None:
-    numba.set_num_threads(2)
-    logging.basicConfig(level=logging.WARNING)
-    config = yaml.safe_load((Path(__file__).resolve().parents[1] / "config" / "config.yaml").read_text())
-    settings = diagnosis.Settings.from_config(config)
-    sampling = model.Sampling()  # the default record: 1 s at 5 kHz after 0.5 s warm-up
-    operating = {k: config["operating"][k] for k in model.OPERATING_PARAMETERS}
-    print("one measurement at 40 dB (b1_x, w1), 2 cores; the study's grids are not reused here (simulated in the job)")
-    print(f"{'measurement':26s} {'time':>8s} {'vs goal':>8s}   verdict")
-    for name, (scenario, known_sigma) in CASES.items():
-        clean = simulation.simulate(faults.scenario_values(scenario, model.DEFAULTS), sampling, settings.channels)
-        y, sigma = noise.add_noise(clean, settings.channels, 40.0, 1)
-        m = io.Measurement(name, settings.channels, y, sampling, operating, sigma if known_sigma else None)
-        t0 = time.perf_counter()
-        v = diagnosis.diagnose(m, settings).verdict
-        seconds = time.perf_counter() - t0
-        print(f"{name:26s} {seconds:7.1f}s {seconds / GOAL_SECONDS:7.2f}×   {v['verdict']} {v['effect']} "
-              f"(chi2 {v['chi2_before']:.3g} -> {v['chi2_after']:.3g})")
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--before", default="4e27334", help="the old pipeline's revision")
+    parser.add_argument("--after", default="HEAD", help="the new pipeline's revision")
+    parser.add_argument("--sets", nargs="*", default=["blind", "instruments"], help="hidden sets of config.yaml")
+    parser.add_argument("--open-world", action="store_true", help="also the 12 open-world cases")
+    parser.add_argument("--keep", type=Path, help="keep the worktrees here, and reuse a revision's results found there")
+    args = parser.parse_args()
+    base = args.keep or Path(tempfile.mkdtemp(prefix="bench_diagnosis_"))
+    base.mkdir(parents=True, exist_ok=True)
+    runs = {}
+    for name, revision in (("old", args.before), ("new", args.after)):
+        repo = prepare(base / name, revision)
+        study(repo, args.sets, args.open_world)
+        runs[name] = (repo, cases(repo, args.sets, args.open_world))
+    (old_repo, old), (new_repo, new) = runs["old"], runs["new"]
+    print(f"diagnoses on 2 cores (Snakemake job times), {args.before} -> {args.after}")
+    print(f"{'case':16s} {'class':22s} {'old s':>7s} {'new s':>7s} {'ratio':>6s}   old verdict -> new verdict")
+    agree = 0
+    for case, row in new.items():
+        before = old[case]
+        same = label(before["verdict"]) == label(row["verdict"])
+        agree += same
+        print(f"{case:16s} {row['class']:22s} {before['seconds']:7.1f} {row['seconds']:7.1f} {before['seconds'] / row['seconds']:5.1f}x   "
+              f"{label(before['verdict'])} -> {label(row['verdict'])}{'' if same else '   DIFFERS'}")
+    for group in dict.fromkeys(row["set"] for row in new.values()):
+        o = [old[c]["seconds"] for c, row in new.items() if row["set"] == group]
+        n = [row["seconds"] for row in new.values() if row["set"] == group]
+        print(f"{group}: median {statistics.median(o):.1f} s -> {statistics.median(n):.1f} s, worst {max(o):.1f} s -> {max(n):.1f} s, "
+              f"total {sum(o):.0f} s -> {sum(n):.0f} s ({sum(o) / sum(n):.1f}x)")
+    print(f"verdicts (class and effect) the same in {agree} of {len(new)} cases")
+    for name, repo in (("old", old_repo), ("new", new_repo)):
+        for group, line in scores(repo, args.sets, args.open_world).items():
+            print(f"{name} {group}: {line}")
 
 
 if __name__ == "__main__":

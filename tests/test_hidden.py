@@ -11,7 +11,7 @@ import xarray as xr
 import yaml
 from matplotlib.figure import Figure
 
-from newdyn import config, diagnosis, effects, faults, hidden, io, model, plots
+from newdyn import config, diagnosis, effects, faults, hidden, io, model, plots, signatures
 
 BASE = model.complete()
 CONFIG = yaml.safe_load((Path(__file__).resolve().parents[1] / "config" / "config.yaml").read_text())
@@ -335,7 +335,8 @@ def test_a_users_effect_is_a_hypothesis_of_the_diagnosis_and_a_class_of_the_blin
     assert row[index["torque_ripple.order"]] == 3.0
     assert all(row[index[name]] == pytest.approx(1.1 * BASE[name]) for name in settings.drift)
     assert all(row[index[kind]] == 0.0 for kind in effects.active() if kind != "torque_ripple")
-    entries = diagnosis._signature_entries(settings, {h.name: h for h in settings.hypotheses()}, model.complete())
+    entries = signatures.entries({h.name: h for h in settings.hypotheses()}, list(settings.grids), settings.drift_sizes,
+                                 settings.fault_ranges, settings.severities, model.complete())
     assert [v["amplitude"] for name, v in entries if name == "torque_ripple"] == pytest.approx(
         [50.0 * (i + 0.5) / settings.severities for i in range(settings.severities)])
 

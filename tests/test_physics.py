@@ -221,6 +221,18 @@ def test_stick_slip_never_slips_below_its_limit_and_then_equals_healthy():
     np.testing.assert_array_equal(stuck[:-1], healthy)
 
 
+def test_stick_slip_steps_finely_only_from_its_first_slip_on():
+    """Until the joint first opens, a stick-slip rig runs the healthy rig's steps: its record equals the healthy one
+    bit for bit up to the sample before the first onset, and differs after it."""
+    sampling = model.Sampling(fs=5000.0, t_first=0.0, n_samples=1000)
+    healthy = simulate({}, sampling, model.CHANNELS)
+    slipping = simulate(with_effect("stick_slip", T_max=1.15 * 1613.0), sampling, [*model.CHANNELS, "stick_slip.onsets"])
+    first = int(np.argmax(slipping[-1] > 0))
+    assert 1 < first < sampling.n_samples - 1
+    np.testing.assert_array_equal(slipping[:-1, :first], healthy[:, :first])
+    assert not np.array_equal(slipping[:-1, first + 1 :], healthy[:, first + 1 :])
+
+
 @pytest.mark.parametrize("r_k", [1.0, 0.85])
 def test_stick_slip_slips_in_every_load_cycle_and_obeys_karnopp(r_k):
     values = with_effect("stick_slip", T_max=1.15 * 1613.0 if r_k == 1.0 else 2000.0, r_k=r_k)

@@ -213,7 +213,7 @@ CALIBRATED = {"snr40_seed1_grid.nc", "snr40_seed1_mcmc.nc"}
 GRIDS = {"kT1.nc", "kT3.nc"}
 COMPARED = {"hellinger.nc", "summary.csv"}
 SCORED = {"score.json", "cases.csv", "blind_test.png", "blind_test.pdf"}  # the demo's reveal
-DIAGNOSED = {"verdict.json", "model_versions.csv", "diagnosis.nc", "effect_mcmc.nc", "discovery"} | SCORED
+DIAGNOSED = {"verdict.json", "model_versions.csv", "diagnosis.nc", "effect_posterior.nc", "discovery"} | SCORED
 DRAWN = {"truth.json", "demo_01.nc"}  # the demo's hidden case
 
 

@@ -61,6 +61,7 @@ class Calibration:
     chi2_red: float  # reduced χ² of the best-fitting (maximum-likelihood) grid model
     best_fit: np.ndarray  # that model's outputs (channel, time)
     chi2_max: float
+    channel_log_likelihood: np.ndarray | None = None  # each channel's share of the log-likelihood (grid point, channel)
 
     @property
     def n_peaks(self) -> int:
@@ -159,23 +160,28 @@ def calibrate(
     ``coarse_models`` are :func:`simulate_grid`'s outputs on ``spec.axis`` for the model ``values``
     (the healthy rig at the measurement's operating condition and sampling).
     """
+    def scored(models):  # each channel's log-likelihood, and their sum
+        per_channel = likelihood.log_likelihood(data, models, sigma, per_channel=True, instruments=instruments)
+        return per_channel, per_channel.sum(axis=-1)
+
     def run(points):
         models = simulate_grid(values, spec.parameter, points, sampling, channels, max_step)
-        return models, likelihood.log_likelihood(data, models, sigma, instruments=instruments)
+        return (models, *scored(models))
 
     coarse = spec.axis
-    coarse_ll = likelihood.log_likelihood(data, coarse_models, sigma, instruments=instruments)
-    grids, all_models, all_ll = [coarse], [coarse_models], [coarse_ll]
+    coarse_per_channel, coarse_ll = scored(coarse_models)
+    grids, all_models, all_per_channel, all_ll = [coarse], [coarse_models], [coarse_per_channel], [coarse_ll]
     for i in _highest_maxima(coarse_ll):
         # Pass 1 finds the peak inside its coarse cells; pass 2 covers ±SPAN_SD widths of it, so that
         # quadrature sees the whole peak and not a linear interpolation across a coarse cell.
         cell = np.linspace(coarse[max(i - 1, 0)], coarse[min(i + 1, coarse.size - 1)], refine_points)
-        cell_models, cell_ll = run(cell)
+        cell_models, cell_per_channel, cell_ll = run(cell)
         center, width = _peak_and_width(cell, cell_ll)
         span = np.linspace(max(center - SPAN_SD * width, spec.low), min(center + SPAN_SD * width, spec.high), refine_points)
-        span_models, span_ll = run(span)
+        span_models, span_per_channel, span_ll = run(span)
         grids += [cell, span]
         all_models += [cell_models, span_models]
+        all_per_channel += [cell_per_channel, span_per_channel]
         all_ll += [cell_ll, span_ll]
     grid, unique = np.unique(np.concatenate(grids), return_index=True)
     models = np.concatenate(all_models)[unique]
@@ -183,7 +189,7 @@ def calibrate(
     posterior = likelihood.grid_posterior(grid, ll, prior.log_pdf(grid))
     best = models[np.argmax(ll)]
     chi2 = float(likelihood.reduced_chi2(data, best, sigma, n_fitted=1, instruments=instruments))
-    return Calibration(posterior, prior.sd, chi2, best, chi2_max)
+    return Calibration(posterior, prior.sd, chi2, best, chi2_max, np.concatenate(all_per_channel)[unique])
 
 
 def _highest_maxima(log_like: np.ndarray) -> np.ndarray:

@@ -13,7 +13,7 @@ import sys
 import time
 
 log = logging.getLogger("newdyn")
-DIAGNOSIS_FIGURES = ("overlays", "residuals", "hypotheses", "error_fall", "discovery", "effect_mcmc")
+DIAGNOSIS_FIGURES = ("overlays", "residuals", "hypotheses", "error_fall", "discovery", "effect_posterior")
 
 
 def simulate_scenario(spec: dict, output: str, code_hash: str) -> None:
@@ -165,8 +165,8 @@ def calibrate_with_mcmc(measurement_path: str, grid_result_path: str, spec: dict
 
 
 def calibrate_jointly(measurement_path: str, grid_result_paths: list[str], spec: dict, output: str, code_hash: str) -> None:
-    """Write the joint MCMC posterior (ArviZ InferenceData) of several parameters, with the channels'
-    noise σ known or inferred (``infer_sigma``), for one measurement; the summary rows
+    """Write the joint posterior (ArviZ InferenceData; :func:`mcmc_calibration.calibrate_joint`) of several parameters,
+    with the channels' noise σ known or inferred (``infer_sigma``), for one measurement; the summary rows
     (:func:`mcmc_calibration.joint_summary`, χ² against the file's σ when it has one) are the ``summary``
     attribute as JSON.  ``grid_result_paths`` are the parameters' grid calibrations, in the order of
     ``spec["parameters"]``."""
@@ -188,8 +188,9 @@ def calibrate_jointly(measurement_path: str, grid_result_paths: list[str], spec:
         attrs={"settings": json.dumps(spec, sort_keys=True), **provenance.attributes(code_hash)},
     )
     rows = mcmc_calibration.joint_summary(idata, dict(zip(names, priors)), spec["chi2_max"], sigma)
-    log.info("joint MCMC of %s on %s in %.1f s: %s", idata.attrs["jointly"], measurement.name, time.perf_counter() - start, rows)
-    idata.attrs.update({**_labels(measurement), "method": "mcmc", "summary": json.dumps(rows)})
+    log.info("joint posterior of %s on %s by %s in %.1f s: %s", idata.attrs["jointly"], measurement.name, idata.attrs["method"],
+             time.perf_counter() - start, rows)
+    idata.attrs.update({**_labels(measurement), "summary": json.dumps(rows)})
     mcmc.save(idata, output)
 
 
@@ -329,26 +330,45 @@ def plot(kind: str, png: str, inputs: list[str], code_hash: str, measurement: st
     log.info("drew %s into %s", kind, png)
 
 
-def diagnose_measurement(measurement_path: str, grid_paths: list[str], spec: dict, verdict: str, table: str,
-                         netcdf: str, mcmc: str, discovery: str, code_hash: str) -> None:
-    """Diagnose one measurement file: verdict (JSON), model versions and posteriors (NetCDF), MCMC of the effect,
+def diagnose_measurement(measurement_path: str, grid_paths: list[str], bank_path: str | None, spec: dict, verdict: str, table: str,
+                         netcdf: str, posterior: str, discovery: str, code_hash: str) -> None:
+    """Diagnose one measurement file: verdict (JSON), model versions and posteriors (NetCDF), the effect's posterior,
     and a folder with the discovered term's effect file when nothing of the library explains it."""
     from . import config, diagnosis, io, model
 
     settings = diagnosis.Settings.from_config(spec)
     measurement = io.read_measurement(measurement_path, {k: spec["operating"][k] for k in model.OPERATING_PARAMETERS})
     start = time.perf_counter()
-    result = diagnosis.diagnose(measurement, settings, dict(zip(settings.grids, grid_paths)) if grid_paths else None)
+    result = diagnosis.diagnose(measurement, settings, dict(zip(settings.grids, grid_paths)) if grid_paths else None,
+                                bank_path=bank_path)
     v = result.verdict
     log.info("%s: %s %s (chi2 %.4g -> %.4g) in %.1f s", measurement_path, v["verdict"], v["effect"], v["chi2_before"],
              v["chi2_after"], time.perf_counter() - start)
-    diagnosis.write(result, verdict, table, netcdf, mcmc, discovery, config.canonical_json(spec), code_hash)
+    diagnosis.write(result, verdict, table, netcdf, posterior, discovery, config.canonical_json(spec), code_hash)
 
 
-def plot_diagnosis(verdict: str, netcdf: str, mcmc: str, outputs: dict, code_hash: str) -> None:
+def write_bank(spec: dict, grid_paths: list[str], output: str, code_hash: str) -> None:
+    """The study's bank (newdyn.bank) for a diagnosis spec at its operating condition and record (``spec["sampling"]``),
+    on the study's coarse grids where they hold its channels: every diagnosis at that condition reuses it."""
+    from . import calibration, diagnosis, io, model, provenance
+
+    settings = diagnosis.Settings.from_config(spec)
+    values = model.complete({**spec["rig"], **spec["operating"]})
+    sampling = _sampling(spec["sampling"])
+    coarse = {p: calibration.coarse_models(path, settings.grids[p], values, sampling, settings.channels, settings.max_step)
+              for p, path in zip(settings.grids, grid_paths)} if grid_paths else None
+    start = time.perf_counter()
+    bank = diagnosis.study_bank(None, settings, {h.name: h for h in settings.hypotheses()}, values, sampling, coarse)
+    log.info("%d signatures on %d grids and the members of %d hypotheses in %.1f s", bank.sizes["signature"], bank.sizes["parameter"],
+             sum(name.startswith("members_") for name in bank.data_vars), time.perf_counter() - start)
+    bank.attrs.update(provenance.attributes(code_hash))
+    io.write_netcdf(bank, output)
+
+
+def plot_diagnosis(verdict: str, netcdf: str, posterior: str, outputs: dict, code_hash: str) -> None:
     from . import plots
 
-    plots.diagnosis_figures(verdict, netcdf, mcmc, outputs, code_hash)
+    plots.diagnosis_figures(verdict, netcdf, posterior, outputs, code_hash)
 
 
 def draw_hidden(spec: dict, output: str, code_hash: str) -> None:
@@ -443,11 +463,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--spec", required=True, help="the diagnosis settings as JSON (built by the workflow)")
     p.add_argument("--grids", nargs="*", default=[], help="the study's coarse grid files, in the spec's calibration "
                    "parameter order (reused when their condition is the measurement's)")
-    for output in ("verdict", "table", "netcdf", "mcmc", "discovery"):
+    p.add_argument("--bank", help="the study's bank: signatures and members (reused when its condition is the measurement's)")
+    for output in ("verdict", "table", "netcdf", "posterior", "discovery"):
         p.add_argument(f"--{output}", required=True)
     p.add_argument("--code-hash", default="")
+    p = command("bank", "the signatures and members every diagnosis at one condition reuses", "diagnosis spec")
+    p.add_argument("--grids", nargs="*", default=[], help="the study's coarse grid files, in the spec's calibration parameter order")
     p = commands.add_parser("plot-diagnosis", help="the figures of one diagnosis")
-    for name in ("verdict", "netcdf", "mcmc", *DIAGNOSIS_FIGURES):
+    for name in ("verdict", "netcdf", "posterior", *DIAGNOSIS_FIGURES):
         p.add_argument(f"--{name.replace('_', '-')}", required=True)
     p.add_argument("--code-hash", default="")
     command("hidden-draw", "draw a hidden set's cases and write their truth", "hidden-set spec")
@@ -488,10 +511,12 @@ def main(argv: list[str] | None = None) -> int:
     elif args.command == "plot":
         plot_figures(args.kind, json.loads(args.figures), args.code_hash)
     elif args.command == "diagnose":
-        diagnose_measurement(args.measurement, args.grids, json.loads(args.spec), args.verdict, args.table, args.netcdf,
-                             args.mcmc, args.discovery, args.code_hash)
+        diagnose_measurement(args.measurement, args.grids, args.bank, json.loads(args.spec), args.verdict, args.table, args.netcdf,
+                             args.posterior, args.discovery, args.code_hash)
+    elif args.command == "bank":
+        write_bank(json.loads(args.spec), args.grids, args.output, args.code_hash)
     elif args.command == "plot-diagnosis":
-        plot_diagnosis(args.verdict, args.netcdf, args.mcmc, {name: getattr(args, name) for name in DIAGNOSIS_FIGURES},
+        plot_diagnosis(args.verdict, args.netcdf, args.posterior, {name: getattr(args, name) for name in DIAGNOSIS_FIGURES},
                        args.code_hash)
     elif args.command == "hidden-draw":
         draw_hidden(json.loads(args.spec), args.output, args.code_hash)

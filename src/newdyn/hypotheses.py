@@ -13,12 +13,13 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
+from typing import NamedTuple
 
 import numpy as np
 from scipy import optimize
 from scipy.special import erfinv
 
-from . import effects, faults, likelihood, model, sensors, simulation
+from . import concurrency, effects, faults, likelihood, model, sensors, simulation
 
 HEALTHY = "healthy"
 PARAMETER_CHANGE = faults.PARAMETER_CHANGE
@@ -160,6 +161,13 @@ def library(calibration_priors: Mapping[str, Prior], fault_ranges: Mapping[str, 
     return hypotheses
 
 
+class Members(NamedTuple):
+    """Points of a hypothesis's prior box and its outputs over the fits' search windows (:mod:`newdyn.bank`)."""
+
+    unit: np.ndarray  # (member, parameter) in prior-box units: (θ − low) / (high − low)
+    outputs: np.ndarray  # (member, channel, sample) over the longest search window
+
+
 @dataclass(frozen=True)
 class Fit:
     """A hypothesis fitted to a measurement: best values, misfit and (approximate) log-evidence."""
@@ -224,14 +232,15 @@ def fit(
     seed: int = 0,
     search: bool = True,
     instruments: sensors.Instruments | None = None,
+    members: Members | None = None,
 ) -> Fit:
     """Best fit of ``hypothesis`` by bounded least squares on the simulator (misfit standardized by
     ``sigma``, plus the Normal priors' terms), the best of several starts kept; with ``instruments`` the
     channels' instrument offsets, gains and delays are integrated out (:mod:`newdyn.sensors`).
 
     Starts: the given ``starts`` (missing names at their prior's mean or mid-range) and, unless
-    ``search`` is False, the best member of a differential evolution (``seed``) over the prior box on
-    each of the first :data:`SEARCHES` windows of :func:`fit_windows`.  Each start is fitted on its
+    ``search`` is False, on each of the first :data:`SEARCHES` windows of :func:`fit_windows` the best of the
+    bank's ``members`` when given, else the best member of a differential evolution (``seed``) over the prior box.  Each start is fitted on its
     window, then on the longer ones up to the whole record, each from the last one's optimum:
     stick-slip's misfit has many local minima, and only a short window shows the truth's basin wide.
 
@@ -242,17 +251,16 @@ def fit(
     precision 12 added, so an irrelevant parameter costs no spurious Occam factor nor makes H singular.
     """
     k = len(hypothesis.priors)
-    n_runs = 0
+    runs = []  # simulations per call (appended from the threads the starts are followed in)
 
     def simulate(theta, window=sampling):
-        nonlocal n_runs
-        n_runs += len(theta)
+        runs.append(len(theta))
         return evaluate(hypothesis, theta, base, window, channels, max_step)
 
     if k == 0:
         best = simulate(np.zeros((1, 0)))[0]
         ll = float(likelihood.log_likelihood(data, best, sigma, instruments=instruments))
-        return Fit(hypothesis, {}, best, ll, float(likelihood.reduced_chi2(data, best, sigma, instruments=instruments)), ll, n_runs,
+        return Fit(hypothesis, {}, best, ll, float(likelihood.reduced_chi2(data, best, sigma, instruments=instruments)), ll, sum(runs),
                    instruments=instruments)
 
     low = np.array([p.low for p in hypothesis.priors])
@@ -261,11 +269,13 @@ def fit(
     mean = np.array([p.mean if p.sd is not None else 0.0 for p in hypothesis.priors])
     sd = np.array([p.sd if p.sd is not None else 1.0 for p in hypothesis.priors])
 
-    def residuals(u, n_samples):  # rows (m, k) -> (m, n_samples·C + normal priors), on the record's first n_samples
+    def residuals_of(u, outputs, n_samples):  # rows (m, k) with their outputs -> (m, n_samples·C + normal priors)
         theta = low + u * span
-        window = replace(sampling, n_samples=n_samples)
-        misfit = likelihood.standardized_residuals(data[:, :n_samples], simulate(theta, window), sigma, instruments).reshape(len(u), -1)
+        misfit = likelihood.standardized_residuals(data[:, :n_samples], outputs, sigma, instruments).reshape(len(u), -1)
         return np.concatenate([misfit, ((theta - mean) / sd)[:, normal]], axis=1)
+
+    def residuals(u, n_samples):  # on the record's first n_samples
+        return residuals_of(u, simulate(low + u * span, replace(sampling, n_samples=n_samples)), n_samples)
 
     def jacobian(u, n_samples, step):  # one-sided differences pointing into the box, all in one batch
         h = np.where(u + step <= 1.0, step, -step)
@@ -276,7 +286,11 @@ def fit(
     given = [[start.get(p.name, p.mean if p.sd is not None else p.low + 0.5 * (p.high - p.low)) for p in hypothesis.priors]
              for start in starts]
     u_starts = [((np.array(theta) - low) / span, 0) for theta in given]  # (start, index of its first window)
-    if search:
+    if search and members is not None:
+        for first, n_samples in enumerate(windows[:SEARCHES]):
+            misfit = residuals_of(members.unit, members.outputs[..., :n_samples], n_samples)
+            u_starts.append((members.unit[int(np.argmin(np.sum(misfit**2, axis=1)))], first))
+    elif search:
         for first, n_samples in enumerate(windows[:SEARCHES]):
             evolved = optimize.differential_evolution(
                 lambda u, n: np.sum(residuals(np.atleast_2d(u.T), n) ** 2, axis=1), [(0.0, 1.0)] * k, args=(n_samples,),
@@ -294,17 +308,20 @@ def fit(
                 u0 = result.x
         return result
 
-    best = None
-    for number, (u0, first) in enumerate(u_starts):
+    def chain(u0, first, given_start):
         result = follow(u0, first)
-        # A given start that is already good over the whole record (the truth, an MCMC chain's best
+        # A given start that is already good over the whole record (the truth, a posterior's best
         # draw) can be led off by the short windows into a minimum of the record's start only.
-        if number < len(given) and len(windows) > 1 and (
+        if given_start and len(windows) > 1 and (
             result.cost > 0.5 * np.sum(residuals(np.clip(u0, 1e-6, 1 - 1e-6)[None], windows[-1]) ** 2)
         ):
             result = follow(u0, len(windows) - 1)
-        if best is None or result.cost < best.cost:
-            best = result
+        return result
+
+    # Each start's chain of least squares runs few simulations at a time: the chains side by side fill the cores.
+    chains = concurrency.in_parallel({number: lambda number=number, u0=u0, first=first: chain(u0, first, number < len(given))
+                                      for number, (u0, first) in enumerate(u_starts)})
+    best = min(chains.values(), key=lambda result: result.cost)  # the first of equals, as the starts are ordered
     u_star = best.x
     theta_star = low + u_star * span
     model_star = simulate(theta_star[None])[0]
@@ -318,6 +335,6 @@ def fit(
     covariance_u = 0.5 * (covariance_u + covariance_u.T)  # symmetric as H is, not just to rounding
     return Fit(
         hypothesis, hypothesis.effective_values(theta_star, base), model_star, ll,
-        float(likelihood.reduced_chi2(data, model_star, sigma, n_fitted=k, instruments=instruments)), float(log_evidence), n_runs, at_bound,
+        float(likelihood.reduced_chi2(data, model_star, sigma, n_fitted=k, instruments=instruments)), float(log_evidence), sum(runs), at_bound,
         span[:, None] * covariance_u * span[None, :], instruments,
     )

@@ -93,6 +93,15 @@ def write_netcdf(ds: xr.Dataset, path: str | os.PathLike) -> None:
     atomic_write(path, lambda tmp: ds.to_netcdf(tmp, engine="netcdf4"))
 
 
+def netcdf_attribute(value):
+    """A value as a netCDF attribute, which is text or a number: bools become 1/0, dicts and lists JSON text."""
+    if isinstance(value, (bool, np.bool_)):
+        return int(value)
+    if isinstance(value, (str, int, float, np.integer, np.floating)):
+        return value
+    return json.dumps(value)
+
+
 def write_csv(path: str | os.PathLike, columns: Sequence[str], rows: Sequence[Mapping]) -> None:
     """Rows (mappings by column name) as CSV with a header, atomically."""
 

@@ -14,7 +14,10 @@ indexed ``row * LANES + lane``, and the hot loops run over lanes with bodies tha
 no data-dependent branches (mode switches are selects, sin/cos is the inline :func:`sincos`), so
 LLVM turns them into AVX lanes.  After each step the event functions of all lanes are checked
 together; a lane whose step crosses an event is redone by the event-locating path, which runs the
-same RK4 and RHS code on a one-lane scratch block.  The arithmetic is that of the scalar original,
+same RK4 and RHS code on a one-lane scratch block.  A lane whose slip joint is open, or settling after it
+locked, takes several shorter steps for each step instead (``kernels.fine_steps``): such lanes are copied into a
+second scratch block, stepped there side by side in its SIMD lanes, and copied back, so a slipping rig pays for the
+fine steps only while it slips.  The arithmetic is that of the scalar original,
 operation for operation (no fast-math), so results do not depend on how simulations are grouped
 into lanes; only sin/cos of the disk angles may differ from libm's by an ulp.  Blocks run in
 parallel threads (``NUMBA_NUM_THREADS``).
@@ -78,10 +81,13 @@ R_KLAT = R_INVM + 8  # 7 lateral spring stiffnesses
 R_JRED1 = R_KLAT + 7  # J1 - u1² / m1: the disk-1 inertia left by the imbalance coupling
 R_JRED4 = R_JRED1 + 1  # J4 - u4² / m4
 R_SAME_LOAD = R_JRED4 + 1  # 1 if the load parameters equal those of the lane to the left, else 0
-N_CONST = R_SAME_LOAD + 1
+R_FINE_STEPS = R_SAME_LOAD + 1  # RK4 steps per step while the lane's slip joint is open or settling (1: never finer)
+R_SETTLE = R_FINE_STEPS + 1  # how long after its joint locks the lane keeps the finer steps [s]
+N_CONST = R_SETTLE + 1
 R_MODES = N_CONST  # mode of each switching effect (0 at t = 0)
 R_ONSETS = R_MODES + N_SWITCHING  # number of its switches out of mode 0 so far
-N_MODES = 2 * N_SWITCHING
+R_FINE_UNTIL = R_ONSETS + N_SWITCHING  # the lane steps finely until this time (inf while its joint is open)
+N_MODES = 2 * N_SWITCHING + 1  # the rows the event path hands back: modes, onsets and R_FINE_UNTIL
 R_TL = R_MODES + N_MODES  # load torque T_l at the stage time
 R_TL_TIME = R_TL + 1  # lane 0 only: the time of the values in row R_TL (NaN: none)
 R_G = R_TL_TIME + 1  # event function value (> 0: an event lies inside the step)
@@ -394,12 +400,14 @@ def _events(w, src, n_lanes, t):
 @njit(**_JIT)
 def _switch(w, lane, which, t):
     """Apply the mode change of event ``which`` at the located state (rows R_Y) of ``lane``, then any
-    that the new modes call for at once."""
+    that the new modes call for at once; the lane steps finely while its slip joint is open and for its settling
+    time after the joint locks."""
     for _ in range(MAX_IMMEDIATE_SWITCHES):
         _switch_effect(w, lane, which, t)
         g, which = _event_value(w, lane, R_Y, t)
         if not g > 0.0:
-            return
+            break
+    w[_at(R_FINE_UNTIL, lane)] = math.inf if _joint_open(w, lane) != 0.0 else t + w[_at(R_SETTLE, lane)]
 
 
 @njit(**_JIT)
@@ -474,10 +482,38 @@ def _copy_lane_rows(a, lane_a, b, lane_b, first_a, first_b, count):
 
 # --- driver ---------------------------------------------------------------------------------------
 @njit(**_JIT)
-def _step(w, alone, t, h, n_lanes, events_possible):
-    """Advance all lanes of block ``w`` from t by h; a lane whose step crosses an event is redone by
-    the event path on the one-lane scratch block ``alone`` (each lane on its own, so that results do
-    not depend on how simulations are grouped).  Returns the new time."""
+def _step_with_events(w, alone, t, h, n_lanes):
+    """Advance all lanes of block ``w`` from t by h at that step; a lane whose step crosses an event is redone by
+    the event path on the one-lane scratch block ``alone`` (each lane on its own, so that results do not depend on
+    how simulations are grouped).  Leaves the event check of each lane's step in row R_G (> 0: it had one)."""
+    _rk4(w, t, h, n_lanes, False)
+    _events(w, R_TRIAL, n_lanes, t + h)
+    _interior_events(w, n_lanes, t, h)
+    for lane in range(n_lanes):
+        if not w[_at(R_G, lane)] <= 0.0:
+            _redo_alone(w, alone, lane, t, h)
+    for j in range(NY * LANES):
+        w[_at(R_Y, j)] = w[_at(R_TRIAL, j)]
+
+
+@njit(**_JIT)
+def _redo_alone(w, alone, lane, t, h):
+    """Rows R_TRIAL of ``lane`` ← its step from t by h on the event path, its modes updated."""
+    _copy_lane_rows(w, lane, alone, 0, 0, 0, N_CONST + N_MODES)
+    _copy_lane_rows(w, lane, alone, 0, R_Y, R_Y, NY)
+    alone[_at(R_TL_TIME, 0)] = math.nan  # another lane's load torque
+    _advance_alone(alone, t, h)
+    _copy_lane_rows(alone, 0, w, lane, R_MODES, R_MODES, N_MODES)
+    _copy_lane_rows(alone, 0, w, lane, R_Y, R_TRIAL, NY)
+
+
+@njit(**_JIT)
+def _step(w, alone, fine, picked, group, t, h, n_lanes, events_possible):
+    """Advance all lanes of block ``w`` from t by h.  A lane whose slip joint is open or settling, or whose step
+    crosses an event while it may step finely, takes R_FINE_STEPS steps instead, side by side with the other such
+    lanes of its step count in the block ``fine`` (``picked`` and ``group`` are scratch for their lane numbers); any
+    other lane whose step crosses an event is redone on the event path.  Each lane's steps depend on its own state
+    only, so results do not depend on how simulations are grouped.  Returns the new time."""
     t_end = t + h
     step = t_end - t
     if step <= 0.0:
@@ -488,22 +524,66 @@ def _step(w, alone, t, h, n_lanes, events_possible):
     _rk4(w, t, step, n_lanes, False)
     _events(w, R_TRIAL, n_lanes, t_end)
     _interior_events(w, n_lanes, t, step)
+    n_fine = 0
     for lane in range(n_lanes):
-        if not w[_at(R_G, lane)] <= 0.0:
-            _copy_lane_rows(w, lane, alone, 0, 0, 0, N_CONST + N_MODES)
-            _copy_lane_rows(w, lane, alone, 0, R_Y, R_Y, NY)
-            alone[_at(R_TL_TIME, 0)] = math.nan  # another lane's load torque
-            _advance_alone(alone, t, h)
-            _copy_lane_rows(alone, 0, w, lane, R_MODES, R_MODES, N_MODES)
-            _copy_lane_rows(alone, 0, w, lane, R_Y, R_TRIAL, NY)
+        event = not w[_at(R_G, lane)] <= 0.0
+        if w[_at(R_FINE_STEPS, lane)] > 1.0 and (event or t < w[_at(R_FINE_UNTIL, lane)]):
+            picked[n_fine] = lane
+            n_fine += 1
+        elif event:
+            _redo_alone(w, alone, lane, t, step)
+    while n_fine > 0:  # the picked lanes, those of one step count at a time
+        count = w[_at(R_FINE_STEPS, picked[0])]
+        n_group, rest = 0, 0
+        for i in range(n_fine):
+            lane = picked[i]
+            if w[_at(R_FINE_STEPS, lane)] == count:
+                group[n_group] = lane
+                _copy_lane_rows(w, lane, fine, n_group, 0, 0, N_CONST + N_MODES)
+                _copy_lane_rows(w, lane, fine, n_group, R_Y, R_Y, NY)
+                n_group += 1
+            else:
+                picked[rest] = lane
+                rest += 1
+        n_run = _pad(fine, n_group)
+        fine[_at(R_TL_TIME, 0)] = math.nan  # other lanes' load torques
+        substeps = int(count)
+        for k in range(substeps):
+            t_k = t + k * step / substeps
+            _step_with_events(fine, alone, t_k, t + (k + 1) * step / substeps - t_k, n_run)
+        for i in range(n_group):
+            _copy_lane_rows(fine, i, w, group[i], R_MODES, R_MODES, N_MODES)
+            _copy_lane_rows(fine, i, w, group[i], R_Y, R_TRIAL, NY)
+        n_fine = rest
     for j in range(NY * LANES):
         w[_at(R_Y, j)] = w[_at(R_TRIAL, j)]
     return t_end
 
 
 @njit(**_JIT)
-def _setup_lane(w, lane, p):
-    """Parameters, derived quantities, modes and the rig.md initial state of one lane."""
+def _pad(w, n_lanes):
+    """The lanes block ``w`` runs for its first ``n_lanes``: they alone when at most SCALAR_MAX, else rounded up to
+    VECTOR lanes, the padding ones copies of the last without its switching effects (they never take the event
+    path, and lanes are independent, so they change no other lane's result).  Sets each lane's R_SAME_LOAD."""
+    n_run = n_lanes if n_lanes <= SCALAR_MAX else min(LANES, (n_lanes + VECTOR - 1) // VECTOR * VECTOR)
+    for lane in range(n_lanes, n_run):
+        _copy_lane_rows(w, n_lanes - 1, w, lane, 0, 0, N_CONST + N_MODES)
+        _copy_lane_rows(w, n_lanes - 1, w, lane, R_Y, R_Y, NY)
+        for slot in SWITCHING_ON:
+            w[_at(slot, lane)] = 0.0
+        w[_at(R_FINE_STEPS, lane)] = 1.0
+    for lane in range(n_run):
+        same = lane > 0
+        for k in (T0, LOAD_AMP, LOAD_FREQ, LOAD_HARM):
+            same = same and w[_at(k, lane)] == w[_at(k, lane - 1)]
+        w[_at(R_SAME_LOAD, lane)] = 1.0 if same else 0.0
+    return n_run
+
+
+@njit(**_JIT)
+def _setup_lane(w, lane, p, fine_steps, settle):
+    """Parameters, derived quantities, modes and the rig.md initial state of one lane, which takes ``fine_steps``
+    steps per step while its slip joint is open and for ``settle`` seconds after it locks."""
     for k in range(N_PAR):
         w[_at(k, lane)] = p[k]
     omega = 2.0 * math.pi * p[SPEED] / 60.0
@@ -520,12 +600,11 @@ def _setup_lane(w, lane, p):
         w[_at(R_KLAT + i, lane)] = springs[i]
     w[_at(R_JRED1, lane)] = p[J1] - p[U1] * p[U1] * w[_at(R_INVM + 1, lane)]
     w[_at(R_JRED4, lane)] = p[J4] - p[U4] * p[U4] * w[_at(R_INVM + 6, lane)]
-    same = lane > 0
-    for k in (T0, LOAD_AMP, LOAD_FREQ, LOAD_HARM):
-        same = same and p[k] == w[_at(k, lane - 1)]
-    w[_at(R_SAME_LOAD, lane)] = 1.0 if same else 0.0
+    w[_at(R_FINE_STEPS, lane)] = fine_steps
+    w[_at(R_SETTLE, lane)] = settle
     for k in range(N_MODES):
         w[_at(R_MODES + k, lane)] = 0.0
+    w[_at(R_FINE_UNTIL, lane)] = math.inf if _joint_open(w, lane) != 0.0 else -math.inf
     for i in range(NY):
         w[_at(R_Y + i, lane)] = 0.0
     theta3 = p[T0] / p[KT3]
@@ -560,26 +639,24 @@ def _record(w, codes, out, sims, k, n_lanes, t):
 
 
 @njit(**_JIT)
-def _simulate_block(params, sims, t_first, fs, n_samples, substeps, codes, out):
+def _simulate_block(params, fine_steps, settle, sims, t_first, fs, n_samples, substeps, codes, out):
     """Simulate rows ``sims`` of ``params`` together, one per lane, with ``substeps`` RK4 steps per
-    sample interval."""
+    sample interval (and each row's ``fine_steps`` times as many while its slip joint is open or its ``settle``)."""
     n_lanes = sims.shape[0]
     h_target = 1.0 / (fs * substeps)
     w = np.zeros(N_ROWS * LANES)  # unused lanes stay finite: the flat copy in _step reads them
     alone = np.zeros(N_ROWS * LANES)  # scratch block of the event path (lane 0 only)
+    fine = np.zeros(N_ROWS * LANES)  # scratch block of the lanes that step finely
+    picked = np.zeros(LANES, dtype=np.int64)
+    group = np.zeros(LANES, dtype=np.int64)
     w[_at(R_TL_TIME, 0)] = math.nan
     events_possible = False
     for lane in range(n_lanes):
-        _setup_lane(w, lane, params[sims[lane]])
+        row = sims[lane]
+        _setup_lane(w, lane, params[row], fine_steps[row], settle[row])
         for slot in SWITCHING_ON:
-            events_possible = events_possible or params[sims[lane], slot] != 0.0
-    # Padding lanes (never recorded): the last lane's rig without its switching effects, so they
-    # never take the event path; lanes are independent, so they change no other lane's result.
-    n_run = n_lanes if n_lanes <= SCALAR_MAX else min(LANES, (n_lanes + VECTOR - 1) // VECTOR * VECTOR)
-    for lane in range(n_lanes, n_run):
-        _setup_lane(w, lane, params[sims[n_lanes - 1]])
-        for slot in SWITCHING_ON:
-            w[_at(slot, lane)] = 0.0
+            events_possible = events_possible or params[row, slot] != 0.0
+    n_run = _pad(w, n_lanes)
     for lane in range(n_lanes):  # an effect whose event function is already positive at t = 0 switches there
         g, which = _event_value(w, lane, R_Y, 0.0)
         if g > 0.0:
@@ -587,23 +664,24 @@ def _simulate_block(params, sims, t_first, fs, n_samples, substeps, codes, out):
     t = 0.0
     n_warm = math.ceil(t_first / h_target - 1e-9)
     for k in range(n_warm):
-        t = _step(w, alone, t, (k + 1) * t_first / n_warm - t, n_run, events_possible)
+        t = _step(w, alone, fine, picked, group, t, (k + 1) * t_first / n_warm - t, n_run, events_possible)
     t = t_first
     for k in range(n_samples):
         if k > 0:
             t_sample = t_first + k / fs
             for s in range(substeps):
                 t_next = t_first + (k - 1 + (s + 1) / substeps) / fs
-                t = _step(w, alone, t, t_next - t, n_run, events_possible)
+                t = _step(w, alone, fine, picked, group, t, t_next - t, n_run, events_possible)
             t = t_sample
         _record(w, codes, out, sims, k, n_lanes, t)
 
 
-@njit(cache=True, error_model="numpy", parallel=True)
-def _simulate_batch(params, order, starts, counts, substeps, t_first, fs, n_samples, codes):
-    """Simulate the blocks of rows order[starts[b] : starts[b] + counts[b]] of ``params`` in parallel,
-    block b with substeps[b] RK4 steps per sample interval."""
+@njit(cache=True, error_model="numpy", parallel=True, nogil=True)
+def _simulate_batch(params, fine_steps, settle, starts, counts, substeps, t_first, fs, n_samples, codes):
+    """Simulate the blocks of rows starts[b] : starts[b] + counts[b] of ``params`` in parallel, with ``substeps``
+    RK4 steps per sample interval (each row's ``fine_steps`` times as many while its joint is open or settling)."""
     out = np.empty((params.shape[0], codes.shape[0], n_samples))
     for b in prange(starts.shape[0]):
-        _simulate_block(params, order[starts[b] : starts[b] + counts[b]], t_first, fs, n_samples, substeps[b], codes, out)
+        rows = np.arange(starts[b], starts[b] + counts[b])
+        _simulate_block(params, fine_steps, settle, rows, t_first, fs, n_samples, substeps, codes, out)
     return out

@@ -169,11 +169,16 @@ def _effect_lines(i: int, kind: str, effect, index, switching, src: str) -> list
          f"{_parameters(i, effect, index)}, {_rig(i, effect)}, mode_{i})"),
     ]
     if effect.acts_on == "slip_joint":
-        opened = f"({present}) & (mode_{i} != 0.0)" if effect.locks_joint else f"({present})"
-        return lines + [f"    open_{i} = {opened}",
+        return lines + [f"    open_{i} = {_opens_joint(i, kind, effect, index, switching)}",
                         f"    f_joint = f_joint + force_{i} if open_{i} else f_joint",
                         f"    joint_open = 1.0 if open_{i} else joint_open"]
     return lines + [f"    {target} = {target} {sign} force_{i} if {present} else {target}"]
+
+
+def _opens_joint(i: int, kind: str, effect, index, switching) -> str:
+    """Whether effect i, on the slip joint, holds it open: present, and a locking one out of its mode 0."""
+    present = f"(w[_at({index[model.effect_slot(kind)]}, lane)] != 0.0)"
+    return f"{present} & ({_mode(kind, switching)} != 0.0)" if effect.locks_joint else present
 
 
 def _generated(active, index, switching) -> str:
@@ -243,6 +248,14 @@ def _generated(active, index, switching) -> str:
         ]
     lines += [
         "    return g, which",
+        "",
+        "",
+        "@njit(**_JIT, inline='always')",
+        "def _joint_open(w, lane):",
+        '    """1.0 if a present effect holds the slip joint open, else 0.0."""',
+        "    joint_open = 0.0",
+        *[f"    joint_open = 1.0 if {_opens_joint(i, kind, effect, index, switching)} else joint_open" for i, kind, effect in joint],
+        "    return joint_open",
         "",
         "",
         "@njit(**_JIT)",
@@ -340,8 +353,7 @@ def _compile_once(compiled: ModuleType, path: Path) -> None:
     with open(path.with_suffix(".lock"), "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         if not ready.exists():
-            one = np.ones(1, dtype=np.int64)
-            _run(compiled, np.zeros((1, compiled.N_PAR)), one, 0.0, 1.0, 1, 1, np.zeros(1, dtype=np.int64))
+            _run(compiled, np.zeros((1, compiled.N_PAR)), 0.0, 1.0, 1, 1, np.zeros(1, dtype=np.int64), {})
             ready.touch()
 
 
@@ -367,14 +379,16 @@ def diagnostics(active: dict[str, type[effects.Effect]] | None = None) -> tuple[
 
 
 
-# A rig whose slip joint opens needs finer steps than the healthy rig: an open joint frees the light
-# bodies 2a and 2b (J2a alone on the motor shaft vibrates at ~1.2 kHz), and every slip onset (a torque
-# drop when r_k < 1) and re-stick kicks the chain's fastest torsional modes, whose RK4 phase error then
-# moves the next event.  Such a lane takes steps with ω_max·h at most JOINT_OMEGA_RATE·h (0.18 at the
-# default step of 1e-4 s), ω_max the fastest torsional mode with the joint locked or open; step halving
-# then meets rig.md's bound over the prior (see tests/test_physics.py).  The factor depends on the
-# lane's own parameters only, so halving the step halves it on every lane.
+# A rig whose slip joint opens needs finer steps than the healthy rig: an open joint frees the light bodies 2a and 2b
+# (J2a alone on the motor shaft vibrates at ~1.2 kHz), and every slip onset (a torque drop when r_k < 1) and re-stick
+# kicks the chain's fastest torsional modes, whose RK4 phase error then moves the next event.  Such a lane steps
+# with ω_max·h at most JOINT_OMEGA_RATE·h (0.18 at the default step of 1e-4 s), ω_max the fastest torsional mode
+# with the joint locked or open, while its joint is open and until the modes a re-stick kicked have rung down:
+# SETTLE_E_FOLDS e-folding times of the fastest mode's amplitude under the rig's stiffness-proportional damping,
+# 2 / (β ω_max²) (for ever without damping).  Both depend on the lane's own parameters only, so halving the step
+# halves it on every lane.
 JOINT_OMEGA_RATE = 1800.0  # rad/s
+SETTLE_E_FOLDS = 6.0
 
 
 def _fastest_torsional_mode(inertias: np.ndarray, stiffnesses: np.ndarray) -> np.ndarray:
@@ -391,80 +405,56 @@ def _fastest_torsional_mode(inertias: np.ndarray, stiffnesses: np.ndarray) -> np
     return np.sqrt(np.linalg.eigvalsh(scale[:, :, None] * stiffness * scale[:, None, :])[:, -1].clip(0.0))
 
 
-def _on_the_joint(params: np.ndarray, active: dict[str, type[effects.Effect]], locking: bool) -> np.ndarray:
-    """Rows with a present effect on the slip joint that locks it (``locking``) or holds it open."""
-    index = model.slot_index()
-    rows = np.zeros(params.shape[0], dtype=bool)
-    for kind, effect in active.items():
-        if effect.acts_on == "slip_joint" and bool(effect.locks_joint) == locking:
-            rows |= params[:, index[model.effect_slot(kind)]] != 0.0
-    return rows
-
-
-def joint_refinement(params: np.ndarray, active: dict[str, type[effects.Effect]] | None = None) -> np.ndarray:
-    """RK4 steps per step of each row of ``params`` once its slip joint opens: 1, or
-    ceil(ω_max / JOINT_OMEGA_RATE) where an effect on the slip joint is present."""
+def fine_steps(params: np.ndarray, active: dict[str, type[effects.Effect]] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(RK4 steps per step while a row's slip joint is open or settling, how long it settles [s]) per row of
+    ``params``: ceil(ω_max / JOINT_OMEGA_RATE) and SETTLE_E_FOLDS · 2 / (β ω_max²) where an effect on the slip joint
+    is present, else 1 and 0."""
     active = dict(active if active is not None else effects.active())
-    joint = _on_the_joint(params, active, True) | _on_the_joint(params, active, False)
-    refinement = np.ones(params.shape[0], dtype=np.int64)
+    index = model.slot_index()
+    joint = np.zeros(params.shape[0], dtype=bool)
+    for kind, effect in active.items():
+        if effect.acts_on == "slip_joint":
+            joint |= params[:, index[model.effect_slot(kind)]] != 0.0
+    steps, settle = np.ones(params.shape[0]), np.zeros(params.shape[0])
     if joint.any():
-        index = model.slot_index()
-        p = {name: params[joint, index[name]] for name in ("J1", "J2a", "J2b", "J3", "J4", "kT1", "kT2", "kT3")}
+        p = {name: params[joint, index[name]] for name in ("J1", "J2a", "J2b", "J3", "J4", "kT1", "kT2", "kT3", "beta")}
         fastest = np.maximum.reduce([
             _fastest_torsional_mode(np.stack([p["J1"], p["J2a"] + p["J2b"], p["J3"], p["J4"]], 1), np.stack([p["kT1"], p["kT2"], p["kT3"]], 1)),
             _fastest_torsional_mode(np.stack([p["J1"], p["J2a"]], 1), p["kT1"][:, None]),
             _fastest_torsional_mode(np.stack([p["J2b"], p["J3"], p["J4"]], 1), np.stack([p["kT2"], p["kT3"]], 1)),
         ])
-        refinement[joint] = np.maximum(1, np.ceil(fastest / JOINT_OMEGA_RATE)).astype(np.int64)
-    return refinement
+        steps[joint] = np.maximum(1, np.ceil(fastest / JOINT_OMEGA_RATE))
+        with np.errstate(divide="ignore"):
+            settle[joint] = SETTLE_E_FOLDS * 2.0 / (p["beta"] * fastest**2)
+    return steps, settle
 
 
 def _ceil_div(a: int, b: int) -> int:
     return -(-a // b)
 
 
-def blocks(refinement: np.ndarray, n_threads: int, lanes: int, vector: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Group simulations into blocks of lanes: (order, starts, counts), block b being the rows
-    order[starts[b] : starts[b] + counts[b]].  A block's lanes share their step, so each holds rows of
-    one refinement; within one, blocks of at most ``lanes`` rows, at least as many as threads while each
-    keeps ``vector`` lanes (a narrower block costs as much as one of ``vector`` lanes), of equal width
-    rounded up to ``vector``."""
-    order = np.argsort(refinement, kind="stable")
-    starts, counts = [], []
-    for first, n in zip(*np.unique(refinement[order], return_index=True, return_counts=True)[1:]):
-        n_blocks = max(_ceil_div(n, lanes), min(n_threads, _ceil_div(n, vector)))
-        width = min(lanes, _ceil_div(_ceil_div(n, n_blocks), vector) * vector)
-        starts += range(first, first + n, width)
-        counts += [min(width, first + n - s) for s in range(first, first + n, width)]
-    return order, np.array(starts, dtype=np.int64), np.array(counts, dtype=np.int64)
+def blocks(n: int, n_threads: int, lanes: int, vector: int) -> tuple[np.ndarray, np.ndarray]:
+    """Group n simulations into blocks of lanes: (starts, counts), block b being rows starts[b] : starts[b] + counts[b].
+    Blocks of at most ``lanes`` rows, at least as many as threads while each keeps ``vector`` lanes (a narrower block
+    costs as much as one of ``vector`` lanes), of equal width rounded up to ``vector``."""
+    n_blocks = max(_ceil_div(n, lanes), min(n_threads, _ceil_div(n, vector)), 1)
+    width = min(lanes, max(1, _ceil_div(_ceil_div(n, n_blocks), vector) * vector))
+    starts = np.arange(0, n, width, dtype=np.int64)
+    return starts, np.minimum(width, n - starts).astype(np.int64)
 
 
-def _run(kernel: ModuleType, params: np.ndarray, refinement: np.ndarray, t_first, fs, n_samples, substeps, codes) -> np.ndarray:
+def _run(kernel: ModuleType, params: np.ndarray, t_first, fs, n_samples, substeps, codes, active=None) -> np.ndarray:
     # The thread count is read here: inside a compiled function it would make it uncacheable.
-    order, starts, counts = blocks(refinement, get_num_threads(), kernel.LANES, kernel.VECTOR)
-    per_block = substeps * refinement[order[starts]]
-    return kernel._simulate_batch(params, order, starts, counts, per_block, t_first, fs, n_samples, codes)
+    starts, counts = blocks(params.shape[0], get_num_threads(), kernel.LANES, kernel.VECTOR)
+    steps, settle = fine_steps(params, active)
+    return kernel._simulate_batch(params, steps, settle, starts, counts, substeps, t_first, fs, n_samples, codes)
 
 
 def simulate_batch(params: np.ndarray, t_first, fs, n_samples, substeps, codes) -> np.ndarray:
     """Simulate each row of ``params`` (n, len(model.slot_names())); returns (n, len(codes), n_samples).
 
     Samples lie at t_first + k/fs; the model starts from the rig.md initial state at t = 0.  Each
-    sample interval takes ``substeps`` RK4 steps, times the row's :func:`joint_refinement` if its slip
-    joint opens; the warm-up up to t_first takes steps of the same length or less.
+    sample interval takes ``substeps`` RK4 steps, times the row's :func:`fine_steps` while its slip joint is
+    open or settling; the warm-up up to t_first takes steps of the same length or less.
     """
-    kernel = module()
-    active = dict(effects.active())
-    refinement = joint_refinement(params, active)
-    # A joint that its effect keeps locked throughout leaves the rig as smooth as the healthy one, so
-    # rows that may open it run first at the plain step, and only those whose joint opened run again.
-    first = np.where(_on_the_joint(params, active, False), refinement, 1)
-    deferred = first < refinement
-    # their onset counts are recorded only when some row needs them
-    opened = [output_code(f"{kind}.onsets", active) for kind, effect in active.items() if effect.locks_joint] if deferred.any() else []
-    out = _run(kernel, params, first, t_first, fs, n_samples, substeps, np.concatenate([codes, np.array(opened, dtype=np.int64)]))
-    again = deferred & (out[:, len(codes):, -1] > 0.0).any(axis=1)
-    out = np.ascontiguousarray(out[:, : len(codes)])
-    if again.any():
-        out[again] = _run(kernel, np.ascontiguousarray(params[again]), refinement[again], t_first, fs, n_samples, substeps, codes)
-    return out
+    return _run(module(), params, t_first, fs, n_samples, substeps, codes)

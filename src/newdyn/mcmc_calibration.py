@@ -10,13 +10,13 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
 import xarray as xr
 
-from . import likelihood, model, simulation
+from . import likelihood, model, posterior, simulation
 from .calibration import GridSpec, NormalPrior, explanation_verdict, simulate_points
 
 if TYPE_CHECKING:  # sampling imports arviz (slow); import it where a run needs it
@@ -234,8 +234,9 @@ def calibrate_joint(
     max_step: float = simulation.DEFAULT_MAX_STEP,
     attrs: Mapping[str, object] | None = None,
 ):
-    """Joint MCMC posterior (emcee, ArviZ InferenceData) of several parameters on the real simulator,
-    with the noise σ of each channel known (``sigma``) or inferred (``infer_sigma``, ``sigma`` None).
+    """Joint posterior (ArviZ InferenceData) of several parameters on the real simulator, with the noise σ of each
+    channel known (``sigma``) or inferred (``infer_sigma``, ``sigma`` None): around the Laplace approximation of the
+    start below by quadrature or importance sampling where :mod:`newdyn.posterior` verifies that, else by emcee.
 
     ``specs``, ``priors`` and ``grid_posteriors`` are per parameter, in one order: each prior is the
     Normal prior truncated to the grid range, as in :func:`calibrate_mcmc`, and each grid posterior is
@@ -279,27 +280,39 @@ def calibrate_joint(
     _check_walkers(settings, [v.name for v in variables])
 
     rng = np.random.default_rng(settings.seed)
-    initial, start = _joint_start(
+    initial, start, (mean, covariance) = _joint_start(
         data, sigma, variables, priors, grid_posteriors, values, sampling, channels, max_step, settings.n_walkers, rng
     )
-    idata = sample_posterior(
-        variables,
-        _simulator_log_likelihood(data, sigma, parameters, values, sampling, channels, max_step),
-        initial, settings, rng, _observed(data, sampling, channels),
-        {
-            **(attrs or {}),
-            "jointly": "+".join(v.name for v in variables),
-            "parameters": parameters,
-            "infer_sigma": bool(infer_sigma),
-            "start": start,
-            "support": {v.name: [v.low, v.high] for v in variables},
-            "sigma_prior": (
-                {"kind": "log-uniform (Jeffreys) on [1e-4, 1] x std(y_c), sampled in log sigma",
-                 "bounds": {f"sigma_{c}": [lo, hi] for c, lo, hi in zip(channels, *sigma_bounds)}}
-                if infer_sigma else "known"
-            ),
-        },
+    log_likelihood = _simulator_log_likelihood(data, sigma, parameters, values, sampling, channels, max_step)
+    described = {
+        **(attrs or {}),
+        "jointly": "+".join(v.name for v in variables),
+        "parameters": parameters,
+        "infer_sigma": bool(infer_sigma),
+        "start": start,
+        "support": {v.name: [v.low, v.high] for v in variables},
+        "sigma_prior": (
+            {"kind": "log-uniform (Jeffreys) on [1e-4, 1] x std(y_c), sampled in log sigma",
+             "bounds": {f"sigma_{c}": [lo, hi] for c, lo, hi in zip(channels, *sigma_bounds)}}
+            if infer_sigma else "known"
+        ),
+    }
+    # Around the Laplace approximation first, in the sampled coordinates (1/k, where two stiffnesses seen through one
+    # mode trade off along a nearly straight ridge) but not mirrored: the support's bounds are where the posterior ends.
+    plain = [replace(v, mirrored=False) for v in variables]
+    found = posterior.sample(
+        lambda x: log_likelihood(_values(plain, x)),
+        lambda x: np.sum([v.log_prior(x[:, i]) for i, v in enumerate(plain)], axis=0),
+        [v.name for v in variables], mean, covariance,
+        posterior.PosteriorSettings(seed=settings.seed, ess_min=settings.ess_min), observed=_observed(data, sampling, channels),
+        attrs={**described, "coordinates": {v.name: v.coordinate for v in variables}}, to_values=lambda x: _values(plain, x),
     )
+    if found.attrs["converged"]:
+        idata = found
+    else:
+        idata = sample_posterior(variables, log_likelihood, initial, settings, rng, _observed(data, sampling, channels),
+                                 {**described, "why": f"{found.attrs['method']} unverified ({found.attrs['reason']})"})
+        idata.attrs["method"] = "mcmc"
     draws = np.column_stack([idata.posterior[v.name].values.ravel() for v in variables])
     best = draws[np.argmax(idata.sample_stats["log_likelihood"].values.ravel())]
     residual = data - simulate_points(values, parameters, best[None, : len(parameters)], sampling, channels, max_step)[0]
@@ -391,12 +404,15 @@ def _joint_start(data, sigma, variables, priors, grid_posteriors, values, sampli
     # Walkers: the Laplace approximation at the optimum; at an active bound, the exponential tail it cuts.
     hessian = jac.T @ jac
     x = np.empty((n_walkers, n))
+    laplace = np.zeros((n, n))  # its covariance, each bound parameter's tail length squared on the diagonal
     free = active == 0
     if free.any():
         cov = np.linalg.pinv(hessian[np.ix_(free, free)])
+        laplace[np.ix_(free, free)] = cov
         x[:, free] = draw_inside(lambda m: rng.multivariate_normal(x_star[free], cov, m), low[free], high[free], n_walkers)
     for i in np.flatnonzero(~free):
         length = 1 / max(abs(grad[i]), np.sqrt(hessian[i, i]), 1 / (high[i] - low[i]))
+        laplace[i, i] = length**2
         bound, sign = (low[i], 1.0) if active[i] < 0 else (high[i], -1.0)
         walk_low, walk_high = params[i].walk_bounds
         draw = _bound_tail(rng, bound, sign, length, params[i].mirrored)
@@ -406,6 +422,7 @@ def _joint_start(data, sigma, variables, priors, grid_posteriors, values, sampli
         map=dict(zip(names, _values(params, x_star[None])[0].tolist())),
         at_bound=[name for name, a in zip(names, active) if a],
     )
+    mean = x_star
     if sigmas:  # sampled as log σ
         sigma_hat = np.clip(weights, *sigma_range)
         spread = 1 / np.sqrt(2 * data.shape[-1])  # sd of log σ̂ from N samples
@@ -413,7 +430,9 @@ def _joint_start(data, sigma, variables, priors, grid_posteriors, values, sampli
         log_sigma = draw_inside(lambda m: rng.normal(np.log(sigma_hat), spread, (m, len(sigmas))), log_low, log_high, n_walkers)
         x = np.column_stack([x, log_sigma])
         record["sigma"] = dict(zip([v.name for v in sigmas], sigma_hat.tolist()))
-    return x, record
+        mean = np.concatenate([x_star, np.log(sigma_hat)])
+        laplace = np.block([[laplace, np.zeros((n, len(sigmas)))], [np.zeros((len(sigmas), n)), spread**2 * np.eye(len(sigmas))]])
+    return x, record, (mean, laplace)
 
 
 def _bound_tail(rng: np.random.Generator, bound: float, sign: float, length: float, mirrored: bool) -> Callable[[int], np.ndarray]:
@@ -492,7 +511,8 @@ def joint_summary(idata, priors: Mapping[str, NormalPrior], chi2_max: float, sig
     - ``n_peaks``: modes of the variable's marginal posterior, a reflected KDE of its draws
       (comparison.sample_density) counted as :meth:`likelihood.GridPosterior.n_peaks` counts peaks
       (prominence ≥ 5 % of the highest).
-    - ``rhat``, ``ess_bulk``: of this variable; ``converged``: of the whole run (all variables).
+    - ``rhat``, ``ess_bulk``: of this variable (MCMC; importance sampling: NaN and its weights' effective sample
+      size; quadrature: NaN); ``converged``: of the whole run (all variables), verified for the others.
     - ``verdict``: one for the joint calibration, from χ², convergence and every variable's marginal
       (one peak, inside its support).
     - ``sd_ratio``: to the prior sd (NaN for σ); ``hellinger_to_grid``: NaN, as the 1-D grid posterior
@@ -510,7 +530,11 @@ def joint_summary(idata, priors: Mapping[str, NormalPrior], chi2_max: float, sig
             raise ValueError("σ was not inferred: pass the known sigma")
         sigma = np.array([float(idata.posterior[f"sigma_{c}"].mean()) for c in channels])
     chi2_red = float(np.sum(rss / np.asarray(sigma, dtype=float) ** 2) / (n_channels * n_samples - len(names)))
-    rhat, ess = az.rhat(idata.posterior, method="rank"), az.ess(idata.posterior, method="bulk")
+    if idata.attrs.get("method") == "mcmc":
+        rhat, ess = az.rhat(idata.posterior, method="rank"), az.ess(idata.posterior, method="bulk")
+    else:  # a verified quadrature or importance-sampled answer has no chains: its weights' effective size, if any
+        rhat = {name: float("nan") for name in names}
+        ess = {name: float(idata.attrs.get("ess_bulk", "nan")) for name in names}
     converged = bool(idata.attrs["converged"])
     best = _best_draw(idata)
     marginals = {name: _marginal(idata.posterior[name].values.ravel(), tuple(support[name])) for name in names}

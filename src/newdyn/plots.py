@@ -219,9 +219,11 @@ def summary_heatmaps(
 
 
 def mcmc_diagnostics(mcmc_paths: Sequence[PathLike], png_path: PathLike, code_hash: str = "") -> Figure:
-    """Trace, marginal density and rank plots of every posterior variable of MCMC results (e.g. the 1-D
-    and joint runs of one measurement), one block per run; each block's title gives R-hat and ESS
-    and, in red, why the run did not converge."""
+    """One block per posterior file (e.g. the 1-D and joint calibrations of one measurement): for an MCMC run, trace,
+    marginal density and rank plots of every variable, titled with R-hat and ESS and, in red, why it did not
+    converge; for a verified quadrature or importance-sampled answer (:mod:`newdyn.posterior`), each variable's
+    marginal with its 94 % HDI, the weights of the points it was computed from, and its draws against the next
+    variable's, titled with how it was verified."""
     import arviz as az  # slow to import: only this figure needs it
 
     from . import sampling
@@ -233,20 +235,37 @@ def mcmc_diagnostics(mcmc_paths: Sequence[PathLike], png_path: PathLike, code_ha
         attrs = idata.attrs  # netCDF attributes come back as text
         names = list(idata.posterior.data_vars)
         axes = block.subplots(len(names), 3, squeeze=False)
-        az.plot_trace(idata, var_names=names, axes=axes[:, :2])
-        # Each walker's count per rank bin against the uniform count: a row of bars per walker is unreadable
-        # with 16-32 walkers, and its thousands of patches took 40 % of the figure's time.
-        az.plot_rank(idata, var_names=names, ax=axes[:, 2], kind="vlines")
         converged = bool(int(float(attrs["converged"])))
-        title = (
-            f"MCMC {', '.join(names)}: {_subject(attrs)}\n"
-            f"R-hat = {float(attrs['rhat']):.4f}, ESS bulk = {float(attrs['ess_bulk']):.0f}"
-        )
+        if attrs.get("method", "mcmc") == "mcmc":
+            az.plot_trace(idata, var_names=names, axes=axes[:, :2])
+            # Each walker's count per rank bin against the uniform count: a row of bars per walker is unreadable
+            # with 16-32 walkers, and its thousands of patches took 40 % of the figure's time.
+            az.plot_rank(idata, var_names=names, ax=axes[:, 2], kind="vlines")
+            title = (f"MCMC {', '.join(names)}: {_subject(attrs)}\n"
+                     f"R-hat = {float(attrs['rhat']):.4f}, ESS bulk = {float(attrs['ess_bulk']):.0f}")
+        else:
+            weights = np.exp(idata["weighted"]["log_weight"].values)
+            for row, name in zip(axes, names):
+                az.plot_posterior(idata, var_names=[name], ax=row[0], hdi_prob=0.94, textsize=9)
+                row[1].plot(idata["weighted"][name].values, weights, ".", markersize=2)
+                row[1].set(xlabel=name, ylabel="weight")
+                other = names[(names.index(name) + 1) % len(names)]
+                row[2].plot(idata.posterior[name].values.ravel(), idata.posterior[other].values.ravel(), ".", markersize=1, alpha=0.3)
+                row[2].set(xlabel=name, ylabel=other)
+            title = f"{', '.join(names)}: {_subject(attrs)}\n{_verification(attrs)}"
         if not converged:
-            title += f"\nUNCONVERGED: {attrs['reason']}"
+            title += f"\n{'UNCONVERGED' if attrs.get('method', 'mcmc') == 'mcmc' else 'UNVERIFIED'}: {attrs['reason']}"
         block.suptitle(title, color="black" if converged else MARK_COLOR, fontweight="normal" if converged else "bold")
     save(fig, png_path, code_hash, mcmc_paths)
     return fig
+
+
+def _verification(attrs) -> str:
+    """How a posterior of :mod:`newdyn.posterior` was computed and verified, in one line."""
+    if "pareto_k" in attrs:
+        return (f"{attrs['method']}: Pareto k = {float(attrs['pareto_k']):.2f}, ESS = {float(attrs['ess_bulk']):.0f} "
+                f"of {int(attrs['n_proposals'])} proposals")
+    return f"{attrs['method']}: {int(attrs['n_points'])} lattice points, step {float(attrs['step']):g} sd of the Laplace approximation"
 
 
 def model_overlays(
@@ -286,9 +305,10 @@ def model_overlays(
     return fig
 
 
-def diagnosis_figures(verdict_path: PathLike, diagnosis_path: PathLike, mcmc_path: PathLike, png_paths: dict, code_hash: str = "") -> None:
+def diagnosis_figures(verdict_path: PathLike, diagnosis_path: PathLike, posterior_path: PathLike, png_paths: dict,
+                      code_hash: str = "") -> None:
     """The figures of one diagnosis: ``png_paths`` maps overlays, residuals, hypotheses, error_fall,
-    discovery and effect_mcmc to their PNG paths."""
+    discovery and effect_posterior to their PNG paths."""
     with open(verdict_path) as f:
         verdict = json.load(f)
     result = _load(diagnosis_path)
@@ -305,7 +325,36 @@ def diagnosis_figures(verdict_path: PathLike, diagnosis_path: PathLike, mcmc_pat
     hypothesis_ranking(verdict, result, png_paths["hypotheses"], code_hash, sources)
     error_fall(verdict, result, png_paths["error_fall"], code_hash, sources)
     discovered_force(verdict, result, png_paths["discovery"], code_hash, sources)
-    mcmc_diagnostics([mcmc_path], png_paths["effect_mcmc"], code_hash)
+    effect_posterior(posterior_path, png_paths["effect_posterior"], code_hash)
+
+
+def effect_posterior(posterior_path: PathLike, png_path: PathLike, code_hash: str = "") -> Figure:
+    """The fault model's posterior: MCMC's diagnostics (:func:`mcmc_diagnostics`) where it was sampled by MCMC, else
+    its draws' marginals and pairs, titled with how they were verified (Pareto k̂ and the effective sample size of
+    importance sampling, or quadrature's lattice step)."""
+    import arviz as az  # slow to import: only this figure needs it
+
+    from . import sampling
+
+    idata = sampling.load(posterior_path)
+    attrs = idata.attrs
+    if attrs.get("method") == "mcmc":
+        return mcmc_diagnostics([posterior_path], png_path, code_hash)
+    names = list(idata.posterior.data_vars)
+    size = max(2.6 * len(names) + 1, 6.0)
+    fig = Figure(figsize=(size, size), layout="constrained")
+    axes = np.atleast_2d(fig.subplots(len(names), len(names), squeeze=False))
+    if len(names) > 1:
+        az.plot_pair(idata, var_names=names, kind="kde", marginals=True, ax=axes)
+    else:
+        az.plot_posterior(idata, var_names=names, ax=axes[0, 0], hdi_prob=0.94)
+    verified = bool(int(float(attrs["converged"])))
+    title = f"posterior of {attrs['hypothesis']}\n{_verification(attrs)}"
+    if not verified:
+        title += f"\nUNVERIFIED: {attrs['reason']}"
+    fig.suptitle(title, color="black" if verified else MARK_COLOR, fontweight="normal" if verified else "bold")
+    save(fig, png_path, code_hash, [posterior_path])
+    return fig
 
 
 def _version_label(verdict: dict, version: str) -> str:

@@ -27,7 +27,7 @@ import emcee
 import numpy as np
 import xarray as xr
 
-from .io import atomic_write
+from .io import atomic_write, netcdf_attribute
 
 __all__ = ["MCMCSettings", "diagnostics", "load", "run", "save"]
 
@@ -166,7 +166,7 @@ def run(
     while True:
         idata = _inference_data(sampler, names, settings, to_values, prior_samples, observed)
         idata.attrs = {
-            **{k: _netcdf_attr(v) for k, v in (attrs or {}).items()},
+            **{k: netcdf_attribute(v) for k, v in (attrs or {}).items()},
             "mcmc_settings": json.dumps(dataclasses.asdict(settings)),
             "seed": settings.seed,
             "sampler": f"emcee.EnsembleSampler(moves={MOVES[settings.move].__name__}(), vectorize=True); chain = walker",
@@ -238,7 +238,7 @@ def diagnostics(idata: az.InferenceData, settings: MCMCSettings) -> dict:
             failed.append(f"{ess} {result[ess]:.0f} < {settings.ess_min:g}")
     result["converged"] = not failed
     result["reason"] = "; ".join(failed)
-    idata.attrs.update({k: _netcdf_attr(v) for k, v in result.items()})
+    idata.attrs.update({k: netcdf_attribute(v) for k, v in result.items()})
     return result
 
 
@@ -267,12 +267,3 @@ def _batch(fn: BatchFn, theta: np.ndarray, what: str) -> np.ndarray:
 def _data_array(name: str, values) -> xr.DataArray:
     values = np.asarray(values)
     return xr.DataArray(values, dims=[f"{name}_dim_{i}" for i in range(values.ndim)])
-
-
-def _netcdf_attr(value):
-    """netCDF attributes are text or numbers: bools become 1/0, dicts and lists JSON text."""
-    if isinstance(value, (bool, np.bool_)):
-        return int(value)
-    if isinstance(value, (str, int, float, np.integer, np.floating)):
-        return value
-    return json.dumps(value)

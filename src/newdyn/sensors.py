@@ -122,7 +122,7 @@ def _delayed_at(signal, k, late, inside, weights):
     return wa * a + wb * b + wc * c + wd * d, sa * a + sb * b + sc * c + sd * d
 
 
-@njit(cache=True, error_model="numpy", parallel=True, fastmath={"reassoc", "contract"})
+@njit(cache=True, error_model="numpy", parallel=True, nogil=True, fastmath={"reassoc", "contract"})
 def _moments(data, model, shift):
     """Sums over time of each (model, channel)'s delayed design, unscaled, u = [1, m(k − shift), −ṁ(k − shift)],
     and of its residual r = y − m(k − shift) − shift·ṁ(k − shift): (Σ u uᵀ (B, C, 3, 3), Σ u r (B, C, 3), Σ r² (B, C)).
@@ -160,7 +160,7 @@ def _moments(data, model, shift):
     return gram, projection, squares
 
 
-@njit(cache=True, error_model="numpy", parallel=True)
+@njit(cache=True, error_model="numpy", parallel=True, nogil=True)
 def _left(data, model, shift, fitted):
     """r − Bĉ per sample (B, C, n), as :func:`_moments` linearizes: y − m(k − τ̂) − τ̂·ṁ(k − τ̂) − (o + (g − 1)·m(k − τ̂)
     − τ·ṁ(k − τ̂)), with ``fitted`` (B, C, 3) the posterior means (o, g − 1, τ) in the scale's units."""

@@ -14,7 +14,7 @@ import numpy as np
 from . import kernels, model
 
 # Longest RK4 step [s]: step halving stays within rig.md's bounds at it (tests/test_physics.py); a rig
-# whose slip joint opens steps finer (kernels.joint_refinement).
+# whose slip joint opens steps finer while it is open (kernels.fine_steps).
 DEFAULT_MAX_STEP = 1.0e-4
 DEFAULT_SAMPLING = model.Sampling()  # rig.md's record
 

@@ -413,6 +413,7 @@ def diagnosis_spec(wildcards):
         {
             "rig": config["rig"],
             "operating": config["operating"],
+            "sampling": _sampling_spec(config),
             "diagnosis": config["diagnosis"],
             "calibration": {
                 key: config["calibration"][key] for key in ("parameters", "chi2_max", "refine_points", "mcmc")

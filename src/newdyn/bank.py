@@ -1,0 +1,90 @@
+"""What every diagnosis at one operating condition and record reuses, computed once per study and condition: the
+signature library (:mod:`newdyn.signatures`) and the members of each hypothesis of few parameters.
+
+Members are quasi-random points (a scrambled Sobol sequence) of a hypothesis's prior box, simulated over the fits'
+first search windows.  A fit of a hypothesis with at most :data:`MAX_PARAMETERS` fitted parameters starts its least
+squares on each of those windows from the member that fits it best, instead of from a differential evolution there:
+:data:`MEMBERS` points put 32 on each axis of a two-parameter box, as dense as the search's own population.  A
+four-parameter box (stick-slip) would get fewer than six an axis; its fits keep the search, whose wide population
+finds the truth's narrow basin where the bank's best members, seeding it, led it astray.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from collections.abc import Mapping, Sequence
+from dataclasses import replace
+
+import numpy as np
+import xarray as xr
+from scipy.stats import qmc
+
+from . import calibration, hypotheses, model, sensors, signatures
+
+MAX_PARAMETERS = 2
+MEMBERS = 1024  # a power of two, as Sobol points balance best
+MEMBER_SEED = 1
+
+
+def banked(hyps: Mapping[str, hypotheses.Hypothesis], kinds: Sequence[str]) -> list[str]:
+    """The hypotheses of ``kinds`` whose fits start from members."""
+    return [kind for kind in kinds if len(hyps[kind].priors) <= MAX_PARAMETERS]
+
+
+def spec(hyps: Mapping[str, hypotheses.Hypothesis], signature_entries, kinds: Sequence[str], values: Mapping[str, float],
+         sampling: model.Sampling, channels: Sequence[str], grids: Mapping[str, calibration.GridSpec],
+         priors: Mapping[str, calibration.NormalPrior], instruments: sensors.Instruments | None, max_step: float) -> dict:
+    """What a bank depends on, as plain data: the signature library's and its members' (see :func:`key`)."""
+    return {**signatures.spec(hyps, signature_entries, values, sampling, channels, grids, priors, instruments, max_step),
+            "members": {"kinds": sorted(banked(hyps, kinds)), "n": MEMBERS, "seed": MEMBER_SEED,
+                        "samples": _search_samples(sampling)}}
+
+
+def key(bank_spec: Mapping) -> str:
+    """The name of a bank: a hash of everything it depends on."""
+    return hashlib.sha256(json.dumps(bank_spec, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def _search_samples(sampling: model.Sampling) -> int:
+    """The samples the fits' searches see: the longest of their windows."""
+    return hypotheses.fit_windows(sampling)[: hypotheses.SEARCHES][-1]
+
+
+def build(hyps: Mapping[str, hypotheses.Hypothesis], signature_entries, kinds: Sequence[str], values: Mapping[str, float],
+          sampling: model.Sampling, channels: Sequence[str], grids: Mapping[str, calibration.GridSpec],
+          priors: Mapping[str, calibration.NormalPrior], coarse: Mapping[str, np.ndarray], instruments: sensors.Instruments | None,
+          max_step: float) -> xr.Dataset:
+    """The bank: the signature library and, for each hypothesis of ``kinds`` with few parameters, its members."""
+    bank = signatures.build(hyps, signature_entries, values, sampling, channels, grids, priors, coarse, instruments, max_step)
+    for kind, found in member_sets(hyps, kinds, values, sampling, channels, max_step).items():
+        bank[f"members_{kind}"] = ((f"member_{kind}", f"parameter_{kind}"), found.unit)
+        bank[f"member_outputs_{kind}"] = ((f"member_{kind}", "channel", "search_time"), found.outputs)
+        bank = bank.assign_coords({f"parameter_{kind}": hyps[kind].parameters})
+    bank_spec = spec(hyps, signature_entries, kinds, values, sampling, channels, grids, priors, instruments, max_step)
+    bank.attrs.update(title="newdyn study bank: the signature library and the members of few-parameter hypotheses",
+                      key=key(bank_spec), spec=json.dumps(bank_spec, sort_keys=True, default=str))
+    return bank
+
+
+def member_sets(hyps: Mapping[str, hypotheses.Hypothesis], kinds: Sequence[str], values: Mapping[str, float],
+                sampling: model.Sampling, channels: Sequence[str], max_step: float) -> dict[str, hypotheses.Members]:
+    """The members of each hypothesis of ``kinds`` with few parameters, their outputs kept in single precision (they
+    only rank the members; a fit's least squares simulates its own)."""
+    window = replace(sampling, n_samples=_search_samples(sampling))
+    found = {}
+    for kind in banked(hyps, kinds):
+        hypothesis = hyps[kind]
+        low = np.array([p.low for p in hypothesis.priors])
+        span = np.array([p.high for p in hypothesis.priors]) - low
+        unit = qmc.Sobol(len(low), seed=MEMBER_SEED).random(MEMBERS)
+        outputs = hypotheses.evaluate(hypothesis, low + unit * span, values, window, channels, max_step)
+        found[kind] = hypotheses.Members(unit, outputs.astype(np.float32))
+    return found
+
+
+def members(bank: xr.Dataset, kind: str) -> hypotheses.Members | None:
+    """A hypothesis's members in ``bank`` (None when its fits search instead)."""
+    if f"members_{kind}" not in bank:
+        return None
+    return hypotheses.Members(bank[f"members_{kind}"].values, bank[f"member_outputs_{kind}"].values)

@@ -1,0 +1,317 @@
+"""The posterior of a fitted hypothesis's parameters from its Laplace approximation, verified: by quadrature for one
+or two parameters, by importance sampling for more; where neither can be verified the caller samples by MCMC.
+
+Both work in the Laplace approximation's whitened coordinates z, θ = θ* + s ⊙ (L z) with s the marginal sds and L L'
+their correlation, so that z ~ N(0, I) under the approximation and scales as far apart as a stiffness of 1e6 and a
+ratio of 1 stay well conditioned.
+
+Quadrature (one or two parameters): the midpoint rule on cells of side :data:`STEP` over ±:data:`HALF_WIDTH` in z,
+widened on every side whose outermost row holds more than :data:`EDGE_MASS` of the posterior, then every cell but
+the lightest, which hold :data:`UNSPLIT_MASS` of it together, split in halves, until the mean and sd of every
+parameter agree between two splittings to :data:`RESOLUTION` of its sd; its draws are cells spread over their
+volume, kept in the prior's support.  Splitting by weight, not by density, refines a thin ridge's long tail too.  Exact to the lattice's resolution whatever the posterior's shape: where a drift trades
+off with an effect along a thin curved ridge (cubic coupling's γ against kT1), a Gaussian proposal's draws miss the
+ridge's ends and importance sampling understates the spread.
+
+Importance sampling (three or more): draws of a Student-t with the approximation's mean and covariance, weighted by
+posterior over proposal and Pareto-smoothed (:func:`arviz.psislw`, Vehtari et al. 2024), a batch at a time until the
+smoothed weights' effective sample size reaches its target.  Its k̂ says whether the estimate can be trusted (at most
+:attr:`PosteriorSettings.pareto_k_max`); more draws of a proposal that misses the posterior would not mend it.
+
+The result is an :class:`arviz.InferenceData` shaped like :func:`newdyn.sampling.run`'s: a ``posterior`` of one chain
+of equally weighted draws, ``sample_stats`` with their ``lp`` and ``log_likelihood``, a ``weighted`` group with every
+lattice point or proposal inside the prior's support, its normalized log weight and log-likelihood, and attributes
+``method``, ``converged`` (1 when verified, as netCDF has no booleans) and ``reason``; importance sampling adds
+``pareto_k``, ``ess_bulk`` (the weights' effective sample size) and ``n_proposals``, quadrature ``step``,
+``edge_mass`` and ``n_points``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from collections.abc import Callable, Mapping, Sequence
+
+import numpy as np
+import xarray as xr
+from scipy import stats
+from scipy.special import logsumexp
+
+from .io import netcdf_attribute
+
+QUADRATURE, IMPORTANCE = "quadrature", "importance sampling"
+MAX_QUADRATURE_PARAMETERS = 2  # a lattice in more dimensions costs more simulations than importance sampling
+# Where quadrature can take over, importance sampling must leave weights of finite variance (Vehtari et al.: k̂ ≤ 0.5);
+# between 0.5 and 0.7 a thin curved ridge's ends were missed and its spread understated by a third.
+CHECKED_PARETO_K = 0.5
+BatchFn = Callable[[np.ndarray], np.ndarray]  # theta (n, k) -> (n,)
+
+STEP = 0.25  # the first lattice's step in z: four points per sd of the approximation, enough to see a ridge thinner than it
+HALF_WIDTH = 5.0  # its first extent
+WIDEN = 3.0  # added to a side whose outermost row holds more than EDGE_MASS
+MAX_HALF_WIDTH = 30.0  # beyond this the approximation is no guide: unverified
+EDGE_MASS = 1e-4
+UNSPLIT_MASS = 1e-3  # the cells of least weight, together holding at most this much of the posterior, are not split
+RESOLUTION = 0.1  # mean and sd of every parameter agree between two steps to this fraction of its sd: the finer's error
+MAX_REFINEMENTS = 2  # is about half that, or a quarter where no prior bound cuts the lattice
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class PosteriorSettings:
+    """How many draws, from which proposal, and when an importance-sampled answer counts as verified."""
+
+    seed: int
+    batch: int = 1000  # draws proposed at a time, and the equally weighted draws kept
+    max_draws: int = 8000  # proposals at most before an importance-sampled answer is unverified
+    df: float = 5.0  # the Student-t proposal's degrees of freedom: tails heavier than the Laplace approximation's
+    pareto_k_max: float = 0.7  # PSIS's bound on k̂ for a reliable estimate
+    ess_min: float = 400.0  # effective sample size of the smoothed weights to reach
+
+    @classmethod
+    def from_config(cls, seed, ess_min, posterior: Mapping[str, float]) -> PosteriorSettings:
+        """From a study's numbers, whole or not (a spec's JSON carries every number as a float)."""
+        whole = {"batch", "max_draws"}
+        return cls(seed=int(seed), ess_min=float(ess_min),
+                   **{key: int(value) if key in whole else float(value) for key, value in posterior.items()})
+
+    def __post_init__(self):
+        if self.batch < 1 or self.max_draws < self.batch:
+            raise ValueError(f"need 1 <= batch <= max_draws, got batch {self.batch}, max_draws {self.max_draws}")
+        if not self.df > 0:
+            raise ValueError(f"df must be > 0, got {self.df}")
+
+
+@dataclasses.dataclass(frozen=True)
+class _Whitened:
+    """θ ↔ z of a Laplace approximation."""
+
+    mean: np.ndarray
+    scale: np.ndarray
+    chol: np.ndarray
+
+    @classmethod
+    def of(cls, mean, covariance) -> _Whitened:
+        scale = np.sqrt(np.diag(covariance))
+        return cls(np.asarray(mean, dtype=float), scale, np.linalg.cholesky(covariance / np.outer(scale, scale)))
+
+    def theta(self, z: np.ndarray) -> np.ndarray:
+        return self.mean + (z @ self.chol.T) * self.scale
+
+    def z(self, theta: np.ndarray) -> np.ndarray:
+        return np.linalg.solve(self.chol, ((theta - self.mean) / self.scale).T).T
+
+
+def sample(
+    log_likelihood_batch: BatchFn,
+    log_prior_batch: BatchFn,
+    names: Sequence[str],
+    mean: np.ndarray,
+    covariance: np.ndarray,
+    settings: PosteriorSettings,
+    *,
+    observed: Mapping[str, xr.DataArray] | None = None,
+    attrs: Mapping[str, object] | None = None,
+    to_values: BatchFn | None = None,
+):
+    """The posterior of ``names`` around the Laplace approximation (``mean``, ``covariance``): by quadrature for up to
+    :data:`MAX_QUADRATURE_PARAMETERS`, else by importance sampling.  ``log_prior_batch`` is −inf outside the prior's
+    support, where the likelihood is never called; the likelihood must return −inf, never NaN, where a simulation
+    fails.  With ``to_values`` the functions and the approximation are in coordinates of the caller's choosing (the
+    prior's density with its Jacobian), where a ridge may be straighter, and the draws are mapped to the values by it."""
+    whitened = _Whitened.of(mean, covariance)
+
+    def log_posterior(theta):  # (log prior + log-likelihood, log-likelihood), the likelihood only inside the support
+        lp = np.asarray(log_prior_batch(theta), dtype=float)
+        ll = np.full(len(theta), -np.inf)
+        inside = np.isfinite(lp)
+        if inside.any():
+            ll[inside] = log_likelihood_batch(theta[inside])
+        return lp + ll, ll
+
+    checkable = len(names) <= MAX_QUADRATURE_PARAMETERS
+    theta, log_weight, log_post, log_like, cells, found = _importance(
+        log_posterior, whitened, dataclasses.replace(settings, pareto_k_max=min(settings.pareto_k_max, CHECKED_PARETO_K))
+        if checkable else settings)
+    if checkable and not found["converged"]:
+        tried = f"importance sampling first: {found['reason']}"
+        theta, log_weight, log_post, log_like, cells, found = _quadrature(
+            log_posterior, whitened, _ridge(whitened.z(theta), np.exp(log_weight)))
+        found["tried"] = tried
+    rng = np.random.default_rng(settings.seed)
+    picked = _systematic(np.exp(log_weight), settings.batch, rng)
+    draws = theta[picked]
+    if cells is not None:  # cell centres spread over their cells, where that stays inside the support
+        centres, sides, theta_at = cells
+        spread = theta_at(centres[picked] + rng.uniform(-0.5, 0.5, draws.shape) * sides[picked][:, None])
+        inside = np.isfinite(np.asarray(log_prior_batch(spread), dtype=float))
+        draws = np.where(inside[:, None], spread, draws)
+    kept = np.isfinite(log_weight)
+    points = theta[kept]
+    if to_values is not None:
+        draws, points = (np.asarray(to_values(x), dtype=float) for x in (draws, points))
+    return _inference_data(names, draws, log_post[picked], log_like[picked], points, log_weight[kept], log_like[kept],
+                           {**(attrs or {}), **found}, observed, settings)
+
+
+def _ridge(z: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """Where a posterior of two parameters runs in z: the quadratic z₂ ≈ c₀ + c₁ z₁ + c₂ z₁² through weighted draws of
+    it (their weights need not be right, only where they are large), as coefficients c; none for one parameter."""
+    if z.shape[1] != 2:
+        return np.zeros(0)
+    basis = np.column_stack([np.ones(len(z)), z[:, 0], z[:, 0] ** 2])
+    return np.linalg.lstsq(basis * np.sqrt(weights)[:, None], z[:, 1] * np.sqrt(weights), rcond=None)[0]
+
+
+def _quadrature(log_posterior, whitened: _Whitened, ridge: np.ndarray):
+    """The posterior by the midpoint rule on cells in sheared coordinates u, z = (u₁, u₂ + ridge(u₁)), which bend the
+    lattice along the posterior's ``ridge`` at unit Jacobian (module docstring): (cell centres θ, normalized log
+    weights, log posteriors, log-likelihoods, (cell centres u, sides, u → θ), what it found).  A cell's weight is its density times its
+    volume, so cells of every size sum together: the split ones where the posterior has weight, the first beyond."""
+    k = len(whitened.mean)
+
+    def theta_at(u):
+        if not ridge.size:
+            return whitened.theta(u)
+        return whitened.theta(np.column_stack([u[:, 0], u[:, 1] + ridge @ np.stack([np.ones(len(u)), u[:, 0], u[:, 0] ** 2])]))
+    finest = STEP / 2 ** (MAX_REFINEMENTS + 1)  # the children of the last refinement sit on this lattice
+    known: dict[tuple[int, ...], tuple[float, float]] = {}  # (log posterior, log-likelihood) by lattice index
+
+    def evaluate(z):
+        keys = [tuple(row) for row in np.rint(z / finest).astype(np.int64)]
+        new = list({key: i for i, key in enumerate(keys) if key not in known}.values())
+        if new:
+            values = log_posterior(theta_at(z[new]))
+            known.update({keys[i]: (values[0][j], values[1][j]) for j, i in enumerate(new)})
+        return np.array([known[key] for key in keys], dtype=float).reshape(len(z), 2)
+
+    low, high = np.full(k, -HALF_WIDTH), np.full(k, HALF_WIDTH)
+    while True:  # widen the first lattice until its edges hold no weight
+        axes = [np.arange(round(low[i] / STEP), round(high[i] / STEP) + 1) * STEP for i in range(k)]
+        z = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, k)
+        values = evaluate(z)
+        weight = _normalized(values[:, 0]).reshape([len(a) for a in axes])
+        edges = [(i, side) for i in range(k) for side in (0, -1) if np.take(weight, side, axis=i).sum() > EDGE_MASS
+                 and (low[i] if side == 0 else -high[i]) > -MAX_HALF_WIDTH]
+        if not edges:
+            break
+        for i, side in edges:
+            if side == 0:
+                low[i] = max(low[i] - WIDEN, -MAX_HALF_WIDTH)
+            else:
+                high[i] = min(high[i] + WIDEN, MAX_HALF_WIDTH)
+    edge_mass = max(float(np.take(weight, side, axis=i).sum()) for i in range(k) for side in (0, -1))
+    size = np.full(len(z), STEP)  # each cell's side
+    moments = _moments(theta_at(z), values[:, 0] + k * np.log(size))
+    children = np.stack(np.meshgrid(*[np.array([-0.25, 0.25])] * k, indexing="ij"), axis=-1).reshape(-1, k)
+    converged, step = False, STEP
+    for _ in range(MAX_REFINEMENTS):  # split the cells where the posterior peaks, until the moments settle
+        log_weight = values[:, 0] + k * np.log(size)
+        order = np.argsort(-log_weight)
+        held = np.cumsum(_normalized(log_weight[order]))
+        split = np.zeros(len(z), dtype=bool)
+        split[order[: np.searchsorted(held, 1.0 - UNSPLIT_MASS) + 1]] = True
+        split &= size == step
+        step /= 2
+        new_z = (z[split][:, None, :] + children[None] * size[split][:, None, None]).reshape(-1, k)
+        z = np.concatenate([z[~split], new_z])
+        values = np.concatenate([values[~split], evaluate(new_z)])
+        size = np.concatenate([size[~split], np.full(len(new_z), step)])
+        refined = _moments(theta_at(z), values[:, 0] + k * np.log(size))
+        converged = bool(np.all(np.abs(refined[0] - moments[0]) <= RESOLUTION * refined[1])
+                         and np.all(np.abs(refined[1] - moments[1]) <= RESOLUTION * refined[1]))
+        moments = refined
+        if converged:
+            break
+    failed = []
+    if edge_mass > EDGE_MASS:
+        failed.append(f"{edge_mass:.2g} of the posterior at the lattice's edge {MAX_HALF_WIDTH:g} sds from the Laplace approximation")
+    if not converged:
+        failed.append(f"mean or sd still moved by more than {RESOLUTION:g} sd when the cells were split to {step:g} sd")
+    found = {"method": QUADRATURE, "converged": not failed, "reason": "; ".join(failed), "step": step, "edge_mass": edge_mass,
+             "n_points": len(known)}
+    return theta_at(z), _normalized(values[:, 0] + k * np.log(size), log=True), values[:, 0], values[:, 1], (z, size, theta_at), found
+
+
+def _importance(log_posterior, whitened: _Whitened, settings: PosteriorSettings):
+    """Importance sampling from a Student-t around the approximation (module docstring): (proposals θ, smoothed
+    normalized log weights, log posteriors, log-likelihoods, None, what it found)."""
+    import arviz as az
+
+    k = len(whitened.mean)
+    proposal = stats.multivariate_t(loc=np.zeros(k), shape=np.eye(k), df=settings.df)
+    rng = np.random.default_rng(settings.seed)
+    theta, log_q, log_post, log_like = np.empty((0, k)), np.empty(0), np.empty(0), np.empty(0)
+    while True:
+        t = np.asarray(proposal.rvs(settings.batch, random_state=rng)).reshape(settings.batch, k)
+        post, like = log_posterior(whitened.theta(t))
+        theta = np.vstack([theta, whitened.theta(t)])
+        log_q, log_post, log_like = (np.concatenate([a, b]) for a, b in ((log_q, proposal.logpdf(t).reshape(-1)),
+                                                                          (log_post, post), (log_like, like)))
+        raw = log_post - log_q
+        finite = np.isfinite(raw)
+        log_weight = np.full(raw.shape, -np.inf)
+        pareto_k, ess = math.inf, 0.0
+        if finite.sum() >= 2:
+            log_weight[finite], pareto_k = az.psislw(raw[finite])
+            ess = float(1.0 / np.sum(np.exp(2 * log_weight[finite])))
+        failed = []
+        if not pareto_k <= settings.pareto_k_max:
+            failed.append(f"pareto_k {pareto_k:.2f} > {settings.pareto_k_max:g}: the Laplace approximation misses the posterior")
+        if not ess >= settings.ess_min:
+            failed.append(f"ess {ess:.0f} < {settings.ess_min:g}")
+        if not failed or len(theta) + settings.batch > settings.max_draws or pareto_k > settings.pareto_k_max:
+            break
+    found = {"method": IMPORTANCE, "converged": not failed, "reason": "; ".join(failed), "pareto_k": float(pareto_k),
+             "ess_bulk": ess, "n_proposals": len(theta)}
+    return theta, log_weight, log_post, log_like, None, found
+
+
+def _normalized(log_values: np.ndarray, log: bool = False) -> np.ndarray:
+    """Weights ∝ exp(log_values) summing to 1 (their logs with ``log``); −inf stays weightless."""
+    log_weight = log_values - logsumexp(log_values)
+    return log_weight if log else np.exp(log_weight)
+
+
+def _moments(theta: np.ndarray, log_values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(mean, sd) per parameter under weights ∝ exp(log_values)."""
+    weight = _normalized(log_values)
+    mean = weight @ theta
+    return mean, np.sqrt(weight @ (theta - mean) ** 2)
+
+
+def _systematic(weights: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+    """Indices of ``n`` equally weighted draws resampled from ``weights`` (normalized), systematically: each
+    draw is picked within one of its expected count."""
+    edges = np.cumsum(weights)
+    edges[-1] = 1.0
+    return np.searchsorted(edges, (rng.uniform() + np.arange(n)) / n)
+
+
+def _inference_data(names, draws, log_post, log_like, points, log_weight, point_log_like, found, observed, settings):
+    import arviz as az
+
+    def chain(values):  # (draw,) -> (chain, draw)
+        return np.asarray(values)[None]
+
+    groups = {
+        "posterior": az.dict_to_dataset({name: chain(draws[:, i]) for i, name in enumerate(names)}),
+        "sample_stats": az.dict_to_dataset({"lp": chain(log_post), "log_likelihood": chain(log_like)}),
+        "weighted": xr.Dataset(
+            {**{name: ("point", points[:, i]) for i, name in enumerate(names)},
+             "log_weight": ("point", log_weight), "log_likelihood": ("point", point_log_like)},
+            attrs={"long_name": "every lattice point or proposal inside the prior's support, with its normalized log weight"},
+        ),
+    }
+    if observed is not None:
+        groups["observed_data"] = xr.Dataset(dict(observed))
+    idata = az.InferenceData(**groups)
+    idata.attrs = {
+        **{key: netcdf_attribute(value) for key, value in found.items()},
+        "posterior_settings": json.dumps(dataclasses.asdict(settings)),
+        "arviz_version": az.__version__,
+        "n_draws": len(draws),
+    }
+    if found["method"] == IMPORTANCE:
+        idata.attrs["proposal"] = f"multivariate Student-t (df {settings.df:g}) with the Laplace approximation's mean and covariance"
+    return idata
