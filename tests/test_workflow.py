@@ -213,7 +213,8 @@ CALIBRATED = {"snr40_seed1_grid.nc", "snr40_seed1_mcmc.nc"}
 GRIDS = {"kT1.nc", "kT3.nc"}
 COMPARED = {"hellinger.nc", "summary.csv"}
 SCORED = {"score.json", "cases.csv", "blind_test.png", "blind_test.pdf"}  # the demo's reveal
-DIAGNOSED = {"verdict.json", "model_versions.csv", "diagnosis.nc", "effect_posterior.nc", "discovery"} | SCORED
+# the study's bank runs the diagnosis's code on the study's rig: it is rebuilt by what reruns a diagnosis
+DIAGNOSED = {"verdict.json", "model_versions.csv", "diagnosis.nc", "effect_posterior.nc", "discovery", "bank.nc"} | SCORED
 DRAWN = {"truth.json", "demo_01.nc"}  # the demo's hidden case
 
 
@@ -360,6 +361,20 @@ def test_report_is_one_self_contained_html_with_every_figure(study):
 def test_every_default_channel_is_a_model_channel():
     config = yaml.safe_load((ROOT / "config" / "config.yaml").read_text())
     assert set(config["simulation"]["channels"]) <= set(model.CHANNELS)
+
+
+def test_the_default_studys_grids_hold_every_diagnosis_channel_so_diagnoses_reuse_them(tmp_path):
+    config = yaml.safe_load((ROOT / "config" / "config.yaml").read_text())
+    run = snakemake(tmp_path, "--dry-run", "--printshellcmds", config=ROOT / "config" / "config.yaml")
+    assert run.returncode == 0, run.stderr[-3000:]
+    specs = [json.loads(spec) for spec in re.findall(r"newdyn grid-models --spec '(.+?)'", run.stdout)]
+    assert specs
+    for spec in specs:
+        assert set(config["diagnosis"]["channels"]) <= set(spec["channels"]), spec["channels"]
+
+
+def test_a_diagnosis_reuses_the_studys_grids(study):
+    assert "simulating its grid" not in (study / "results" / "demo" / "logs" / "diagnose" / "demo_01.log").read_text()
 
 
 def test_every_bad_measurement_gets_one_line_and_the_good_ones_are_diagnosed(study_run):

@@ -13,6 +13,7 @@ kinds of result end as rows of one summary table (:func:`summary_rows`).
 from __future__ import annotations
 
 import json
+import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
@@ -137,6 +138,8 @@ def coarse_models(
         )
         if same:
             return coarse["model"].sel(channel=list(channels)).values
+        logging.getLogger("newdyn").info("%s: not this measurement's rig, sampling, grid or channels; simulating its grid",
+                                         grid_path)
     return simulate_grid(values, spec.parameter, spec.axis, sampling, channels, max_step)
 
 

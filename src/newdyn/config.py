@@ -581,6 +581,11 @@ def base_values(config: Mapping) -> dict[str, float]:
     return {name: float(value) for section in ("rig", "operating") for name, value in config[section].items()}
 
 
+def grid_channels(config: Mapping) -> list[str]:
+    """Channels a study's coarse grids simulate: its calibrations', and its diagnoses', which reuse the grids."""
+    return list(dict.fromkeys([*config["calibration"]["channels"], *config["diagnosis"]["channels"]]))
+
+
 def sampling(config: Mapping) -> model.Sampling:
     """The recorded samples of the study."""
     s = config["sampling"]

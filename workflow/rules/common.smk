@@ -122,7 +122,7 @@ def grid_models_spec(wildcards):
             "grid": calibration["parameters"][wildcards.parameter]["grid"],
             "values": newdyn.config.base_values(cfg),
             "sampling": _sampling_spec(cfg),
-            "channels": calibration["channels"],
+            "channels": newdyn.config.grid_channels(cfg),
             "max_step": cfg["simulation"]["max_step"],
             "effects": EFFECTS,
         }
