@@ -53,8 +53,9 @@ def study(repo: Path, sets: list[str], open_world: bool) -> None:
         if not truth.exists():
             run(sys.executable, OPEN_WORLD, "draw", repo / "measurements", truth, "--cases", OPEN_WORLD_CASES, "--seed", OPEN_WORLD_SEED)
         targets += [f"results/diagnosis/{case['name']}/verdict.json" for case in json.loads(truth.read_text())]
-    run(sys.executable, "-m", "snakemake", "--snakefile", repo / "Snakefile", "-d", repo, "--cores", "2", "--quiet",
-        "progress", *targets, env=revision_env(repo))
+    # the targets before --quiet, whose optional values would take them
+    run(sys.executable, "-m", "snakemake", *targets, "--snakefile", repo / "Snakefile", "-d", repo, "--cores", "2",
+        "--quiet", "progress", env=revision_env(repo))
 
 
 def job_seconds(tsv: Path) -> float:
