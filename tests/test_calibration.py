@@ -126,3 +126,28 @@ def test_mcmc_of_a_posterior_cut_by_the_grid_bound_folds_back_into_the_range():
             converged += 1
             assert row["sd"] == pytest.approx(grid.posterior.sd, rel=0.1)
     assert converged >= 1  # R-hat ≤ 1.01 at a bound is reached in some runs of this length, not all
+
+
+def test_the_studys_grid_files_are_found_by_their_parameter_and_reused(tmp_path, caplog):
+    """A diagnosis is handed the study's grid files in the config's order, its settings hold the parameters in another:
+    each file is matched by the parameter it says it holds, and reused for it."""
+    from newdyn import cli
+
+    sampling = model.Sampling(fs=5000.0, t_first=0.5, n_samples=50)
+    window = {"fs": sampling.fs, "t_first": sampling.t_first, "n_samples": sampling.n_samples}
+    grids = {"kT3": calibration.GridSpec("kT3", 2.0e6, 3.0e6, 3), "kT1": calibration.GridSpec("kT1", 2.5e6, 3.5e6, 3)}
+    paths = []
+    for name, grid in grids.items():
+        paths.append(str(tmp_path / f"{name}.nc"))
+        cli.simulate_grid_models({"parameter": name, "grid": {"low": grid.low, "high": grid.high, "points": grid.points},
+                                  "values": dict(model.DEFAULTS), "sampling": window, "channels": CHANNELS, "max_step": 1e-4},
+                                 paths[-1], "test")
+    found = calibration.grid_files(paths)
+    assert found == {"kT3": paths[0], "kT1": paths[1]}
+    with caplog.at_level("INFO", logger="newdyn"):
+        for name, grid in grids.items():
+            reused = calibration.coarse_models(found[name], grid, model.DEFAULTS, sampling, CHANNELS)
+            np.testing.assert_array_equal(reused, calibration.simulate_grid(model.DEFAULTS, name, grid.axis, sampling, CHANNELS))
+        assert "simulating its grid" not in caplog.text
+        calibration.coarse_models(found["kT3"], grids["kT1"], model.DEFAULTS, sampling, CHANNELS)
+        assert "simulating its grid" in caplog.text

@@ -115,6 +115,15 @@ def simulate_points(
     return simulation.simulate_batch(params, sampling, channels, max_step)
 
 
+def grid_files(paths: Sequence[str]) -> dict[str, str]:
+    """The study's coarse-grid files (``newdyn grid-models``) by the parameter each holds, as its file says."""
+    found = {}
+    for path in paths:
+        with xr.open_dataset(path, engine="netcdf4") as coarse:
+            found[str(coarse.attrs["parameter"])] = path
+    return found
+
+
 def coarse_models(
     grid_path: str | None,
     spec: GridSpec,

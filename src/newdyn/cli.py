@@ -334,13 +334,12 @@ def diagnose_measurement(measurement_path: str, grid_paths: list[str], bank_path
                          netcdf: str, posterior: str, discovery: str, code_hash: str) -> None:
     """Diagnose one measurement file: verdict (JSON), model versions and posteriors (NetCDF), the effect's posterior,
     and a folder with the discovered term's effect file when nothing of the library explains it."""
-    from . import config, diagnosis, io, model
+    from . import calibration, config, diagnosis, io, model
 
     settings = diagnosis.Settings.from_config(spec)
     measurement = io.read_measurement(measurement_path, {k: spec["operating"][k] for k in model.OPERATING_PARAMETERS})
     start = time.perf_counter()
-    result = diagnosis.diagnose(measurement, settings, dict(zip(settings.grids, grid_paths)) if grid_paths else None,
-                                bank_path=bank_path)
+    result = diagnosis.diagnose(measurement, settings, calibration.grid_files(grid_paths), bank_path=bank_path)
     v = result.verdict
     log.info("%s: %s %s (chi2 %.4g -> %.4g) in %.1f s", measurement_path, v["verdict"], v["effect"], v["chi2_before"],
              v["chi2_after"], time.perf_counter() - start)
@@ -355,8 +354,9 @@ def write_bank(spec: dict, grid_paths: list[str], output: str, code_hash: str) -
     settings = diagnosis.Settings.from_config(spec)
     values = model.complete({**spec["rig"], **spec["operating"]})
     sampling = _sampling(spec["sampling"])
-    coarse = {p: calibration.coarse_models(path, settings.grids[p], values, sampling, settings.channels, settings.max_step)
-              for p, path in zip(settings.grids, grid_paths)} if grid_paths else None
+    paths = calibration.grid_files(grid_paths)
+    coarse = {p: calibration.coarse_models(paths.get(p), grid, values, sampling, settings.channels, settings.max_step)
+              for p, grid in settings.grids.items()}
     start = time.perf_counter()
     bank = diagnosis.study_bank(None, settings, {h.name: h for h in settings.hypotheses()}, values, sampling, coarse)
     log.info("%d signatures on %d grids and the members of %d hypotheses in %.1f s", bank.sizes["signature"], bank.sizes["parameter"],
