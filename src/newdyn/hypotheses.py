@@ -31,7 +31,8 @@ FIT_MAX_EVALUATIONS = 60
 # coarse step straddles; both far above the simulator's rounding.
 JACOBIAN_STEPS = (1e-3, 1e-5)
 # Global search before least squares: differential evolution over the prior box, each generation one
-# batched simulation.  Measured on stick-slip (4 parameters, 0.1 s at 40 dB, three truths): 40
+# batched simulation with a search's longer steps at a slipping joint (simulation.simulate_batch's search): it only
+# chooses where least squares starts, which then runs on the exact simulator.  Measured on stick-slip (4 parameters, 0.1 s at 40 dB, three truths): 40
 # generations of 16·k members land every time in the basin of the truth, where 512 quasi-random
 # points with 4-16 least-squares starts stay in a wrong one (χ² 1.54 against 1.08 at the truth).
 SEARCH_GENERATIONS = 40
@@ -206,9 +207,11 @@ class Fit:
 
 
 def evaluate(hypothesis: Hypothesis, theta: np.ndarray, base: Mapping[str, float], sampling: model.Sampling,
-             channels: Sequence[str], max_step: float) -> np.ndarray:
-    """Model outputs (n, channel, time) of the hypothesis at rows of fitted values (n, k)."""
-    return simulation.simulate_batch(hypothesis.parameter_rows(np.atleast_2d(theta), base), sampling, channels, max_step)
+             channels: Sequence[str], max_step: float, search: bool = False) -> np.ndarray:
+    """Model outputs (n, channel, time) of the hypothesis at rows of fitted values (n, k); ``search``: see
+    ``simulation.simulate_batch``."""
+    return simulation.simulate_batch(hypothesis.parameter_rows(np.atleast_2d(theta), base), sampling, channels, max_step,
+                                     search)
 
 
 def fit_windows(sampling: model.Sampling) -> list[int]:
@@ -240,7 +243,8 @@ def fit(
 
     Starts: the given ``starts`` (missing names at their prior's mean or mid-range) and, unless
     ``search`` is False, on each of the first :data:`SEARCHES` windows of :func:`fit_windows` the best of the
-    bank's ``members`` when given, else the best member of a differential evolution (``seed``) over the prior box.  Each start is fitted on its
+    bank's ``members`` when given, else the best member of a differential evolution (``seed``) over the prior box, simulated
+    with a search's longer steps at a slipping joint.  Each start is fitted on its
     window, then on the longer ones up to the whole record, each from the last one's optimum:
     stick-slip's misfit has many local minima, and only a short window shows the truth's basin wide.
 
@@ -253,9 +257,9 @@ def fit(
     k = len(hypothesis.priors)
     runs = []  # simulations per call (appended from the threads the starts are followed in)
 
-    def simulate(theta, window=sampling):
+    def simulate(theta, window=sampling, search=False):
         runs.append(len(theta))
-        return evaluate(hypothesis, theta, base, window, channels, max_step)
+        return evaluate(hypothesis, theta, base, window, channels, max_step, search)
 
     if k == 0:
         best = simulate(np.zeros((1, 0)))[0]
@@ -274,8 +278,8 @@ def fit(
         misfit = likelihood.standardized_residuals(data[:, :n_samples], outputs, sigma, instruments).reshape(len(u), -1)
         return np.concatenate([misfit, ((theta - mean) / sd)[:, normal]], axis=1)
 
-    def residuals(u, n_samples):  # on the record's first n_samples
-        return residuals_of(u, simulate(low + u * span, replace(sampling, n_samples=n_samples)), n_samples)
+    def residuals(u, n_samples, search=False):  # on the record's first n_samples
+        return residuals_of(u, simulate(low + u * span, replace(sampling, n_samples=n_samples), search), n_samples)
 
     def jacobian(u, n_samples, step):  # one-sided differences pointing into the box, all in one batch
         h = np.where(u + step <= 1.0, step, -step)
@@ -293,7 +297,7 @@ def fit(
     elif search:
         for first, n_samples in enumerate(windows[:SEARCHES]):
             evolved = optimize.differential_evolution(
-                lambda u, n: np.sum(residuals(np.atleast_2d(u.T), n) ** 2, axis=1), [(0.0, 1.0)] * k, args=(n_samples,),
+                lambda u, n: np.sum(residuals(np.atleast_2d(u.T), n, search=True) ** 2, axis=1), [(0.0, 1.0)] * k, args=(n_samples,),
                 vectorized=True, updating="deferred", popsize=SEARCH_POPULATION, maxiter=SEARCH_GENERATIONS, seed=seed,
                 polish=False, tol=0.0,
             )

@@ -51,12 +51,16 @@ def simulate_batch(
     sampling: model.Sampling = DEFAULT_SAMPLING,
     outputs: Sequence[str] = model.CHANNELS,
     max_step: float = DEFAULT_MAX_STEP,
+    search: bool = False,
 ) -> np.ndarray:
     """Simulate many parameter sets at once: (n_sets, len(outputs), n_samples).
 
     ``values`` is a sequence of parameter mappings or an array of parameter vectors
     (rows laid out as ``model.slot_names()``).  Each sample interval is split into the fewest
-    equal RK4 steps no longer than ``max_step``.
+    equal RK4 steps no longer than ``max_step``, and finer while a slip joint is open or settling.  For a
+    ``search`` those finer steps are twice as long (``kernels.SEARCH_STEP_FACTOR``): cheaper where the joint slips, and
+    less accurate where kinetic friction is well below static — for a global search that only chooses where least
+    squares on the exact simulator starts, never for a result.
     """
     if isinstance(values, np.ndarray):
         params = np.ascontiguousarray(values, dtype=np.float64)
@@ -65,7 +69,8 @@ def simulate_batch(
     if params.ndim != 2 or params.shape[1] != len(model.slot_names()):
         raise ValueError(f"parameter array must be (n, {len(model.slot_names())}), got {params.shape}")
     return kernels.simulate_batch(
-        params, float(sampling.t_first), float(sampling.fs), int(sampling.n_samples), substeps(sampling.fs, max_step), output_codes(outputs)
+        params, float(sampling.t_first), float(sampling.fs), int(sampling.n_samples), substeps(sampling.fs, max_step), output_codes(outputs),
+        search,
     )
 
 
