@@ -403,9 +403,7 @@ def study_grids(wildcards):
     """The default study's coarse grids: the diagnosis reuses them when the measurement's condition is theirs."""
     if "default" not in VARIANTS:
         return []
-    return expand(
-        "results/default/calibration/grids/{parameter}.nc", parameter=list(config["calibration"]["parameters"])
-    )
+    return expand("results/default/calibration/grids/{parameter}.nc", parameter=_grid_parameters(config))
 
 
 def diagnosis_spec(wildcards):
