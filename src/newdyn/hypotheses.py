@@ -31,10 +31,11 @@ FIT_MAX_EVALUATIONS = 60
 # coarse step straddles; both far above the simulator's rounding.
 JACOBIAN_STEPS = (1e-3, 1e-5)
 # Global search before least squares: differential evolution over the prior box, each generation one
-# batched simulation with a search's longer steps at a slipping joint (simulation.simulate_batch's search): it only
-# chooses where least squares starts, which then runs on the exact simulator.  Measured on stick-slip (4 parameters, 0.1 s at 40 dB, three truths): 40
-# generations of 16·k members land every time in the basin of the truth, where 512 quasi-random
-# points with 4-16 least-squares starts stay in a wrong one (χ² 1.54 against 1.08 at the truth).
+# batched simulation with a search's longer steps at a slipping joint (simulation.simulate_batch's search): it
+# only chooses where least squares starts, which then runs on the exact simulator.  Measured on stick-slip
+# (4 parameters, 0.1 s at 40 dB, three truths): 40 generations of 16·k members land every time in the basin of
+# the truth, where 512 quasi-random points with 4-16 least-squares starts stay in a wrong one (χ² 1.54 against
+# 1.08 at the truth).
 SEARCH_GENERATIONS = 40
 SEARCH_POPULATION = 16  # members per fitted parameter
 # The searches see only the record's start: its first SEARCH_WINDOW seconds (most of a load cycle) and
@@ -257,9 +258,9 @@ def fit(
     k = len(hypothesis.priors)
     runs = []  # simulations per call (appended from the threads the starts are followed in)
 
-    def simulate(theta, window=sampling, search=False):
+    def simulate(theta, window=sampling, for_search=False):
         runs.append(len(theta))
-        return evaluate(hypothesis, theta, base, window, channels, max_step, search)
+        return evaluate(hypothesis, theta, base, window, channels, max_step, for_search)
 
     if k == 0:
         best = simulate(np.zeros((1, 0)))[0]
@@ -278,8 +279,8 @@ def fit(
         misfit = likelihood.standardized_residuals(data[:, :n_samples], outputs, sigma, instruments).reshape(len(u), -1)
         return np.concatenate([misfit, ((theta - mean) / sd)[:, normal]], axis=1)
 
-    def residuals(u, n_samples, search=False):  # on the record's first n_samples
-        return residuals_of(u, simulate(low + u * span, replace(sampling, n_samples=n_samples), search), n_samples)
+    def residuals(u, n_samples, for_search=False):  # on the record's first n_samples
+        return residuals_of(u, simulate(low + u * span, replace(sampling, n_samples=n_samples), for_search), n_samples)
 
     def jacobian(u, n_samples, step):  # one-sided differences pointing into the box, all in one batch
         h = np.where(u + step <= 1.0, step, -step)
@@ -297,7 +298,7 @@ def fit(
     elif search:
         for first, n_samples in enumerate(windows[:SEARCHES]):
             evolved = optimize.differential_evolution(
-                lambda u, n: np.sum(residuals(np.atleast_2d(u.T), n, search=True) ** 2, axis=1), [(0.0, 1.0)] * k, args=(n_samples,),
+                lambda u, n: np.sum(residuals(np.atleast_2d(u.T), n, for_search=True) ** 2, axis=1), [(0.0, 1.0)] * k, args=(n_samples,),
                 vectorized=True, updating="deferred", popsize=SEARCH_POPULATION, maxiter=SEARCH_GENERATIONS, seed=seed,
                 polish=False, tol=0.0,
             )
