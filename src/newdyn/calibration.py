@@ -22,6 +22,8 @@ import xarray as xr
 
 from . import likelihood, model, sensors, simulation
 
+log = logging.getLogger("newdyn")
+
 N_REFINED_MAXIMA = 3  # coarse likelihood maxima refined per measurement: enough to see multiple peaks
 SPAN_SD = 6.0  # refined span around each peak, in likelihood widths
 
@@ -147,8 +149,7 @@ def coarse_models(
         )
         if same:
             return coarse["model"].sel(channel=list(channels)).values
-        logging.getLogger("newdyn").info("%s: not this measurement's rig, sampling, grid or channels; simulating its grid",
-                                         grid_path)
+        log.info("%s: not this measurement's rig, sampling, grid or channels; simulating its grid", grid_path)
     return simulate_grid(values, spec.parameter, spec.axis, sampling, channels, max_step)
 
 

@@ -461,14 +461,14 @@ def main(argv: list[str] | None = None) -> int:
     p = commands.add_parser("diagnose", help="diagnose a measurement: which hypothesis explains it")
     p.add_argument("--measurement", required=True)
     p.add_argument("--spec", required=True, help="the diagnosis settings as JSON (built by the workflow)")
-    p.add_argument("--grids", nargs="*", default=[], help="the study's coarse grid files, in the spec's calibration "
-                   "parameter order (reused when their condition is the measurement's)")
+    p.add_argument("--grids", nargs="*", default=[], help="the study's coarse grid files, in any order (each says which "
+                   "parameter it holds; reused when their condition is the measurement's)")
     p.add_argument("--bank", help="the study's bank: signatures and members (reused when its condition is the measurement's)")
     for output in ("verdict", "table", "netcdf", "posterior", "discovery"):
         p.add_argument(f"--{output}", required=True)
     p.add_argument("--code-hash", default="")
     p = command("bank", "the signatures and members every diagnosis at one condition reuses", "diagnosis spec")
-    p.add_argument("--grids", nargs="*", default=[], help="the study's coarse grid files, in the spec's calibration parameter order")
+    p.add_argument("--grids", nargs="*", default=[], help="the study's coarse grid files, in any order")
     p = commands.add_parser("plot-diagnosis", help="the figures of one diagnosis")
     for name in ("verdict", "netcdf", "posterior", *DIAGNOSIS_FIGURES):
         p.add_argument(f"--{name.replace('_', '-')}", required=True)
