@@ -135,11 +135,26 @@ def test_a_coloured_channel_takes_its_residual_level_a_white_one_keeps_its_sigma
     assert source.startswith("the file's sigma for white channels") and f"({SETTINGS.channels[0]} AR(1))" in source
 
 
-def test_a_measurement_without_a_diagnosis_channel_is_refused():
-    m = measurement("short", {})
-    m = io.Measurement(m.name, ("b1_x",), m.y[:1], m.sampling, m.operating, m.sigma[:1])
-    with pytest.raises(io.MeasurementError, match="no channel w1"):
-        diagnosis.diagnose(m, SETTINGS)
+def test_a_measurement_without_any_diagnosis_channel_is_refused_naming_what_it_has_and_the_fix():
+    m = measurement("torque_only", {})
+    m = io.Measurement(m.name, ("torque_c",), m.y[2:], m.sampling, m.operating, m.sigma[2:])
+    with pytest.raises(io.MeasurementError, match=r"^measurements/torque_only.nc: carries none of the channels diagnosis.channels "
+                                                  r"uses \(b1_x, w1\); it has torque_c: add one .* to diagnosis.channels"):
+        diagnosis.check_measurement(m, SETTINGS.channels, SETTINGS.noise_band_hz, "measurements/torque_only.nc")
+
+
+def test_a_measurement_with_some_diagnosis_channels_is_diagnosed_on_those_and_says_what_the_others_would_tell():
+    """A stiffer motor shaft seen through w1 alone: still a drift of kT1, and b1_x (missing) is weighed between the
+    verdict's model and its best rival by the expected log Bayes factor it would add."""
+    m = measurement("w1_only", {"kT1": 3.25e6})
+    m = io.Measurement(m.name, ("w1",), m.y[1:2], m.sampling, m.operating, m.sigma[1:2])
+    d = diagnosis.diagnose(m, SETTINGS)
+    v = d.verdict
+    assert d.channels == ("w1",) and v["verdict"] == "parameter_change" and "kT1" in v["equivalent"]
+    [missing] = v["missing_channels"]
+    assert missing["channel"] == "b1_x" and missing["between"][0] == v["models"]["after"]
+    assert missing["separates"] == (missing["expected_log_bayes_factor"] > SETTINGS.evidence_margin)
+    assert missing["equivalent"] == (len(v["equivalent"]) > 1) and "the recording lacks b1_x" in v["statement"]
 
 
 def test_a_measurement_whose_noise_level_cannot_be_read_is_refused_before_any_work():

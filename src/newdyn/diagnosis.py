@@ -134,14 +134,22 @@ class Settings:
         return hypotheses.library(self.calibration_priors(), self.fault_ranges, self.drift)
 
 
+def present_channels(measurement: io.Measurement, channels: Sequence[str]) -> tuple[str, ...]:
+    """The ones of ``channels`` (``diagnosis.channels``, in its order) that ``measurement`` carries: what it is
+    diagnosed on."""
+    return tuple(c for c in channels if c in measurement.channels)
+
+
 def check_measurement(measurement: io.Measurement, channels: Sequence[str], band_hz: float, path=None) -> None:
     """Refuse, in one line naming ``path`` (else the measurement's name), a measurement a diagnosis
-    cannot use: one of ``channels`` is missing, or the file states no noise level and its spectrum
-    above ``band_hz`` is too thin to read σ from."""
+    cannot use: it carries none of ``channels``, or it states no noise level and its spectrum
+    above ``band_hz`` is too thin to read σ from.  A measurement with some of ``channels`` is diagnosed on those."""
     where = path if path is not None else measurement.name
-    missing = [c for c in channels if c not in measurement.channels]
-    if missing:
-        raise io.MeasurementError(where, f"no channel {missing[0]} (diagnosis.channels needs it)")
+    if not present_channels(measurement, channels):
+        raise io.MeasurementError(
+            where, f"carries none of the channels diagnosis.channels uses ({', '.join(channels)}); it has "
+                   f"{', '.join(measurement.channels)}: add one of those channels to diagnosis.channels in the config, "
+                   f"or name the file's columns/variables after the channels (docs/measurements.md)")
     if measurement.sigma is None and "snr_db" not in measurement.attrs:
         try:
             noise.floor_band(measurement.sampling.n_samples, measurement.sampling.fs, band_hz)
@@ -206,6 +214,8 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
     (with the coloured channels' σ ``level``) is the noise's, when a first pass found it; without it, a first pass
     fits under white noise and, when its best fit's residual reads coloured, the diagnosis runs again whitened."""
     check_measurement(measurement, settings.channels, settings.noise_band_hz)
+    configured, missing = settings, tuple(c for c in settings.channels if c not in measurement.channels)
+    settings = replace(settings, channels=present_channels(measurement, settings.channels))
     rows = [measurement.channels.index(c) for c in settings.channels]
     channels, data, sampling = settings.channels, measurement.y[rows], measurement.sampling
     sigma, noise_source = noise_level(measurement, rows, settings.noise_band_hz)
@@ -269,7 +279,7 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
         found, level = noise.colour(data - _shown(best, data, sigma), settings.noise_colour_order, settings.evidence_margin)
         if not found.white:
             stage(f"noise colour {found.summary(channels)} from the residual of {best.hypothesis.name}: again, whitened")
-            return diagnose(measurement, settings, grid_paths, found, level, bank_path)
+            return diagnose(measurement, configured, grid_paths, found, level, bank_path)
     colour = colour or noise.white(len(channels))
 
     best_fault = max(settings.fault_ranges, key=lambda kind: fits[kind].log_evidence)
@@ -301,6 +311,8 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
     for key, version in (("where_nominal_fails", "nominal"), ("where_it_fails", "calibrated"), ("remaining", "after")):
         residual, sigma_e, times = colour.seen(data - versions[version], sigma, sampling.times)
         verdict[key] = residuals.where_it_fails(residual, sigma_e, channels, times, sampling.fs, values["load_freq"])
+    if missing:
+        verdict["missing_channels"] = _missing_channels(missing, verdict, fits, values, sampling, data, sigma, settings)
     verdict["noise"] = {"sigma": dict(zip(channels, sigma.tolist())), "source": noise_source,
                         "colour": colour.summary(channels)}
     effect_file = discovered = forces = None
@@ -568,6 +580,21 @@ def statement(verdict: Mapping, chi2_max: float) -> str:
     """The verdict in one plain sentence: what explains the data, with which values, and how far the
     error fell; or, when nothing does, where the best model's residual remains above the noise; then, with a
     sensor model, the instruments out of their spec and how much of the misfit the instruments took."""
+    return _with_instruments(verdict, chi2_max) + "".join(_missing_sentence(row) for row in verdict.get("missing_channels", []))
+
+
+def _missing_sentence(row: Mapping) -> str:
+    pair, factor = " and ".join(row["between"]), f"expected log Bayes factor {row['expected_log_bayes_factor']:.3g} at this SNR"
+    if not row["equivalent"]:
+        return (f"; the recording lacks {row['channel']}, not needed for this verdict (it would add an {factor} between "
+                f"{row['between'][0]} and its closest rival {row['between'][1]})")
+    if row["separates"]:
+        return f"; the recording lacks {row['channel']}, which would tell {pair} apart ({factor})"
+    return f"; the recording lacks {row['channel']}, which would not tell {pair} apart either ({factor})"
+
+
+def _with_instruments(verdict: Mapping, chi2_max: float) -> str:
+    """:func:`statement` without the missing channels."""
     if "instruments_took" not in verdict:
         return _machine_statement(verdict, chi2_max)
     problems = "; ".join(p["statement"] for p in verdict["sensor_problems"])
@@ -659,6 +686,21 @@ def _separating_channels(equivalent: Sequence[hypotheses.Fit], values, sampling,
                    for j, a in enumerate(outputs) for b in outputs[j + 1:])
         rows.append({"channel": channel, "expected_log_bayes_factor": float(pair), "snr_db": snr_db})
     return sorted(rows, key=lambda r: -r["expected_log_bayes_factor"])
+
+
+def _missing_channels(missing: Sequence[str], verdict: Mapping, fits, values, sampling, data, sigma, settings: Settings) -> list[dict]:
+    """What each channel of ``diagnosis.channels`` the recording lacks would have told: the expected log Bayes factor it
+    would add, at the recording's SNR, between the hypotheses that explain the data equally (their closest pair), or,
+    where the verdict stands alone, between its model and the best hypothesis of another class."""
+    ranked = [r["hypothesis"] for r in verdict["ranking"]]
+    top = verdict["models"]["after"]
+    if len(verdict["equivalent"]) > 1:
+        rivals = [n for n in ranked if fits[n].hypothesis.effect in verdict["equivalent"]]
+    else:
+        rivals = [top, next(n for n in ranked if n != top and _class(fits[n].hypothesis) != _class(fits[top].hypothesis))]
+    rows = {row["channel"]: row for row in _separating_channels([fits[n] for n in rivals], values, sampling, data, sigma, settings)}
+    return [{**rows[c], "between": rivals, "equivalent": len(verdict["equivalent"]) > 1,
+             "separates": rows[c]["expected_log_bayes_factor"] > settings.evidence_margin} for c in missing]
 
 
 def _sample_effect(fit: hypotheses.Fit, log_likelihood, observed, support, settings: Settings, why: str):
