@@ -8,6 +8,7 @@ size and time stamp under the same settings; the numerical stack is imported onl
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import re
@@ -18,13 +19,15 @@ from . import cache
 
 SUFFIXES = (".nc", ".csv")
 NAME = re.compile(r"[A-Za-z0-9_.-]+")
+CHECKS = ("io.py", "diagnosis.py")  # the modules whose code decides whether a file is good
 
 
 def good_measurements(folder: str | os.PathLike, operating: Mapping[str, float], channels: Sequence[str], band_hz: float,
                       index: str | os.PathLike) -> tuple[dict[str, str], list[str]]:
     """(name → path of every good measurement in ``folder``, one line per bad file naming it and its problem).
     ``index`` is the JSON file that remembers the checks; it is rewritten only when a check was made."""
-    settings = json.dumps({"operating": dict(operating), "channels": list(channels), "band_hz": band_hz}, sort_keys=True)
+    settings = json.dumps({"operating": dict(operating), "channels": list(channels), "band_hz": band_hz, "checks": _checks_version()},
+                          sort_keys=True)
     document = cache.read_json(index)
     known = document.get("files", {}) if document.get("settings") == settings else {}
     by_name: dict[str, list[Path]] = {}
@@ -51,6 +54,12 @@ def good_measurements(folder: str | os.PathLike, operating: Mapping[str, float],
     if changed or set(checked) != set(known):
         cache.write_json(index, {"settings": settings, "files": checked})
     return good, problems
+
+
+def _checks_version() -> str:
+    """A hash of the code that reads and checks a file, so that a file refused by older checks is looked at again."""
+    here = Path(__file__).parent
+    return hashlib.sha256(b"".join((here / name).read_bytes() for name in CHECKS)).hexdigest()[:16]
 
 
 def _problem(path: Path, operating, channels, band_hz) -> str | None:
