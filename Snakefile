@@ -33,6 +33,7 @@ rule all:
         "results/summary.csv",
         figure_targets(),
         diagnosis_targets("results", list(MEASUREMENTS)),
+        expand("results/diagnosis/{machine}/verdict.json", machine=MACHINES),
         hidden_targets("demo"),
 
 

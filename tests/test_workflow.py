@@ -16,7 +16,7 @@ import pytest
 import yaml
 
 import newdyn.config
-from newdyn import calibration, model, noise
+from newdyn import calibration, io, model, noise
 from newdyn.cli import DIAGNOSIS_FIGURES
 from newdyn.io import read_measurement
 from newdyn.simulation import simulate
@@ -91,6 +91,20 @@ def write_users_measurements(folder):
                delimiter=",", header="time," + ",".join(channels), comments="")
     (folder / "unknown_channel.csv").write_text("time,b1_z\n" + "\n".join(f"{0.5 + k / 5000},0.0" for k in range(500)))
     (folder / "slow.csv").write_text("time,b1_x,w1\n" + "\n".join(f"{0.5 + k / 1500},1e-6,155.0" for k in range(150)))
+    # A machine recorded twice: at full load (its file says so) and at part load (its condition in conditions.csv),
+    # the part-load one without b1_x.
+    machine = folder / "rig7"
+    machine.mkdir()
+    operating = {k: model.DEFAULTS[k] for k in model.OPERATING_PARAMETERS}
+    full = {**operating, "T0": 1613.0}
+    y, sigma = noise.add_noise(simulate(full, sampling, channels), channels, 40.0, 2)
+    io.write_netcdf(io.measurement_dataset(y, channels, sampling, full, sigma=sigma), machine / "full_load.nc")
+    part = {**operating, "T0": 1100.0}
+    y, sigma = noise.add_noise(simulate(part, sampling, ["w1"]), ["w1"], 40.0, 3)
+    recording = io.measurement_dataset(y, ["w1"], sampling, part, sigma=sigma)
+    del recording.attrs["T0"]
+    io.write_netcdf(recording, machine / "part_load.nc")
+    (machine / "conditions.csv").write_text("recording,T0\npart_load,1100\n")
 
 
 def test_study_writes_every_scenario_clean_and_noisy_with_provenance(study):
@@ -400,6 +414,22 @@ def test_a_users_csv_and_a_hidden_netcdf_measurement_get_their_verdicts(study):
         assert v["code_hash"] and v["newdyn_version"] and v["settings"]["diagnosis"]["channels"] == ["b1_x", "w1"]
         assert set(v["rmse_before"]) == set(v["rmse_after"]) == {"b1_x", "w1"}
         assert all({"hypothesis", "confidence", "chi2"} <= set(row) for row in v["ranking"])
+
+
+def test_a_machines_folder_gets_one_verdict_from_its_recordings_each_at_its_own_condition_and_channels(study):
+    machine = study / "results" / "diagnosis" / "rig7"
+    verdict = json.loads((machine / "verdict.json").read_text())
+    assert next(iter(verdict)) == "statement" and verdict["machine"] == "rig7"
+    assert verdict["verdict"] == "healthy" and verdict["statement"].startswith("healthy: the nominal model explains all 2 recordings")
+    lines = {line["name"]: line for line in verdict["recordings"]}
+    assert lines["full_load"]["condition"]["T0"] == 1613.0 and lines["part_load"]["condition"]["T0"] == 1100.0
+    assert lines["full_load"]["channels"] == ["b1_x", "w1"] and lines["part_load"]["channels"] == ["w1"]
+    assert lines["part_load"]["missing_channels"] == ["b1_x"]
+    assert all(line["chi2_after"] <= 1.1 for line in lines.values())
+    assert verdict["code_hash"] and verdict["settings"]["diagnosis"]["channels"] == ["b1_x", "w1"]
+    for name in lines:  # each recording also diagnosed alone, figures included
+        assert json.loads((machine / name / "verdict.json").read_text())["measurement"] == name
+        assert (machine / name / "figures" / f"{DIAGNOSIS_FIGURES[0]}.png").exists()
 
 
 def test_hidden_measurements_are_diagnosed_without_reading_the_truth_and_then_scored(study):

@@ -3,7 +3,8 @@
 The Snakefile asks this while it builds the job graph, and on a cluster every job builds it again: reading
 every file each time would make parsing grow with the data.  A file is read and checked (:func:`newdyn.io.
 read_measurement`, :func:`newdyn.diagnosis.check_measurement`) only when the index has not seen it at its
-size and time stamp under the same settings; the numerical stack is imported only then.
+size and time stamp under the same settings; the numerical stack is imported only then.  A folder of recordings
+in the measurements folder is a machine: its files are named `<machine>/<recording>`.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from . import cache
 
 SUFFIXES = (".nc", ".csv")
 NAME = re.compile(r"[A-Za-z0-9_.-]+")
+CONDITIONS = "conditions.csv"  # beside recordings: their operating conditions (newdyn.io.recorded_condition)
 CHECKS = ("io.py", "diagnosis.py")  # the modules whose code decides whether a file is good
 
 
@@ -31,22 +33,26 @@ def good_measurements(folder: str | os.PathLike, operating: Mapping[str, float],
     document = cache.read_json(index)
     known = document.get("files", {}) if document.get("settings") == settings else {}
     by_name: dict[str, list[Path]] = {}
-    for path in sorted(Path(folder).glob("*")):
-        if path.suffix.lower() in SUFFIXES:
-            by_name.setdefault(path.stem, []).append(path)
+    for path in sorted([*Path(folder).glob("*"), *Path(folder).glob("*/*")]):  # a machine's recordings: <machine>/<recording>
+        if path.suffix.lower() in SUFFIXES and path.is_file():
+            by_name.setdefault(path.relative_to(folder).with_suffix("").as_posix(), []).append(path)
+    machines = {name.split("/")[0] for name in by_name if "/" in name}
     good, problems, checked, changed = {}, [], {}, False
     for name, paths in by_name.items():
         if len(paths) > 1:
             problems.append(f"{paths[0]}: {' and '.join(map(str, paths))} share the name '{name}'")
             continue
+        if name in machines:
+            problems.append(f"{paths[0]}: shares its name with the machine folder {Path(folder) / name}; rename one of them")
+            continue
         path = paths[0]
-        stat = path.stat()
-        stamp = [stat.st_size, stat.st_mtime_ns]
+        stamp = [[stat.st_size, stat.st_mtime_ns] for stat in (p.stat() for p in (path, path.parent / CONDITIONS) if p.is_file())]
         entry = known.get(str(path))
         if entry is None or entry["stamp"] != stamp:
             entry, changed = {"stamp": stamp, "problem": _problem(path, operating, channels, band_hz)}, True
         checked[str(path)] = entry
-        problem = entry["problem"] or (None if NAME.fullmatch(name) else f"{path}: name may hold letters, digits, '_', '-' and '.' only")
+        problem = entry["problem"] or (None if all(NAME.fullmatch(part) for part in name.split("/"))
+                                       else f"{path}: names of files and folders may hold letters, digits, '_', '-' and '.' only")
         if problem:
             problems.append(problem)
         else:
@@ -70,3 +76,12 @@ def _problem(path: Path, operating, channels, band_hz) -> str | None:
     except io.MeasurementError as error:
         return str(error)
     return None
+
+
+def machines(good: Mapping[str, str]) -> dict[str, list[str]]:
+    """Machine name → the names of its good recordings (``<machine>/<recording>``), from :func:`good_measurements`."""
+    found: dict[str, list[str]] = {}
+    for name in sorted(good):
+        if "/" in name:
+            found.setdefault(name.split("/")[0], []).append(name)
+    return found

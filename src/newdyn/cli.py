@@ -11,6 +11,7 @@ import json
 import logging
 import sys
 import time
+from pathlib import Path
 
 log = logging.getLogger("newdyn")
 DIAGNOSIS_FIGURES = ("overlays", "residuals", "hypotheses", "error_fall", "discovery", "effect_posterior")
@@ -346,6 +347,23 @@ def diagnose_measurement(measurement_path: str, grid_paths: list[str], bank_path
     diagnosis.write(result, verdict, table, netcdf, posterior, discovery, config.canonical_json(spec), code_hash)
 
 
+def diagnose_machine(name: str, measurement_paths: list[str], verdict_paths: list[str], spec: dict, output: str,
+                     code_hash: str) -> None:
+    """One verdict for a machine from its recordings, each diagnosed alone before (its verdict.json, in the same order)."""
+    from . import config, diagnosis, io, machine, model, provenance
+
+    if len(measurement_paths) != len(verdict_paths):
+        raise SystemExit(f"newdyn diagnose-machine: {len(measurement_paths)} recordings but {len(verdict_paths)} verdicts")
+    settings = diagnosis.Settings.from_config(spec)
+    operating = {k: spec["operating"][k] for k in model.OPERATING_PARAMETERS}
+    recordings = [machine.Diagnosed(io.read_measurement(m, operating), json.loads(Path(v).read_text()))
+                  for m, v in zip(measurement_paths, verdict_paths)]
+    start = time.perf_counter()
+    verdict = machine.diagnose(name, recordings, settings)
+    log.info("machine %s: %s in %.1f s", name, verdict["statement"], time.perf_counter() - start)
+    io.write_json(output, {**verdict, "settings": json.loads(config.canonical_json(spec)), **provenance.attributes(code_hash)})
+
+
 def write_bank(spec: dict, grid_paths: list[str], output: str, code_hash: str) -> None:
     """The study's bank (newdyn.bank) for a diagnosis spec at its operating condition and record (``spec["sampling"]``),
     on the study's coarse grids where they hold its channels: every diagnosis at that condition reuses it."""
@@ -467,6 +485,10 @@ def main(argv: list[str] | None = None) -> int:
     for output in ("verdict", "table", "netcdf", "posterior", "discovery"):
         p.add_argument(f"--{output}", required=True)
     p.add_argument("--code-hash", default="")
+    p = command("diagnose-machine", "one verdict for a machine from its recordings, each diagnosed alone first", "diagnosis spec")
+    p.add_argument("--name", required=True, help="the machine's name (its folder in measurements/)")
+    p.add_argument("--recordings", required=True, nargs="+", help="the machine's measurement files")
+    p.add_argument("--verdicts", required=True, nargs="+", help="each recording's own verdict.json, in the same order")
     p = command("bank", "the signatures and members every diagnosis at one condition reuses", "diagnosis spec")
     p.add_argument("--grids", nargs="*", default=[], help="the study's coarse grid files, in any order")
     p = commands.add_parser("plot-diagnosis", help="the figures of one diagnosis")
@@ -513,6 +535,8 @@ def main(argv: list[str] | None = None) -> int:
     elif args.command == "diagnose":
         diagnose_measurement(args.measurement, args.grids, args.bank, json.loads(args.spec), args.verdict, args.table, args.netcdf,
                              args.posterior, args.discovery, args.code_hash)
+    elif args.command == "diagnose-machine":
+        diagnose_machine(args.name, args.recordings, args.verdicts, json.loads(args.spec), args.output, args.code_hash)
     elif args.command == "bank":
         write_bank(json.loads(args.spec), args.grids, args.output, args.code_hash)
     elif args.command == "plot-diagnosis":

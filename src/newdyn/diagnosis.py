@@ -498,10 +498,6 @@ def _widened(fit: hypotheses.Fit, instruments: sensors_module.Instruments) -> in
     return 0 if fit.instruments is None else int(np.sum(fit.instruments.scale != instruments.scale))
 
 
-def _class(hypothesis: hypotheses.Hypothesis) -> str:
-    return {HEALTHY: "healthy", PARAMETER_CHANGE: "parameter_change"}.get(hypothesis.kind, "new_dynamics")
-
-
 def _explains(fit: hypotheses.Fit, calibrations, chi2_max: float) -> bool:
     """Whether a fit brings χ² to the noise, a drift's with a consistent grid posterior (one peak)."""
     consistent = fit.hypothesis.kind != PARAMETER_CHANGE or calibrations[fit.hypothesis.effect].posterior.consistent()
@@ -512,7 +508,7 @@ def _explaining_ahead(fits, calibrations, fault: str, chi2_max: float, discovere
     """What explains the data with more evidence than ``fault``'s fit, so that the verdict does not rest on its
     MCMC: the best hypothesis without a fault (healthy or a drift) that does, else — when no fit of the library
     explains the data — the ``discovered`` term if it does, else None."""
-    ahead = [name for name, fit in fits.items() if _class(fit.hypothesis) != "new_dynamics"
+    ahead = [name for name, fit in fits.items() if fit.hypothesis.verdict_class != "new_dynamics"
              and fit.log_evidence > fits[fault].log_evidence and _explains(fit, calibrations, chi2_max)]
     if ahead:
         return max(ahead, key=lambda name: fits[name].log_evidence)
@@ -533,7 +529,7 @@ def _verdict(fits, calibrations, signatures, settings: Settings, values, samplin
     for name, c in zip(names, confidence):
         mine = closest.where(signatures["hypothesis"] == name, drop=True)
         ranking.append({
-            "hypothesis": name, "class": _class(fits[name].hypothesis), "effect": fits[name].hypothesis.effect,
+            "hypothesis": name, "class": fits[name].hypothesis.verdict_class, "effect": fits[name].hypothesis.effect,
             "confidence": float(c), "log_evidence": fits[name].log_evidence, "chi2": fits[name].chi2_red,
             "explains": _explains(fits[name], calibrations, settings.chi2_max), "parameters": _fit_parameters(fits[name], calibrations),
             "at_bound": list(fits[name].at_bound),
@@ -563,7 +559,7 @@ def _verdict(fits, calibrations, signatures, settings: Settings, values, samplin
     }
     if len(result["equivalent"]) > 1:
         separating = _separating_channels([fits[n] for n in names if fits[n].hypothesis.effect in result["equivalent"]
-                                           and _class(fits[n].hypothesis) == verdict], values, sampling, data, sigma, settings)
+                                           and fits[n].hypothesis.verdict_class == verdict], values, sampling, data, sigma, settings)
         result["separating_channels"] = separating
         best = separating[0] if separating else None
         result["identifiability"] = (
@@ -642,7 +638,7 @@ def _finding(finding: Mapping) -> str:
 
 def _best_of(fits, cls: str) -> str:
     """The hypothesis of class ``cls`` with the highest evidence."""
-    return max((n for n in fits if _class(fits[n].hypothesis) == cls), key=lambda n: fits[n].log_evidence)
+    return max((n for n in fits if fits[n].hypothesis.verdict_class == cls), key=lambda n: fits[n].log_evidence)
 
 
 def _shown(fit: hypotheses.Fit, data, sigma) -> np.ndarray:
@@ -697,7 +693,7 @@ def _missing_channels(missing: Sequence[str], verdict: Mapping, fits, values, sa
     if len(verdict["equivalent"]) > 1:
         rivals = [n for n in ranked if fits[n].hypothesis.effect in verdict["equivalent"]]
     else:
-        rivals = [top, next(n for n in ranked if n != top and _class(fits[n].hypothesis) != _class(fits[top].hypothesis))]
+        rivals = [top, next(n for n in ranked if n != top and fits[n].hypothesis.verdict_class != fits[top].hypothesis.verdict_class)]
     rows = {row["channel"]: row for row in _separating_channels([fits[n] for n in rivals], values, sampling, data, sigma, settings)}
     return [{**rows[c], "between": rivals, "equivalent": len(verdict["equivalent"]) > 1,
              "separates": rows[c]["expected_log_bayes_factor"] > settings.evidence_margin} for c in missing]

@@ -85,6 +85,11 @@ class Hypothesis:
         return [p.name for p in self.priors]
 
     @property
+    def verdict_class(self) -> str:
+        """The verdict this hypothesis stands for: "healthy", "parameter_change" or "new_dynamics"."""
+        return {HEALTHY: "healthy", PARAMETER_CHANGE: "parameter_change"}.get(self.kind, "new_dynamics")
+
+    @property
     def effect(self) -> str | None:
         """What the hypothesis adds: the drifted parameter's name or the effect's kind (None if healthy)."""
         return None if self.kind == HEALTHY else self.name.split(":")[-1]
@@ -128,12 +133,17 @@ class Hypothesis:
                 rows[:, index[name]] = column
         return rows
 
-    def effective_values(self, theta: np.ndarray, base: Mapping[str, float]) -> dict[str, float]:
-        """The values the model runs with at one row of fitted values: the fitted ones, as the effect
-        makes them admissible (:meth:`Effect.admissible`)."""
+    def admissible_rows(self, theta: np.ndarray, base: Mapping[str, float]) -> np.ndarray:
+        """Rows of fitted values (n, k) as the model runs with them on ``base``: made admissible by the effect
+        (:meth:`Effect.admissible`)."""
         theta = np.atleast_2d(np.asarray(theta, dtype=float))
         _, others, _, values = self._values(theta, model.complete(base))
-        return {name: float(values[name][0] if name in values else others[name][0]) for name in self.parameters}
+        return np.stack([np.asarray(values[name] if name in values else others[name], dtype=float) for name in self.parameters],
+                        axis=1) if self.parameters else theta
+
+    def effective_values(self, theta: np.ndarray, base: Mapping[str, float]) -> dict[str, float]:
+        """The values the model runs with at one row of fitted values (:meth:`admissible_rows`)."""
+        return dict(zip(self.parameters, self.admissible_rows(theta, base)[0].tolist()))
 
     def log_prior(self, theta: np.ndarray) -> np.ndarray:
         return np.sum([p.log_pdf(theta[:, i]) for i, p in enumerate(self.priors)], axis=0) if self.priors else np.zeros(len(theta))
@@ -190,14 +200,7 @@ class Fit:
         return np.array([self.values[name] for name in self.hypothesis.parameters])
 
     def laplace_parameters(self) -> dict:
-        """Each fitted value ± its Laplace approximation (Normal: MAP = mean, central 94 % interval); empty
-        without a covariance."""
-        if self.covariance is None:
-            return {}
-        sd = np.sqrt(np.diag(self.covariance))
-        z = float(np.sqrt(2) * erfinv(likelihood.HDI_PROB))  # the Normal's central interval is mean ± z·sd
-        return {name: {"map": v, "mean": v, "sd": float(s), "hdi_low": v - z * float(s), "hdi_high": v + z * float(s),
-                       "method": "laplace"} for (name, v), s in zip(self.values.items(), sd)}
+        return laplace_parameters(self.values, self.covariance)
 
     def summary(self) -> dict:
         return {
@@ -205,6 +208,17 @@ class Fit:
             "parameters": self.values, "chi2": self.chi2_red, "log_likelihood": self.log_likelihood,
             "log_evidence": self.log_evidence, "at_bound": list(self.at_bound), "n_simulations": self.n_simulations,
         }
+
+
+def laplace_parameters(values: Mapping[str, float], covariance: np.ndarray | None) -> dict:
+    """Each fitted value ± its Laplace approximation (Normal: MAP = mean, central 94 % interval); empty without a
+    covariance."""
+    if covariance is None:
+        return {}
+    sd = np.sqrt(np.diag(covariance))
+    z = float(np.sqrt(2) * erfinv(likelihood.HDI_PROB))  # the Normal's central interval is mean ± z·sd
+    return {name: {"map": v, "mean": v, "sd": float(s), "hdi_low": v - z * float(s), "hdi_high": v + z * float(s),
+                   "method": "laplace"} for (name, v), s in zip(values.items(), sd)}
 
 
 def evaluate(hypothesis: Hypothesis, theta: np.ndarray, base: Mapping[str, float], sampling: model.Sampling,
@@ -327,10 +341,23 @@ def fit(
     chains = concurrency.in_parallel({number: lambda number=number, u0=u0, first=first: chain(u0, first, number < len(given))
                                       for number, (u0, first) in enumerate(u_starts)})
     best = min(chains.values(), key=lambda result: result.cost)  # the first of equals, as the starts are ordered
-    u_star = best.x
-    theta_star = low + u_star * span
+    theta_star = low + best.x * span
     model_star = simulate(theta_star[None])[0]
     ll = float(likelihood.log_likelihood(data, model_star, sigma, instruments=instruments))
+    log_evidence, at_bound, covariance = _laplace(hypothesis, best, theta_star, ll)
+    return Fit(
+        hypothesis, hypothesis.effective_values(theta_star, base), model_star, ll,
+        float(likelihood.reduced_chi2(data, model_star, sigma, n_fitted=k, instruments=instruments)), log_evidence, sum(runs), at_bound,
+        covariance, instruments,
+    )
+
+
+def _laplace(hypothesis: Hypothesis, best: optimize.OptimizeResult, theta_star: np.ndarray, ll: float):
+    """(log-evidence, the parameters at a bound, posterior covariance) by the Laplace approximation around the least
+    squares' optimum ``best`` in unit coordinates, whose log-likelihood is ``ll`` (see :func:`fit`)."""
+    k = len(hypothesis.priors)
+    span = np.array([p.high - p.low for p in hypothesis.priors])
+    normal = np.array([p.sd is not None for p in hypothesis.priors])
     hessian = best.jac.T @ best.jac + np.diag(np.where(normal, 0.0, 1.0 / UNIFORM_UNIT_VARIANCE))
     _, log_det = np.linalg.slogdet(hessian)
     log_prior_u = float(hypothesis.log_prior(theta_star[None])[0] + np.sum(np.log(span)))
@@ -338,8 +365,100 @@ def fit(
     log_evidence = ll + log_prior_u + 0.5 * k * math.log(2 * math.pi) - 0.5 * log_det - len(at_bound) * math.log(2)
     covariance_u = np.linalg.inv(hessian)
     covariance_u = 0.5 * (covariance_u + covariance_u.T)  # symmetric as H is, not just to rounding
-    return Fit(
-        hypothesis, hypothesis.effective_values(theta_star, base), model_star, ll,
-        float(likelihood.reduced_chi2(data, model_star, sigma, n_fitted=k, instruments=instruments)), float(log_evidence), sum(runs), at_bound,
-        span[:, None] * covariance_u * span[None, :], instruments,
-    )
+    return float(log_evidence), at_bound, span[:, None] * covariance_u * span[None, :]
+
+
+@dataclass(frozen=True)
+class Recording:
+    """One recording as a joint fit sees it: its data on its channels, their noise σ, the model values at its operating
+    condition, its record and its instruments."""
+
+    data: np.ndarray
+    sigma: np.ndarray
+    base: Mapping[str, float]
+    sampling: model.Sampling
+    channels: tuple[str, ...]
+    instruments: sensors.Instruments | None = None
+
+
+@dataclass(frozen=True)
+class JointFit:
+    """A hypothesis fitted to several recordings with one set of parameters: per recording its model and misfit."""
+
+    hypothesis: Hypothesis
+    values: dict[str, float]
+    models: tuple[np.ndarray, ...]
+    log_likelihood: float
+    chi2_red: tuple[float, ...]
+    log_evidence: float
+    n_simulations: int
+    at_bound: tuple[str, ...] = ()
+    covariance: np.ndarray | None = None
+
+    @property
+    def theta(self) -> np.ndarray:
+        return np.array([self.values[name] for name in self.hypothesis.parameters])
+
+    def laplace_parameters(self) -> dict:
+        return laplace_parameters(self.values, self.covariance)
+
+
+def fit_joint(hypothesis: Hypothesis, recordings: Sequence[Recording], starts: Sequence[Mapping[str, float]],
+              max_step: float = simulation.DEFAULT_MAX_STEP) -> JointFit:
+    """Best fit of ``hypothesis`` to all ``recordings`` at once, one parameter set shared by them (the likelihood the
+    product of theirs), by least squares on their whole records from each of ``starts`` (each recording's own optimum,
+    say), the best kept; log-evidence and covariance by the Laplace approximation as in :func:`fit`."""
+    k = len(hypothesis.priors)
+    runs = []
+
+    def shared(theta):  # admissible at every recording's condition, so that all of them run with the same values
+        for r in recordings:
+            theta = hypothesis.admissible_rows(theta, r.base)
+        return theta
+
+    def outputs(theta):
+        runs.append(len(theta) * len(recordings))
+        return [evaluate(hypothesis, shared(theta), r.base, r.sampling, r.channels, max_step) for r in recordings]
+
+    def summary(theta_star):
+        models = tuple(found[0] for found in outputs(theta_star[None]))
+        lls = [float(likelihood.log_likelihood(r.data, m, r.sigma, instruments=r.instruments)) for r, m in zip(recordings, models)]
+        chi2 = tuple(float(likelihood.reduced_chi2(r.data, m, r.sigma, n_fitted=k, instruments=r.instruments))
+                     for r, m in zip(recordings, models))
+        return models, sum(lls), chi2
+
+    if k == 0:
+        models, ll, chi2 = summary(np.zeros(0))
+        return JointFit(hypothesis, {}, models, ll, chi2, ll, sum(runs))
+    low = np.array([p.low for p in hypothesis.priors])
+    span = np.array([p.high for p in hypothesis.priors]) - low
+    normal = np.array([p.sd is not None for p in hypothesis.priors])
+    mean = np.array([p.mean if p.sd is not None else 0.0 for p in hypothesis.priors])
+    sd = np.array([p.sd if p.sd is not None else 1.0 for p in hypothesis.priors])
+
+    def residuals(u):  # rows (m, k) -> (m, every recording's standardized misfit + normal priors)
+        theta = low + u * span
+        misfits = [likelihood.standardized_residuals(r.data, found, r.sigma, r.instruments).reshape(len(u), -1)
+                   for r, found in zip(recordings, outputs(theta))]
+        return np.concatenate([*misfits, ((theta - mean) / sd)[:, normal]], axis=1)
+
+    def jacobian(u, step):
+        h = np.where(u + step <= 1.0, step, -step)
+        rows = residuals(np.vstack([u[None], u + np.diag(h)]))
+        return ((rows[1:] - rows[0]) / h[:, None]).T
+
+    def follow(u0):
+        for step in JACOBIAN_STEPS:
+            result = optimize.least_squares(lambda u, _: residuals(u[None])[0], np.clip(u0, 1e-6, 1 - 1e-6), jac=jacobian, args=(step,),
+                                            bounds=(0.0, 1.0), method="trf", x_scale="jac", max_nfev=FIT_MAX_EVALUATIONS)
+            u0 = result.x
+        return result
+
+    u_starts = [(np.array([start[p.name] for p in hypothesis.priors]) - low) / span for start in starts]
+    chains = concurrency.in_parallel({number: lambda u0=u0: follow(u0) for number, u0 in enumerate(u_starts)})
+    best = min((chains[number] for number in sorted(chains)), key=lambda result: result.cost)
+    theta_star = low + best.x * span
+    models, ll, chi2 = summary(theta_star)
+    log_evidence, at_bound, covariance = _laplace(hypothesis, best, theta_star, ll)
+    return JointFit(hypothesis, dict(zip(hypothesis.parameters, shared(theta_star[None])[0].tolist())), models, ll, chi2, log_evidence,
+                    sum(runs), at_bound, covariance)

@@ -20,6 +20,7 @@ import numpy as np
 import xarray as xr
 
 from . import model
+from .catalog import CONDITIONS
 
 OPERATING_ATTRS = model.OPERATING_PARAMETERS  # speed_rpm, T0, load_amp, load_freq, load_harm
 TIME_JITTER = 1e-2  # allowed deviation of a time stamp from the uniform grid, in sample intervals
@@ -161,6 +162,7 @@ def read_measurement(path: str | os.PathLike, operating_defaults: Mapping[str, f
         raise MeasurementError(path, f"non-finite value {y[c, k]} in channel '{channels[c]}' at sample {k}")
 
     operating = dict(operating_defaults or {name: model.DEFAULTS[name] for name in OPERATING_ATTRS})
+    operating.update(recorded_condition(path))
     for name in OPERATING_ATTRS:
         if name in attrs:
             value = attrs[name]
@@ -176,6 +178,36 @@ def read_measurement(path: str | os.PathLike, operating_defaults: Mapping[str, f
     if sigma is not None and not (np.all(np.isfinite(sigma)) and np.all(sigma > 0)):
         raise MeasurementError(path, "coordinate sigma must be finite and positive")
     return Measurement(path.stem, tuple(channels), y, sampling, operating, sigma, dict(attrs))
+
+
+def recorded_condition(path: str | os.PathLike) -> dict[str, float]:
+    """The operating values that the ``conditions.csv`` beside a recording gives it: the row whose ``recording`` column
+    is the file's name without suffix; columns of operating values (``speed_rpm``, ``T0``, ...), an empty cell for
+    none.  A file's own attributes override these; the config's operating condition fills what neither gives."""
+    path = Path(path)
+    table = path.parent / CONDITIONS
+    if not table.is_file():
+        return {}
+    with open(table, newline="", encoding="utf-8") as f:
+        rows = list(csv.DictReader(f))
+    unknown = [c for c in (rows[0] if rows else {}) if c not in ("recording", *OPERATING_ATTRS)]
+    if unknown:
+        raise MeasurementError(table, f"unknown column '{unknown[0]}' (columns: recording, {', '.join(OPERATING_ATTRS)})")
+    found = {}
+    for number, row in enumerate(rows, start=2):
+        if row.get("recording") != path.stem:
+            continue
+        for name in OPERATING_ATTRS:
+            if row.get(name) not in (None, ""):
+                try:
+                    value = float(row[name])
+                except ValueError:
+                    raise MeasurementError(table, f"line {number}, column {name}: '{row[name]}' is not a number") from None
+                problem = model.PARAMETER_BY_NAME[name].problem(value)
+                if problem:
+                    raise MeasurementError(table, f"line {number}, column {name} {problem}")
+                found[name] = value
+    return found
 
 
 def _read_netcdf(path: Path):

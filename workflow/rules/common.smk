@@ -384,6 +384,8 @@ MEASUREMENTS, _bad = newdyn.catalog.good_measurements(
 )
 for _line in _bad:
     print(f"newdyn: skipping bad measurement: {_line}", file=sys.stderr)
+# machine -> the names of its recordings (measurements/<machine>/<recording>.nc or .csv)
+MACHINES = newdyn.catalog.machines(MEASUREMENTS)
 
 
 def diagnosis_root(root, name):
@@ -397,6 +399,23 @@ def measurement_file(wildcards):
             raise ValueError(f"no good measurement measurements/{wildcards.name}.nc or .csv (see the lines above)")
         return MEASUREMENTS[wildcards.name]
     return f"{wildcards.root}/measurements/{wildcards.name}.nc"
+
+
+def machine_inputs(wildcards):
+    """A machine's recordings and each one's own verdict, in the same order."""
+    names = MACHINES[wildcards.machine]
+    return {
+        "recordings": [MEASUREMENTS[name] for name in names],
+        "verdicts": [f"results/diagnosis/{name}/verdict.json" for name in names],
+    }
+
+
+def recording_conditions(wildcards):
+    """The conditions.csv beside a user's recording, when there is one: its operating condition may come from it."""
+    if wildcards.root != "results" or wildcards.name not in MEASUREMENTS:
+        return []
+    table = Path(MEASUREMENTS[wildcards.name]).parent / newdyn.catalog.CONDITIONS
+    return [str(table)] if table.is_file() else []
 
 
 def study_grids(wildcards):

@@ -2,7 +2,11 @@
 # The same rules serve both; {root} is "results" for measurements/<name>, "results/<set>" for hidden sets.
 wildcard_constraints:
     root="|".join(["results"] + [f"results/{name}" for name in HIDDEN_SETS]),
-    name=r"[A-Za-z0-9_.-]+",
+    name=r"[A-Za-z0-9_.-]+(/[A-Za-z0-9_.-]+)?",  # a file, or a machine's recording <machine>/<recording>
+
+
+# results/diagnosis/<machine>/verdict.json is the machine's, not a file's of that name (the catalog refuses such a file).
+ruleorder: diagnose_machine > diagnose
 
 
 rule bank:
@@ -33,6 +37,7 @@ rule bank:
 rule diagnose:
     input:
         measurement=measurement_file,
+        conditions=recording_conditions,
         grids=study_grids,
         bank="results/bank.nc",
     output:
@@ -103,3 +108,29 @@ rule plot_diagnosis:
         "--overlays {output.overlays} --residuals {output.residuals} --hypotheses {output.hypotheses} "
         "--error-fall {output.error_fall} --discovery {output.discovery} --effect-posterior {output.effect_posterior} "
         "--code-hash {params.code} > {log} 2>&1"
+
+
+rule diagnose_machine:
+    input:
+        unpack(machine_inputs),
+    output:
+        "results/diagnosis/{machine}/verdict.json",
+    wildcard_constraints:
+        machine="|".join(map(re.escape, MACHINES)) or "(?!)",
+    log:
+        "results/logs/diagnose_machine/{machine}.log",
+    benchmark:
+        "results/benchmarks/diagnose_machine/{machine}.tsv"
+    conda:
+        "../envs/newdyn.yaml"
+    threads: 2
+    resources:
+        mem_mb=per_attempt(2048),
+        runtime=per_attempt(60),
+    params:
+        spec=diagnosis_spec,
+        code=code_hash("diagnose-machine", effect_files()),
+    shell:
+        "NUMBA_NUM_THREADS={threads} OPENBLAS_NUM_THREADS={threads} newdyn diagnose-machine --name {wildcards.machine} "
+        "--recordings {input.recordings} --verdicts {input.verdicts} --spec {params.spec:q} --code-hash {params.code} "
+        "--output {output} > {log} 2>&1"

@@ -1,0 +1,163 @@
+"""Diagnose a machine from several recordings, each at its own operating condition, with its own channels, noise and
+instruments: one verdict with the machine's parameters shared by all of them.
+
+Each recording is first diagnosed alone (:func:`newdyn.diagnosis.diagnose`); its verdict gives its channels, noise and
+each hypothesis's optimum and evidence.  Then every hypothesis is fitted to all recordings at once, one parameter set
+for all (:func:`newdyn.hypotheses.fit_joint`, started from each recording's optimum), and the machine's verdict is the
+hypothesis of highest joint evidence whose fit brings every recording's χ² to the noise.
+
+Consistency across conditions, the paper's principle: a drifted parameter has one value under every condition, a
+calibration that absorbs new dynamics lands on different values under different ones.  Both are measured: the
+log Bayes factor of one parameter set for all recordings against a set of its own for each (joint evidence minus
+the sum of the recordings' own evidences; it falls as the recordings' optima part), and the Hellinger distances
+between the recordings' posteriors of each parameter, as the paper compares posteriors (their Normal approximations;
+a posterior that one recording leaves wide is far from a narrow one even where they agree, which is why the
+decision rests on the Bayes factor).
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from . import comparison, concurrency, effects, hypotheses, io, model, noise
+from .diagnosis import Settings
+from .hypotheses import HEALTHY, PARAMETER_CHANGE
+
+
+@dataclass(frozen=True)
+class Diagnosed:
+    """One recording of the machine and its own diagnosis's verdict."""
+
+    measurement: io.Measurement
+    verdict: Mapping
+
+
+def recording(diagnosed: Diagnosed, settings: Settings) -> hypotheses.Recording:
+    """A recording as the joint fits see it: on the channels and with the noise its own diagnosis used."""
+    m, v = diagnosed.measurement, diagnosed.verdict
+    channels = tuple(v["channels"])
+    colour = noise.Colour.from_summary(v["noise"].get("colour", {}), channels)
+    return hypotheses.Recording(
+        m.y[[m.channels.index(c) for c in channels]], np.array([v["noise"]["sigma"][c] for c in channels]),
+        model.complete({**settings.rig, **m.operating}), m.sampling, channels,
+        replace(settings, channels=channels).instruments(m.sampling.fs, colour),
+    )
+
+
+def diagnose(name: str, recordings: Sequence[Diagnosed], settings: Settings) -> dict:
+    """The machine's verdict (see the module docstring) from its ``recordings``, each already diagnosed alone."""
+    seen = [recording(r, settings) for r in recordings]
+    hyps = {h.name: h for h in settings.hypotheses()}
+    own = [{row["hypothesis"]: row for row in r.verdict["ranking"]} for r in recordings]
+
+    def joint(hypothesis):
+        starts = [{p: rows[hypothesis.name]["parameters"][p]["map"] for p in hypothesis.parameters} for rows in own]
+        return hypotheses.fit_joint(hypothesis, seen, starts, settings.max_step)
+
+    fits = concurrency.in_parallel({n: lambda h=h: joint(h) for n, h in hyps.items()})
+    ranking = sorted((_row(fits[n], [rows[n] for rows in own], settings) for n in hyps), key=lambda row: -row["log_evidence"])
+    top = ranking[0]
+    if top["explains"]:
+        verdict, effect = top["class"], top["effect"]
+        equivalent = [r["effect"] for r in ranking if r["class"] == verdict and r["explains"]
+                      and top["log_evidence"] - r["log_evidence"] <= settings.evidence_margin]
+        after = top["hypothesis"]
+    else:
+        verdict, effect, equivalent = "unexplained", None, []
+        after = min(ranking, key=lambda row: max(row["chi2"]))["hypothesis"]
+    lines = _recording_lines(recordings, seen, fits, hyps, after, settings)
+    result = {
+        "machine": name, "verdict": verdict, "effect": effect, "equivalent": [e for e in equivalent if e is not None],
+        "parameters": fits[after].laplace_parameters(), "model": after,
+        "chi2_before": [line["chi2_before"] for line in lines], "chi2_after": [line["chi2_after"] for line in lines],
+        "consistency": {row["hypothesis"]: row["consistency"] for row in ranking},
+        "recordings": lines, "ranking": ranking,
+    }
+    return {"statement": statement(result, settings.chi2_max), **result}
+
+
+def _row(fit: hypotheses.JointFit, alone: Sequence[Mapping], settings: Settings) -> dict:
+    """A hypothesis's line in the machine's ranking: joint evidence and misfits, and how consistent the recordings are."""
+    separate = float(sum(row["log_evidence"] for row in alone))
+    log_bayes_factor = fit.log_evidence - separate
+    hellinger = {
+        p: max((comparison.hellinger_gaussians(a["parameters"][p]["mean"], a["parameters"][p]["sd"],
+                                               b["parameters"][p]["mean"], b["parameters"][p]["sd"])
+                for a, b in itertools.combinations(alone, 2)), default=0.0)
+        for p in fit.hypothesis.parameters
+    }
+    return {
+        "hypothesis": fit.hypothesis.name, "class": fit.hypothesis.verdict_class, "effect": fit.hypothesis.effect,
+        "log_evidence": fit.log_evidence, "chi2": list(fit.chi2_red),
+        "explains": all(chi2 <= settings.chi2_max for chi2 in fit.chi2_red), "parameters": fit.laplace_parameters(),
+        "at_bound": list(fit.at_bound),
+        "consistency": {"log_bayes_factor": log_bayes_factor, "separate_log_evidence": separate,
+                        "consistent": log_bayes_factor > -settings.evidence_margin, "hellinger": hellinger,
+                        "explains_each_alone": all(row["explains"] for row in alone)},
+    }
+
+
+def _recording_lines(recordings: Sequence[Diagnosed], seen: Sequence[hypotheses.Recording], fits, hyps, after: str,
+                     settings: Settings) -> list[dict]:
+    """Per recording: its condition, channels, its own verdict, χ² before (nominal) and after (the machine's model), and
+    whether the machine's finding is visible in it: the expected log Bayes factor of its contribution there."""
+    found = fits[after]
+    lines = []
+    for i, (r, s) in enumerate(zip(recordings, seen)):
+        without = _without_finding(found, s, hyps, settings)
+        contribution = float(0.5 * np.sum(((found.models[i] - without) / s.sigma[:, None]) ** 2))
+        lines.append({
+            "name": r.measurement.name, "condition": dict(r.measurement.operating), "channels": list(s.channels),
+            "missing_channels": [row["channel"] for row in r.verdict.get("missing_channels", [])],
+            "own_verdict": r.verdict["verdict"], "own_effect": r.verdict["effect"],
+            "chi2_before": fits[HEALTHY].chi2_red[i], "chi2_after": found.chi2_red[i],
+            "finding_log_bayes_factor": contribution, "finding_visible": contribution > settings.evidence_margin,
+        })
+    return lines
+
+
+def _without_finding(fit: hypotheses.JointFit, seen: hypotheses.Recording, hyps, settings: Settings) -> np.ndarray:
+    """The model of one recording without what the machine's verdict adds: the nominal model for a drift, the model with
+    its drifts but without the effect for an effect."""
+    base = dict(seen.base)
+    if fit.hypothesis.kind not in (HEALTHY, PARAMETER_CHANGE):
+        own = effects.active()[fit.hypothesis.kind].parameter_names()
+        base.update({p: v for p, v in fit.values.items() if p not in own})
+    return hypotheses.evaluate(hyps[HEALTHY], np.zeros((1, 0)), base, seen.sampling, seen.channels, settings.max_step)[0]
+
+
+def statement(verdict: Mapping, chi2_max: float) -> str:
+    """The machine's verdict in one sentence: what explains every recording with one parameter set, where it shows, and
+    which hypotheses the recordings contradict."""
+    lines = verdict["recordings"]
+    differing = [k for k in model.OPERATING_PARAMETERS if len({line["condition"][k] for line in lines}) > 1]
+
+    def condition(line):
+        return ", ".join(f"{k} {line['condition'][k]:g}" for k in differing) or "the same condition"
+
+    chi2 = ", ".join(f"{line['name']} {line['chi2_before']:.3g} -> {line['chi2_after']:.3g}" for line in lines)
+    fitted = ", ".join(f"{n} = {p['mean']:.4g} (94 % HDI {p['hdi_low']:.4g} to {p['hdi_high']:.4g})"
+                       for n, p in verdict["parameters"].items())
+    kind = verdict["verdict"]
+    if kind == "healthy":
+        head = f"healthy: the nominal model explains all {len(lines)} recordings (reduced chi2 {chi2})"
+    elif kind == "unexplained":
+        head = (f"unexplained: no hypothesis explains all {len(lines)} recordings with one parameter set (reduced chi2 <= "
+                f"{chi2_max:g}); the closest, {verdict['model']}, leaves {chi2}")
+    else:
+        name = "new dynamics" if kind == "new_dynamics" else "parameter change"
+        shows = "; ".join(f"{'visible' if line['finding_visible'] else 'not visible'} in {line['name']} ({condition(line)})"
+                          for line in lines)
+        head = (f"{name}: {verdict['effect']} with {fitted}, one set for all {len(lines)} recordings, brings reduced chi2 "
+                f"{chi2}; {shows}")
+    # What the paper looks for: a hypothesis that explains each recording on its own, but with values that differ.
+    contradicted = [h for h, c in verdict["consistency"].items() if c["explains_each_alone"] and not c["consistent"]]
+    if contradicted:
+        head += ("; each recording alone is explained by, but together they contradict, " + ", ".join(
+            f"{h} (log Bayes factor {verdict['consistency'][h]['log_bayes_factor']:.3g} for one set against one per recording)"
+            for h in contradicted))
+    return head

@@ -1,0 +1,67 @@
+"""A machine diagnosed from several recordings at different operating conditions, on the CI config's short record."""
+
+import json
+from pathlib import Path
+
+import pytest
+import yaml
+
+from newdyn import diagnosis, faults, io, machine, model, noise, simulation
+
+ROOT = Path(__file__).resolve().parents[1]
+SETTINGS = diagnosis.Settings.from_config(yaml.safe_load((ROOT / ".test" / "config.yaml").read_text()))
+SAMPLING = model.Sampling(fs=5000.0, t_first=0.1, n_samples=500)  # the CI config's window
+CHANNELS = ("b1_x", "w1", "torque_c")
+FULL_LOAD, PART_LOAD = 1613.0, 1100.0
+
+
+def diagnosed(name, truth, T0, seed):
+    """A recording of the rig ``truth`` at mean torque ``T0``, diagnosed alone as the workflow does (its verdict as JSON)."""
+    operating = {k: model.DEFAULTS[k] for k in model.OPERATING_PARAMETERS} | {"T0": T0}
+    y, sigma = noise.add_noise(simulation.simulate(model.complete({**truth, **operating}), SAMPLING, CHANNELS), CHANNELS, 40.0, seed)
+    m = io.Measurement(name, CHANNELS, y, SAMPLING, operating, sigma)
+    d = diagnosis.diagnose(m, SETTINGS)
+    return machine.Diagnosed(m, json.loads(json.dumps({**d.verdict, "channels": list(d.channels)}, default=float)))
+
+
+def test_stick_slip_that_slips_at_full_load_only_is_one_finding_visible_where_it_slips():
+    truth = {k: v for k, v in faults.scenario_values({"fault": {"kind": "stick_slip", "parameters": {"T_max": 1854.95, "r_k": 1.0}}},
+                                                     model.DEFAULTS).items() if k not in model.OPERATING_PARAMETERS}
+    full, part = diagnosed("full", truth, FULL_LOAD, 1), diagnosed("part", truth, PART_LOAD, 2)
+    assert full.verdict["effect"] == "stick_slip" and part.verdict["verdict"] == "healthy"  # part load: it never slips
+    v = machine.diagnose("rig", [full, part], SETTINGS)
+    assert (v["verdict"], v["effect"]) == ("new_dynamics", "stick_slip")
+    assert v["parameters"]["T_max"]["hdi_low"] <= 1854.95 <= v["parameters"]["T_max"]["hdi_high"]
+    lines = {line["name"]: line for line in v["recordings"]}
+    assert lines["full"]["finding_visible"] and not lines["part"]["finding_visible"]
+    assert lines["part"]["finding_log_bayes_factor"] < 1e-6 < SETTINGS.evidence_margin < lines["full"]["finding_log_bayes_factor"]
+    assert all(line["chi2_after"] <= SETTINGS.chi2_max for line in lines.values())
+    assert "visible in full (T0 1613); not visible in part (T0 1100)" in v["statement"]
+
+
+@pytest.fixture(scope="module")
+def drifted():
+    return {"stiff_full": diagnosed("stiff_full", {"kT1": 3.25e6}, FULL_LOAD, 3),
+            "stiff_part": diagnosed("stiff_part", {"kT1": 3.25e6}, PART_LOAD, 4),
+            "soft_part": diagnosed("soft_part", {"kT1": 2.75e6}, PART_LOAD, 5)}
+
+
+def test_a_drift_of_one_value_under_two_conditions_is_consistent(drifted):
+    v = machine.diagnose("rig", [drifted["stiff_full"], drifted["stiff_part"]], SETTINGS)
+    assert v["verdict"] == "parameter_change" and "kT1" in v["equivalent"]
+    kT1 = v["consistency"]["parameter_change:kT1"]
+    assert kT1["consistent"] and kT1["log_bayes_factor"] > 0  # one value for both: the Occam factor of one parameter fewer
+    fitted = next(r for r in v["ranking"] if r["hypothesis"] == "parameter_change:kT1")["parameters"]["kT1"]
+    assert fitted["hdi_low"] <= 3.25e6 <= fitted["hdi_high"]
+    assert "contradict" not in v["statement"]
+
+
+def test_a_drift_that_needs_different_values_under_two_conditions_is_named_as_contradicted(drifted):
+    """Each recording alone is a kT1 drift, but of different sizes: one value cannot explain both."""
+    assert all(r["hypothesis"] != "parameter_change:kT1" or r["explains"]
+               for d in (drifted["stiff_full"], drifted["soft_part"]) for r in d.verdict["ranking"])
+    v = machine.diagnose("rig", [drifted["stiff_full"], drifted["soft_part"]], SETTINGS)
+    kT1 = v["consistency"]["parameter_change:kT1"]
+    assert kT1["explains_each_alone"] and not kT1["consistent"] and kT1["log_bayes_factor"] < -SETTINGS.evidence_margin
+    assert kT1["hellinger"]["kT1"] > 0.9  # the recordings' posteriors hardly overlap
+    assert "together they contradict" in v["statement"] and "parameter_change:kT1" in v["statement"]
