@@ -1,4 +1,4 @@
-"""Measurement files (shared/spec/measurements.md): round trips, and one clear line for every bad file."""
+"""Measurement files (docs/measurements.md): round trips, and one clear line for every bad file."""
 
 import json
 import os

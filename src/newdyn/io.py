@@ -1,4 +1,4 @@
-"""Measurement files (``shared/spec/measurements.md``): write simulated ones, read and check users'.
+"""Measurement files (``docs/measurements.md``): write simulated ones, read and check users'.
 
 A measurement is ``y`` (channel, time) with coordinates ``time`` [s] (the rig's clock: the model starts
 at t = 0) and ``channel``; optional operating-condition attributes, ``snr_db`` or a per-channel

@@ -1,4 +1,4 @@
-"""The reference rig of ``shared/spec/rig.md``: parameters, channels, sampling and linear matrices.
+"""The reference rig of ``docs/rig.md``: parameters, channels, sampling and linear matrices.
 
 Every model quantity has one name used everywhere: in config, in the kernel's flat parameter
 vector, in file attributes and in the calibration.  A model instance is just a mapping from these

@@ -1,6 +1,6 @@
 """The interface every physical effect implements: one class in one file.
 
-An effect is something the healthy rig of ``shared/spec/rig.md`` does not contain: a friction joint,
+An effect is something the healthy rig of ``docs/rig.md`` does not contain: a friction joint,
 a crack, a loose bearing, a torque ripple.  It declares what it is (name, one-line description), its
 named parameters (units, physical bounds, default, the prior range a diagnosis fits over and the
 range a blind test draws from), *where* it acts (one of :data:`PLACES`) and *what* it adds there:
