@@ -154,7 +154,8 @@ def check_measurement(measurement: io.Measurement, channels: Sequence[str], band
         try:
             noise.floor_band(measurement.sampling.n_samples, measurement.sampling.fs, band_hz)
         except ValueError as error:
-            raise io.MeasurementError(where, f"states no noise level (sigma or snr_db) and its {error}") from None
+            raise io.MeasurementError(where, f"states no noise level (sigma or snr_db) and its {error}; state one in the file, "
+                                             f"lower diagnosis.noise_band_hz or sample faster (docs/measurements.md)") from None
 
 
 def noise_level(measurement: io.Measurement, rows: Sequence[int], band_hz: float) -> tuple[np.ndarray, str]:

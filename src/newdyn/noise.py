@@ -77,7 +77,7 @@ def floor_band(n_samples: int, fs: float, band_low_hz: float) -> np.ndarray:
     if band.sum() < MIN_FLOOR_BINS:
         raise ValueError(
             f"noise band from {band_low_hz:g} Hz to Nyquist ({fs / 2:g} Hz) holds {band.sum()} Welch bins of "
-            f"{fs / nperseg:.3g} Hz, fewer than {MIN_FLOOR_BINS}: lower band_low_hz or record longer"
+            f"{fs / nperseg:.3g} Hz, fewer than {MIN_FLOOR_BINS}: a band starting lower or a higher sampling rate holds more"
         )
     return band
 
