@@ -411,6 +411,7 @@ def test_a_users_csv_and_a_hidden_netcdf_measurement_get_their_verdicts(study):
     assert (verdict["demo"]["verdict"], verdict["demo"]["effect"]) == ("new_dynamics", "stick_slip")  # the CI demo's class
     assert verdict["demo"]["chi2_before"] > 10 and verdict["demo"]["chi2_after"] <= 1.1
     for v in verdict.values():
+        assert next(iter(v)) == "statement"  # what a reader wants first
         assert v["code_hash"] and v["newdyn_version"] and v["settings"]["diagnosis"]["channels"] == ["b1_x", "w1"]
         assert set(v["rmse_before"]) == set(v["rmse_after"]) == {"b1_x", "w1"}
         assert all({"hypothesis", "confidence", "chi2"} <= set(row) for row in v["ranking"])

@@ -765,7 +765,7 @@ def write(diagnosis: Diagnosis, verdict_path, table_path, netcdf_path, posterior
 
     m = diagnosis.measurement
     stamp = provenance.attributes(code_hash)
-    verdict = {"measurement": m.name, **diagnosis.verdict, "channels": list(diagnosis.channels),
+    verdict = {"statement": diagnosis.verdict["statement"], "measurement": m.name, **diagnosis.verdict, "channels": list(diagnosis.channels),
                "settings": json.loads(settings_json), **stamp}
     io.write_json(verdict_path, verdict)
     rows = [{"version": row["name"], "hypothesis": row["hypothesis"], "chi2_red": row["chi2"], "log_evidence": row["log_evidence"],
