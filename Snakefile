@@ -40,3 +40,11 @@ rule all:
 rule blind:
     input:
         hidden_targets("blind"),
+
+
+# At the end of a run, what each of the user's measurements and machines was found to be.
+onsuccess:
+    for line in newdyn.verdicts.statements(
+        [f"results/diagnosis/{name}/verdict.json" for name in [*MEASUREMENTS, *MACHINES]]
+    ):
+        print(line)

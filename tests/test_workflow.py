@@ -417,9 +417,13 @@ def test_a_users_csv_and_a_hidden_netcdf_measurement_get_their_verdicts(study):
         assert all({"hypothesis", "confidence", "chi2"} <= set(row) for row in v["ranking"])
 
 
-def test_a_machines_folder_gets_one_verdict_from_its_recordings_each_at_its_own_condition_and_channels(study):
+def test_a_machines_folder_gets_one_verdict_from_its_recordings_each_at_its_own_condition_and_channels(study_run):
+    study, run = study_run
     machine = study / "results" / "diagnosis" / "rig7"
     verdict = json.loads((machine / "verdict.json").read_text())
+    # the run's last lines say what each of the user's files and machines was found to be
+    assert f"results/diagnosis/rig7/verdict.json: {verdict['statement']}" in run.stdout
+    assert "results/diagnosis/plain/verdict.json: healthy" in run.stdout
     assert next(iter(verdict)) == "statement" and verdict["machine"] == "rig7"
     assert verdict["verdict"] == "healthy" and verdict["statement"].startswith("healthy: the nominal model explains all 2 recordings")
     lines = {line["name"]: line for line in verdict["recordings"]}

@@ -7,6 +7,7 @@ import newdyn.catalog
 import newdyn.config
 import newdyn.effects
 import newdyn.provenance
+import newdyn.verdicts
 from newdyn.cli import DIAGNOSIS_FIGURES
 
 CONFIG_SOURCE = ", ".join(map(str, workflow.overwrite_configfiles or ["config/config.yaml"]))
