@@ -12,15 +12,12 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import re
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 from . import cache
+from .measurement_files import CONDITIONS, NAME, SUFFIXES
 
-SUFFIXES = (".nc", ".csv")
-NAME = re.compile(r"[A-Za-z0-9_.-]+")
-CONDITIONS = "conditions.csv"  # beside recordings: their operating conditions (newdyn.io.recorded_condition)
 CHECKS = ("io.py", "diagnosis.py")  # the modules whose code decides whether a file is good
 
 

@@ -20,7 +20,7 @@ import numpy as np
 import xarray as xr
 
 from . import model
-from .catalog import CONDITIONS
+from .measurement_files import CONDITIONS
 
 OPERATING_ATTRS = model.OPERATING_PARAMETERS  # speed_rpm, T0, load_amp, load_freq, load_harm
 TIME_JITTER = 1e-2  # allowed deviation of a time stamp from the uniform grid, in sample intervals

@@ -4,6 +4,7 @@ import sys
 from pathlib import Path
 
 import newdyn.catalog
+import newdyn.measurement_files
 import newdyn.config
 import newdyn.effects
 import newdyn.provenance
@@ -415,7 +416,7 @@ def recording_conditions(wildcards):
     """The conditions.csv beside a user's recording, when there is one: its operating condition may come from it."""
     if wildcards.root != "results" or wildcards.name not in MEASUREMENTS:
         return []
-    table = Path(MEASUREMENTS[wildcards.name]).parent / newdyn.catalog.CONDITIONS
+    table = Path(MEASUREMENTS[wildcards.name]).parent / newdyn.measurement_files.CONDITIONS
     return [str(table)] if table.is_file() else []
 
 

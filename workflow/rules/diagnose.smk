@@ -115,12 +115,12 @@ rule diagnose_machine:
         unpack(machine_inputs),
     output:
         "results/diagnosis/{machine}/verdict.json",
-    wildcard_constraints:
-        machine="|".join(map(re.escape, MACHINES)) or "(?!)",
     log:
         "results/logs/diagnose_machine/{machine}.log",
     benchmark:
         "results/benchmarks/diagnose_machine/{machine}.tsv"
+    wildcard_constraints:
+        machine="|".join(map(re.escape, MACHINES)) or "(?!)",
     conda:
         "../envs/newdyn.yaml"
     threads: 2
