@@ -37,6 +37,13 @@ rule all:
         hidden_targets("demo"),
 
 
+# Only the user's own files in measurements/: each file's verdict and figures, each machine folder's verdict.
+rule measurements:
+    input:
+        diagnosis_targets("results", list(MEASUREMENTS)),
+        expand("results/diagnosis/{machine}/verdict.json", machine=MACHINES),
+
+
 rule blind:
     input:
         hidden_targets("blind"),

@@ -437,6 +437,19 @@ def test_a_machines_folder_gets_one_verdict_from_its_recordings_each_at_its_own_
         assert (machine / name / "figures" / f"{DIAGNOSIS_FIGURES[0]}.png").exists()
 
 
+def test_the_measurements_target_diagnoses_exactly_the_users_files_with_their_figures(tmp_path):
+    write_users_measurements(tmp_path / "measurements")
+    run = snakemake(tmp_path, "--dry-run", "measurements")
+    assert run.returncode == 0, run.stderr[-3000:]
+    planned = set(re.findall(r"^\s+output: (.+)$", run.stdout, re.MULTILINE))
+    verdicts = {path for line in planned for path in line.split(", ") if path.endswith("verdict.json")}
+    assert verdicts == {"results/diagnosis/plain/verdict.json", "results/diagnosis/rig7/verdict.json",
+                        "results/diagnosis/rig7/full_load/verdict.json", "results/diagnosis/rig7/part_load/verdict.json"}
+    assert any(f"results/diagnosis/plain/figures/{DIAGNOSIS_FIGURES[0]}.png" in line for line in planned)
+    rules = set(re.findall(r"^(?:local)?rule (\w+):", run.stdout, re.MULTILINE))
+    assert not rules & {"simulate", "add_noise", "calibrate_mcmc", "calibrate_joint", "hidden_draw", "plot_summary"}
+
+
 def test_hidden_measurements_are_diagnosed_without_reading_the_truth_and_then_scored(study):
     run = snakemake(study, "--dry-run", "--forceall", "--printshellcmds", "results/demo/score.json")
     assert run.returncode == 0, run.stderr
