@@ -62,7 +62,8 @@ def assert_one_line(err: cfg.ConfigError, source: str, field: str, *words: str) 
 def test_shipped_configs_pass(path):
     config = cfg.load(path, SCHEMA)
     assert set(config) - {"variants"} == {
-        "rig", "operating", "sampling", "simulation", "noise", "scenarios", "calibration", "diagnosis", "hidden"}
+        "rig", "operating", "operating_range", "sampling", "simulation", "noise", "scenarios", "calibration", "diagnosis",
+        "hidden"}
     for name in config["scenarios"]:
         values = cfg.scenario_values(config, name)
         assert set(values) == set(model.slot_names())
@@ -211,6 +212,10 @@ BAD = {
                                                  "diagnosis.faults.stick_slip.T_max", "(0, inf) N·m"),
     "empty diagnosis override": (_set("diagnosis.faults.stick_slip", {}), "diagnosis.faults.stick_slip", "at least 1"),
     "not a range": (_set("diagnosis.faults.cubic_coupling.gamma", [0.0, 1.0, 2.0]), "diagnosis.faults.cubic_coupling.gamma"),
+    "operating range of a rig parameter": (_set("operating_range.kT1", [1.0e6, 2.0e6]), "operating_range.kT1",
+                                           "must be one of", "speed_rpm"),
+    "reversed operating range": (_set("operating_range.T0", [1800.0, 800.0]), "operating_range.T0", "low < high"),
+    "unphysical operating range": (_set("operating_range.speed_rpm", [0.0, 1500.0]), "operating_range.speed_rpm", "(0, inf) rpm"),
     "drift not calibrated": (_set("diagnosis.drift", ["k_s"]), "diagnosis.drift[0]", "not one of calibration.parameters"),
     "negative sensor spread": (_set("diagnosis.sensors.b1_x.offset_sd", -1e-8), "diagnosis.sensors.b1_x.offset_sd", "≥ 0"),
     "sensor of no channel": (_set("diagnosis.sensors.b9_x.gain_sd", 0.01), "diagnosis.sensors.b9_x", "unknown name"),
@@ -731,7 +736,7 @@ def test_schema_holds_no_kinds_and_gets_the_registry_injected():
     for listed in _lists(schema):  # nor does any other list name an effect (hidden.parameter_change is a key)
         assert not set(effects.active()) & {str(item) for item in listed}, listed
     markers = [path for path, node in _subschemas(schema) if "x-kinds" in node]
-    assert len(markers) == 5, markers
+    assert len(markers) == 6, markers
     injected = cfg.load_schema(SCHEMA)
     assert injected["$defs"]["fault"]["properties"]["kind"]["enum"] == list(faults.kinds())
     assert list(faults.kinds()) == [faults.PARAMETER_CHANGE, *effects.active()]
@@ -739,6 +744,7 @@ def test_schema_holds_no_kinds_and_gets_the_registry_injected():
     for section in ("diagnosis", "hidden"):
         assert injected["properties"][section]["properties"]["faults"]["propertyNames"]["enum"] == list(effects.active())
     assert injected["properties"]["diagnosis"]["properties"]["effects"]["items"]["enum"] == list(effects.active())
+    assert injected["properties"]["operating_range"]["propertyNames"]["enum"] == list(model.OPERATING_PARAMETERS)
     assert not [path for path, node in _subschemas(injected) if "x-kinds" in node]
     assert cfg.load_schema() == injected  # the default schema path
 

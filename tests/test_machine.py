@@ -24,10 +24,16 @@ def diagnosed(name, truth, T0, seed):
     return machine.Diagnosed(m, json.loads(json.dumps({**d.verdict, "channels": list(d.channels)}, default=float)))
 
 
-def test_stick_slip_that_slips_at_full_load_only_is_one_finding_visible_where_it_slips():
+@pytest.fixture(scope="module")
+def slipping():
+    """A rig whose joint slips at full load, not at part load: recorded at both."""
     truth = {k: v for k, v in faults.scenario_values({"fault": {"kind": "stick_slip", "parameters": {"T_max": 1854.95, "r_k": 1.0}}},
                                                      model.DEFAULTS).items() if k not in model.OPERATING_PARAMETERS}
-    full, part = diagnosed("full", truth, FULL_LOAD, 1), diagnosed("part", truth, PART_LOAD, 2)
+    return diagnosed("full", truth, FULL_LOAD, 1), diagnosed("part", truth, PART_LOAD, 2)
+
+
+def test_stick_slip_that_slips_at_full_load_only_is_one_finding_visible_where_it_slips(slipping):
+    full, part = slipping
     assert full.verdict["effect"] == "stick_slip" and part.verdict["verdict"] == "healthy"  # part load: it never slips
     v = machine.diagnose("rig", [full, part], SETTINGS)
     assert (v["verdict"], v["effect"]) == ("new_dynamics", "stick_slip")
@@ -37,6 +43,20 @@ def test_stick_slip_that_slips_at_full_load_only_is_one_finding_visible_where_it
     assert lines["part"]["finding_log_bayes_factor"] < 1e-6 < SETTINGS.evidence_margin < lines["full"]["finding_log_bayes_factor"]
     assert all(line["chi2_after"] <= SETTINGS.chi2_max for line in lines.values())
     assert "visible in full (T0 1613); not visible in part (T0 1100)" in v["statement"]
+
+
+def test_recorded_at_part_load_only_the_verdict_says_at_which_load_a_stick_slip_would_show(slipping):
+    """At part load the joint never slips: healthy, with a stick-slip that the recording leaves open as a rival, which a
+    recording at a load where the healthy joint torque (1.307 T0 at its peak) would pass its static limit would show."""
+    v = machine.diagnose("rig", [slipping[1]], SETTINGS)
+    assert v["verdict"] == "healthy" and v["record_next"]["model"] == "healthy"
+    rivals = {row["rival"]: row["advice"] for row in v["record_next"]["rivals"]}
+    advice = rivals["stick_slip"]
+    assert advice["separates"] and advice["parameter"] == "T0" and advice["high"] is None
+    lowest_limit = SETTINGS.fault_ranges["stick_slip"]["T_max"][0]  # the prior's: the lowest a rival may have
+    assert PART_LOAD < lowest_limit / 1.307 * 0.97 <= advice["low"] <= SETTINGS.operating_range["T0"][1]
+    assert not any(a["separates"] for r, a in rivals.items() if r.startswith("parameter_change"))  # drifts of nothing
+    assert f"record at T0 >= {advice['low']:.4g} N·m to tell healthy from stick_slip" in v["statement"]
 
 
 @pytest.fixture(scope="module")

@@ -166,6 +166,7 @@ _KIND_LISTS = {
     "faults": lambda: list(faults.kinds()),
     "effects": lambda: list(effects.active()),
     "hidden_classes": lambda: [HEALTHY, faults.PARAMETER_CHANGE, *effects.active()],
+    "operating": lambda: list(model.OPERATING_PARAMETERS),
 }
 
 
@@ -315,6 +316,12 @@ def _value_problems(config: Mapping) -> Iterator[tuple[str, str]]:
             problem = model.PARAMETER_BY_NAME[name].problem(config[section][name])
             if problem is not None:
                 yield f"{section}.{name}", problem
+    for name, (low, high) in config.get("operating_range", {}).items():
+        problem = model.PARAMETER_BY_NAME[name].problem(low) or model.PARAMETER_BY_NAME[name].problem(high)
+        if problem is None and not low < high:
+            problem = f"must be [low, high] with low < high (got [{low:g}, {high:g}])"
+        if problem is not None:
+            yield f"operating_range.{name}", problem
 
 
 def _sampling_problems(config: Mapping) -> Iterator[tuple[str, str]]:

@@ -88,6 +88,7 @@ class Settings:
     discovery: str = "unexplained"  # or "always"
     sensors: Mapping[str, sensors_module.Sensor] = field(default_factory=dict)  # instrument errors per channel
     noise_colour_order: int = 0  # highest AR order of the noise's colour; 0: white
+    operating_range: Mapping[str, tuple[float, float]] = field(default_factory=dict)  # where a next recording may be made
 
     @classmethod
     def from_config(cls, config: Mapping) -> Settings:
@@ -117,6 +118,7 @@ class Settings:
             discovery=d.get("discovery", "unexplained"),
             sensors={c: sensors_module.Sensor(**spec) for c, spec in d.get("sensors", {}).items()},
             noise_colour_order=int(d.get("noise_colour_order", 0)),
+            operating_range={p: (float(low), float(high)) for p, (low, high) in config.get("operating_range", {}).items()},
         )
 
     def instruments(self, fs: float, colour: noise.Colour | None = None) -> sensors_module.Instruments | None:

@@ -23,7 +23,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from . import comparison, concurrency, effects, hypotheses, io, model, noise
+from . import comparison, concurrency, effects, hypotheses, io, model, next_condition, noise
 from .diagnosis import Settings
 from .hypotheses import HEALTHY, PARAMETER_CHANGE
 
@@ -76,8 +76,27 @@ def diagnose(name: str, recordings: Sequence[Diagnosed], settings: Settings) -> 
         "chi2_before": [line["chi2_before"] for line in lines], "chi2_after": [line["chi2_after"] for line in lines],
         "consistency": {row["hypothesis"]: row["consistency"] for row in ranking},
         "recordings": lines, "ranking": ranking,
+        "record_next": _record_next(ranking, fits, recordings, seen, settings),
     }
     return {"statement": statement(result, settings.chi2_max), **result}
+
+
+def _record_next(ranking: Sequence[Mapping], fits, recordings: Sequence[Diagnosed], seen: Sequence[hypotheses.Recording],
+                 settings: Settings) -> dict | None:
+    """Where other hypotheses explain every recording with evidences within the margin of the best: the operating
+    conditions that would tell them from it (:mod:`newdyn.next_condition`), moved from the first recording's condition,
+    on the configured channels at the recordings' median SNR.  None where the best stands alone, explains nothing or
+    no operating range is configured."""
+    top = ranking[0]
+    rivals = [row["hypothesis"] for row in ranking[1:]
+              if row["explains"] and top["log_evidence"] - row["log_evidence"] <= settings.evidence_margin]
+    if not (top["explains"] and rivals and settings.operating_range):
+        return None
+    snr_db = float(np.median([noise.at_measured_snr(s.data, s.sigma, s.data)[0] for s in seen]))
+    return next_condition.rank(fits[top["hypothesis"]], [fits[n] for n in rivals], recordings[0].measurement.operating,
+                               settings.operating_range, settings.rig, seen[0].sampling, settings.channels, snr_db,
+                               settings.max_step, settings.evidence_margin,
+                               np.random.default_rng(int(settings.mcmc.get("seed", 0))))
 
 
 def _row(fit: hypotheses.JointFit, alone: Sequence[Mapping], settings: Settings) -> dict:
@@ -160,4 +179,6 @@ def statement(verdict: Mapping, chi2_max: float) -> str:
         head += ("; each recording alone is explained by, but together they contradict, " + ", ".join(
             f"{h} (log Bayes factor {verdict['consistency'][h]['log_bayes_factor']:.3g} for one set against one per recording)"
             for h in contradicted))
+    if verdict.get("record_next"):
+        head += "; " + next_condition.sentence(verdict["record_next"])
     return head

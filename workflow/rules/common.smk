@@ -427,20 +427,25 @@ def study_grids(wildcards):
     return expand("results/default/calibration/grids/{parameter}.nc", parameter=_grid_parameters(config))
 
 
+def _diagnosis_settings():
+    return {
+        "rig": config["rig"],
+        "operating": config["operating"],
+        "sampling": _sampling_spec(config),
+        "diagnosis": config["diagnosis"],
+        "calibration": {key: config["calibration"][key] for key in ("parameters", "chi2_max", "refine_points", "mcmc")},
+        "simulation": {"max_step": config["simulation"]["max_step"]},
+        "effects": EFFECTS,
+    }
+
+
 def diagnosis_spec(wildcards):
-    return newdyn.config.canonical_json(
-        {
-            "rig": config["rig"],
-            "operating": config["operating"],
-            "sampling": _sampling_spec(config),
-            "diagnosis": config["diagnosis"],
-            "calibration": {
-                key: config["calibration"][key] for key in ("parameters", "chi2_max", "refine_points", "mcmc")
-            },
-            "simulation": {"max_step": config["simulation"]["max_step"]},
-            "effects": EFFECTS,
-        }
-    )
+    return newdyn.config.canonical_json(_diagnosis_settings())
+
+
+def machine_spec(wildcards):
+    """A diagnosis's settings and the rig's operating range, where the machine's verdict looks for the next condition."""
+    return newdyn.config.canonical_json({**_diagnosis_settings(), "operating_range": config.get("operating_range", {})})
 
 
 def hidden_cases(set_name):

@@ -128,7 +128,7 @@ rule diagnose_machine:
         mem_mb=per_attempt(2048),
         runtime=per_attempt(60),
     params:
-        spec=diagnosis_spec,
+        spec=machine_spec,
         code=code_hash("diagnose-machine", effect_files()),
     shell:
         "NUMBA_NUM_THREADS={threads} OPENBLAS_NUM_THREADS={threads} newdyn diagnose-machine --name {wildcards.machine} "
