@@ -397,6 +397,10 @@ def draw_hidden(spec: dict, output: str, code_hash: str) -> None:
 
     cases = hidden.draw_cases(spec["hidden"], spec["set"], spec["values"], config.hidden_ranges(spec),
                               config.hidden_classes(spec), spec.get("sensors"), spec.get("channels", ()))
+    machines = spec["hidden"]["sets"][spec["set"]]
+    if "recordings" in machines:
+        cases = hidden.draw_recordings(cases, spec["set"], machines, spec["operating_range"], spec["channels"], spec["values"],
+                                       _sampling(spec["sampling"]), spec["hidden"]["snr_db"], spec["max_step"])
     hidden.write_truth(cases, output, code_hash)
     log.info("drew %d hidden cases of set %s", len(cases), spec["set"])
 
@@ -405,20 +409,29 @@ def write_hidden_measurement(truth: str, name: str, spec: dict, output: str, cod
     """Simulate one hidden case into a measurement file that holds nothing of its truth."""
     from . import hidden
 
-    case = next(c for c in hidden.read_truth(truth) if c["name"] == name)
-    hidden.write_case_measurement(case, spec["values"], _sampling(spec["sampling"]), spec["hidden"]["snr_db"], output,
-                                  code_hash, spec["max_step"])
+    machine, _, recording = name.partition("/")  # a machine set's recording is <machine>/<recording>
+    case = next(c for c in hidden.read_truth(truth) if c["name"] == machine)
+    if recording:
+        hidden.write_recording_measurement(case, recording, spec["values"], _sampling(spec["sampling"]),
+                                           spec["hidden"]["snr_db"], output, code_hash, spec["max_step"])
+    else:
+        hidden.write_case_measurement(case, spec["values"], _sampling(spec["sampling"]), spec["hidden"]["snr_db"], output,
+                                      code_hash, spec["max_step"])
 
 
 def score_hidden(truth: str, verdict_paths: list[str], output: str, table: str, figure: str, chi2_max: float,
-                 code_hash: str) -> None:
-    """Reveal a hidden set: score every diagnosis against the truth (JSON, CSV and a figure)."""
-    from pathlib import Path
-
+                 code_hash: str, recording_paths: list[str] = ()) -> None:
+    """Reveal a hidden set: score every diagnosis against the truth (JSON, CSV and a figure); for a machine set, also
+    each recording's own verdict (``recording_paths``, results/<set>/diagnosis/<machine>/<recording>/verdict.json)."""
     from . import hidden, plots
 
+    cases = hidden.read_truth(truth)
     verdicts = {Path(path).parent.name: json.loads(Path(path).read_text()) for path in verdict_paths}
-    result = hidden.score(hidden.read_truth(truth), verdicts, chi2_max)
+    result = hidden.score(cases, verdicts, chi2_max)
+    if recording_paths:
+        result["single_recordings"] = hidden.score_recordings(cases, {
+            f"{Path(path).parent.parent.name}/{Path(path).parent.name}": json.loads(Path(path).read_text())
+            for path in recording_paths})
     hidden.write_score(result, output, table, code_hash)
     name = Path(truth).parent.name
     plots.blind_test_figure(result, figure, f"hidden set {name}", code_hash, [truth, *verdict_paths])
@@ -506,7 +519,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--chi2-max", type=float, required=True, help="a fit explains the data at this reduced χ² or less")
     p.add_argument("--effect", action="append", default=[], dest="effects",
                    help="one of the study's own effects (the config's effects; repeat for each), so that a verdict naming it is scored")
-    p.add_argument("verdicts", nargs="+", help="the set's verdict.json files")
+    p.add_argument("--recordings", nargs="*", default=[], help="a machine set's recordings' own verdict.json files, "
+                   "scored beside the machines' verdicts")
+    p.add_argument("verdicts", nargs="+", help="the set's verdict.json files (a machine set's: the machines')")
     p = command("summarize", "the summary table of all calibrations")
     p.add_argument("inputs", nargs="+", help="calibration files")
 
@@ -547,7 +562,8 @@ def main(argv: list[str] | None = None) -> int:
     elif args.command == "hidden-measurement":
         write_hidden_measurement(args.truth, args.case, json.loads(args.spec), args.output, args.code_hash)
     elif args.command == "hidden-score":
-        score_hidden(args.truth, args.verdicts, args.output, args.table, args.figure, args.chi2_max, args.code_hash)
+        score_hidden(args.truth, args.verdicts, args.output, args.table, args.figure, args.chi2_max, args.code_hash,
+                     args.recordings)
     elif args.command == "summarize":
         summarize(args.inputs, args.output)
     return 0

@@ -447,6 +447,14 @@ def _hidden_problems(config: Mapping) -> Iterator[tuple[str, str]]:
             yield f"hidden.sets.{name}.out_of_spec", "needs instruments: true (out-of-spec errors are drawn on top of them)"
         if spec.get("out_of_spec", 0) > spec["cases"]:
             yield f"hidden.sets.{name}.out_of_spec", f"more than the set's {spec['cases']} cases"
+        if "recordings" in spec:
+            low, high = spec["recordings"]
+            if low > high:
+                yield f"hidden.sets.{name}.recordings", f"must be [low, high] with low <= high (got [{low}, {high}])"
+            if not config.get("operating_range"):
+                yield f"hidden.sets.{name}.recordings", "draws each recording's condition in operating_range, which is not set"
+            if spec.get("instruments"):
+                yield f"hidden.sets.{name}.recordings", "a set of machines is drawn with exact instruments (drop instruments)"
 
 
 def _all_scenario_problems(config: Mapping) -> Iterator[tuple[str, str]]:

@@ -13,6 +13,13 @@ A set with ``instruments`` sees every case through imperfect instruments: each c
 its own, so the machines are those of the same set without instruments), and ``out_of_spec`` of its cases get
 one instrument error on a compared channel :data:`OUT_OF_SPEC_SDS` datasheet sds off instead.
 
+A set with ``recordings: [low, high]`` is a set of machines: each case is a machine with that many recordings (drawn
+in the range), each at an operating condition drawn uniformly in the config's ``operating_range``, on a non-empty
+subset of the compared channels, with its own noise; redrawn until the machine's finding shows in one of them at
+least (the nominal model's reduced χ² there ≥ :data:`VISIBLE_CHI2`), since a finding no recording shows is no one's
+to find.  Each recording is a measurement ``<machine>/r<k>``; the machine's verdict is scored like a case's, and
+beside it each recording's own verdict, as if it had been diagnosed alone (:func:`score_recordings`).
+
 An effect's draw ranges default to its parameters' ``hidden`` ranges (:attr:`Parameter.draw_range`,
 in its file, with how they were measured; ``hidden.faults`` in the config overrides them): each
 range's weak end still leaves a reduced-χ² excess the best drift of one rig parameter cannot remove.
@@ -28,11 +35,13 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from . import effects, faults, io, model, noise, provenance, sensors, simulation
+from .hidden_sets import case_names, recording_names
 from .verdicts import HEALTHY, NEW_DYNAMICS, PARAMETER_CHANGE, SENSOR_PROBLEM, UNEXPLAINED, VERDICTS
 
 OUT_OF_SPEC_SDS = (10.0, 30.0)  # an out-of-spec instrument error, in its datasheet's sds (either sign)
 MAX_DRAWS = 1000  # tries per case before a range is declared to admit no valid draw
 CHI2_MAX = 1.1  # a fault's fit explains the data when its reduced χ² is at most this
+VISIBLE_CHI2 = 2.0  # a hidden machine's finding lifts the nominal model's reduced χ² to this in one recording at least
 
 
 def fault_classes() -> tuple[str, ...]:
@@ -106,11 +115,9 @@ def draw_cases(
     streams = [np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(n + 1)]
     order = list(streams[0].permutation(chosen))
     labels = [str(c) for c in streams[0].permutation((order * (n // len(chosen) + 1))[:n])]
-    width = max(2, len(str(n)))
     cases = [
-        {"name": f"{set_name}_{i + 1:0{width}d}", "class": label, **_draw(label, hidden, ranges, base, rng),
-         "noise_seed": int(rng.integers(0, 2**31 - 1))}
-        for i, (label, rng) in enumerate(zip(labels, streams[1:]))
+        {"name": name, "class": label, **_draw(label, hidden, ranges, base, rng), "noise_seed": int(rng.integers(0, 2**31 - 1))}
+        for name, label, rng in zip(case_names(set_name, n), labels, streams[1:])
     ]
     if spec.get("instruments"):
         instrument_streams = [np.random.default_rng(s) for s in np.random.SeedSequence([seed, 1]).spawn(n + 1)]
@@ -170,6 +177,46 @@ def case_values(case: Mapping, base_values: Mapping[str, float]) -> dict[str, fl
     return faults.scenario_values(case["scenario"], base_values)
 
 
+def draw_recordings(cases: Sequence[Mapping], set_name: str, spec: Mapping, operating_range: Mapping[str, Sequence[float]],
+                    compared: Sequence[str], base_values: Mapping[str, float], sampling: model.Sampling, snr_db: float,
+                    max_step: float = simulation.DEFAULT_MAX_STEP) -> list[dict]:
+    """The cases of a machine set (``spec["recordings"]``), each with its ``recordings``: name, ``condition``,
+    ``channels`` and ``noise_seed``, redrawn from the machine's own stream until its finding shows in one of them."""
+    names = recording_names(set_name, spec)
+    streams = [np.random.default_rng(s) for s in np.random.SeedSequence([int(spec["seed"]), 3]).spawn(len(cases))]
+    base = model.complete(base_values)
+    machines = []
+    for case, rng in zip(cases, streams):
+        for _ in range(MAX_DRAWS):
+            recordings = [_draw_recording(name.split("/")[1], operating_range, compared, rng) for name in names[case["name"]]]
+            if case["class"] == HEALTHY or any(_visible(case, r, base, sampling, snr_db, max_step) for r in recordings):
+                break
+        else:
+            raise ValueError(f"hidden {case['name']}: its finding shows in no recording of {MAX_DRAWS} draws of conditions")
+        machines.append({**case, "recordings": recordings})
+    return machines
+
+
+def _draw_recording(name: str, operating_range: Mapping[str, Sequence[float]], compared: Sequence[str],
+                    rng: np.random.Generator) -> dict:
+    condition = {}
+    for parameter, (low, high) in sorted(operating_range.items()):
+        value = float(rng.uniform(low, high))
+        condition[parameter] = float(round(value)) if model.PARAMETER_BY_NAME[parameter].integer else value
+    channels = [c for c in compared if rng.random() < 0.5] or [str(rng.choice(list(compared)))]
+    return {"name": name, "condition": condition, "channels": channels, "noise_seed": int(rng.integers(0, 2**31 - 1))}
+
+
+def _visible(case: Mapping, recording: Mapping, base: Mapping[str, float], sampling: model.Sampling, snr_db: float,
+             max_step: float) -> bool:
+    """Whether the case's finding lifts the nominal model's reduced χ² to :data:`VISIBLE_CHI2` in ``recording``."""
+    at = {**base, **recording["condition"]}
+    truth, nominal = (simulation.simulate(values, sampling, recording["channels"], max_step)
+                      for values in (case_values(case, at), at))
+    sigma = noise.noise_sigma(truth, snr_db)
+    return 1.0 + float(np.mean(((truth - nominal) / sigma[:, None]) ** 2)) >= VISIBLE_CHI2
+
+
 # ----------------------------------------------------------------------------------------- files
 
 
@@ -202,6 +249,20 @@ def write_case_measurement(
     attrs = {"title": f"newdyn blind-test measurement {case['name']}", **provenance.attributes(code_hash)}
     operating = {name: values[name] for name in model.OPERATING_PARAMETERS}
     io.write_netcdf(io.measurement_dataset(noisy, model.CHANNELS, sampling, operating, attrs), output)
+
+
+def write_recording_measurement(case: Mapping, recording: str, base_values: Mapping[str, float], sampling: model.Sampling,
+                                snr_db: float, output: str | os.PathLike, code_hash: str = "",
+                                max_step: float = simulation.DEFAULT_MAX_STEP) -> None:
+    """One recording of a hidden machine as a measurement file: its channels at its condition with its noise, and
+    nothing of the truth (as :func:`write_case_measurement`)."""
+    drawn = next(r for r in case["recordings"] if r["name"] == recording)
+    values = case_values(case, {**base_values, **drawn["condition"]})
+    clean = simulation.simulate(values, sampling, drawn["channels"], max_step)
+    noisy, _ = noise.add_noise(clean, drawn["channels"], snr_db, int(drawn["noise_seed"]))
+    attrs = {"title": f"newdyn blind-test recording {case['name']}/{recording}", **provenance.attributes(code_hash)}
+    operating = {name: values[name] for name in model.OPERATING_PARAMETERS}
+    io.write_netcdf(io.measurement_dataset(noisy, drawn["channels"], sampling, operating, attrs), output)
 
 
 def _through_instruments(case: Mapping, values: Mapping[str, float], sampling: model.Sampling, max_step: float) -> np.ndarray:
@@ -280,7 +341,7 @@ def score(cases: Sequence[Mapping], verdicts: Mapping[str, Mapping], chi2_max: f
             "name": case["name"], "class": case["class"], "truth": dict(case["truth"]),
             "verdict": verdict["verdict"], "effect": verdict.get("effect"), "equivalent": list(verdict.get("equivalent") or []),
             "predicted": label, "correct": correct,
-            "chi2_before": _float(verdict.get("chi2_before")), "chi2_after": _float(verdict.get("chi2_after")),
+            "chi2_before": _worst(verdict.get("chi2_before")), "chi2_after": _worst(verdict.get("chi2_after")),
             "out_of_spec": _instrument(case["out_of_spec"]) if "out_of_spec" in case else None,
             "sensor_problems": [_instrument(p) for p in verdict.get("sensor_problems") or []],
             "sensor_alternatives": [_instrument(p) for a in verdict.get("sensor_alternatives") or [] for p in a["sensor_problems"]],
@@ -313,6 +374,22 @@ def score(cases: Sequence[Mapping], verdicts: Mapping[str, Mapping], chi2_max: f
                         "named_as_alternative": sum(row["out_of_spec"] in row["sensor_alternatives"] for row in bad),
                         "false_alarms": sum(p != row["out_of_spec"] for row in seen for p in row["sensor_problems"])},
     }
+
+
+def score_recordings(cases: Sequence[Mapping], verdicts: Mapping[str, Mapping]) -> dict:
+    """How the recordings of a machine set fare diagnosed alone (``verdicts`` by ``<machine>/<recording>``), each
+    scored against its machine's truth: what the machine's verdict is compared with."""
+    rows = [{"recording": f"{case['name']}/{r['name']}", "class": case["class"],
+             "predicted": predicted_label(verdicts[f"{case['name']}/{r['name']}"]),
+             "correct": is_correct(case, verdicts[f"{case['name']}/{r['name']}"])}
+            for case in cases for r in case["recordings"]]
+    correct = sum(row["correct"] for row in rows)
+    return {"recordings": len(rows), "correct": correct, "accuracy": correct / len(rows) if rows else None, "rows": rows}
+
+
+def _worst(value) -> float | None:
+    """A verdict's reduced χ²: a file's, or a machine's largest over its recordings."""
+    return max((_float(v) for v in value), default=None) if isinstance(value, list) else _float(value)
 
 
 def _instrument(entry: Mapping) -> str:

@@ -7,6 +7,7 @@ import newdyn.catalog
 import newdyn.measurement_files
 import newdyn.config
 import newdyn.effects
+import newdyn.hidden_sets
 import newdyn.provenance
 import newdyn.verdicts
 from newdyn.cli import DIAGNOSIS_FIGURES
@@ -388,6 +389,10 @@ for _line in _bad:
     print(f"newdyn: skipping bad measurement: {_line}", file=sys.stderr)
 # machine -> the names of its recordings (measurements/<machine>/<recording>.nc or .csv)
 MACHINES = newdyn.catalog.machines(MEASUREMENTS)
+# hidden set of machines -> machine -> its recordings' names, known from the set's seed before any draw
+HIDDEN_MACHINES = {
+    name: newdyn.hidden_sets.recording_names(name, spec) for name, spec in HIDDEN_SETS.items() if "recordings" in spec
+}
 
 
 def diagnosis_root(root, name):
@@ -404,11 +409,16 @@ def measurement_file(wildcards):
 
 
 def machine_inputs(wildcards):
-    """A machine's recordings and each one's own verdict, in the same order."""
-    names = MACHINES[wildcards.machine]
+    """A machine's recordings and each one's own verdict, in the same order: a user's folder in measurements/, or a
+    hidden set's drawn machine."""
+    if wildcards.root == "results":
+        names, files = MACHINES[wildcards.machine], MEASUREMENTS
+    else:
+        names = HIDDEN_MACHINES[wildcards.root.removeprefix("results/")][wildcards.machine]
+        files = {name: f"{wildcards.root}/measurements/{name}.nc" for name in names}
     return {
-        "recordings": [MEASUREMENTS[name] for name in names],
-        "verdicts": [f"results/diagnosis/{name}/verdict.json" for name in names],
+        "recordings": [files[name] for name in names],
+        "verdicts": [f"{wildcards.root}/diagnosis/{name}/verdict.json" for name in names],
     }
 
 
@@ -449,7 +459,7 @@ def machine_spec(wildcards):
 
 
 def hidden_cases(set_name):
-    return [f"{set_name}_{i:02d}" for i in range(1, HIDDEN_SETS[set_name]["cases"] + 1)]
+    return newdyn.hidden_sets.case_names(set_name, HIDDEN_SETS[set_name]["cases"])
 
 
 def diagnosis_targets(root, names):
@@ -479,13 +489,31 @@ def hidden_spec(wildcards):
                 if instruments
                 else {}
             ),
+            **(
+                {
+                    "operating_range": config["operating_range"],
+                    "channels": config["diagnosis"]["channels"],
+                }
+                if wildcards.set in HIDDEN_MACHINES
+                else {}
+            ),
         }
     )
 
 
 def hidden_targets(set_name):
-    """A hidden set's diagnoses, their figures and its score, if the set is configured."""
+    """A hidden set's diagnoses, their figures and its score, if the set is configured; a machine set's machines'
+    verdicts and its score."""
     if set_name not in HIDDEN_SETS:
         return []
     root = f"results/{set_name}"
-    return diagnosis_targets(root, hidden_cases(set_name)) + [f"{root}/score.json", f"{root}/blind_test.png"]
+    score = [f"{root}/score.json", f"{root}/blind_test.png"]
+    if set_name in HIDDEN_MACHINES:
+        return expand("{root}/diagnosis/{machine}/verdict.json", root=root, machine=HIDDEN_MACHINES[set_name]) + score
+    return diagnosis_targets(root, hidden_cases(set_name)) + score
+
+
+def hidden_recording_verdicts(wildcards):
+    """A machine set's recordings' own verdicts, scored beside the machines'; none for a set of single files."""
+    machines = HIDDEN_MACHINES.get(wildcards.set, {})
+    return [f"results/{wildcards.set}/diagnosis/{name}/verdict.json" for names in machines.values() for name in names]

@@ -114,13 +114,13 @@ rule diagnose_machine:
     input:
         unpack(machine_inputs),
     output:
-        "results/diagnosis/{machine}/verdict.json",
+        "{root}/diagnosis/{machine}/verdict.json",
     log:
-        "results/logs/diagnose_machine/{machine}.log",
+        "{root}/logs/diagnose_machine/{machine}.log",
     benchmark:
-        "results/benchmarks/diagnose_machine/{machine}.tsv"
+        "{root}/benchmarks/diagnose_machine/{machine}.tsv"
     wildcard_constraints:
-        machine="|".join(map(re.escape, MACHINES)) or "(?!)",
+        machine="|".join(map(re.escape, [*MACHINES, *(m for s in HIDDEN_MACHINES.values() for m in s)])) or "(?!)",
     conda:
         "../envs/newdyn.yaml"
     threads: 2
