@@ -18,7 +18,7 @@ from pathlib import Path
 from . import cache
 from .measurement_files import CONDITIONS, NAME, SUFFIXES
 
-CHECKS = ("io.py", "diagnosis.py")  # the modules whose code decides whether a file is good
+CHECKS = ("io.py", "diagnosis.py", "discovery/search.py")  # the modules whose code decides whether a file is good
 
 
 def good_measurements(folder: str | os.PathLike, operating: Mapping[str, float], channels: Sequence[str], band_hz: float,
