@@ -38,6 +38,16 @@ def test_good_files_are_kept_and_each_bad_one_gets_one_line(folder, tmp_path):
     assert any("share the name 'twin'" in line for line in problems)
 
 
+def test_a_conditions_table_is_not_taken_for_a_recording(tmp_path):
+    machine = tmp_path / "pump7"
+    machine.mkdir()
+    write_good(machine / "full_load.csv")
+    (machine / "conditions.csv").write_text("recording,T0\nfull_load,1100\n")
+    (tmp_path / "conditions.csv").write_text("recording,T0\n")
+    assert catalog.good_measurements(tmp_path, OPERATING, CHANNELS, 1000.0, tmp_path / "index.json") == (
+        {"pump7/full_load": str(machine / "full_load.csv")}, [])
+
+
 def test_a_file_is_read_again_only_when_it_or_the_settings_change(folder, tmp_path, monkeypatch):
     index = tmp_path / "index.json"
     first = catalog.good_measurements(folder, OPERATING, CHANNELS, 1000.0, index)

@@ -31,7 +31,7 @@ def good_measurements(folder: str | os.PathLike, operating: Mapping[str, float],
     known = document.get("files", {}) if document.get("settings") == settings else {}
     by_name: dict[str, list[Path]] = {}
     for path in sorted([*Path(folder).glob("*"), *Path(folder).glob("*/*")]):  # a machine's recordings: <machine>/<recording>
-        if path.suffix.lower() in SUFFIXES and path.is_file():
+        if path.suffix.lower() in SUFFIXES and path.name != CONDITIONS and path.is_file():
             by_name.setdefault(path.relative_to(folder).with_suffix("").as_posix(), []).append(path)
     machines = {name.split("/")[0] for name in by_name if "/" in name}
     good, problems, checked, changed = {}, [], {}, False
