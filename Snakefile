@@ -1,5 +1,6 @@
 # newdyn: find new dynamics in machines. Run: snakemake --cores 2
-# (another study: snakemake --cores 2 --configfile my.yaml; it replaces config/config.yaml whole)
+# Change a few settings: snakemake --cores 2 --configfile my.yaml (merged over config/config.yaml: its mappings key by
+# key, its lists whole); a study of its own: add --replace-workflow-config (my.yaml then holds every section).
 from snakemake.utils import min_version
 
 min_version("9.0")
@@ -8,9 +9,7 @@ min_version("9.0")
 report: "workflow/report/workflow.rst"
 
 
-if not workflow.overwrite_configfiles:
-
-    configfile: "config/config.yaml"
+configfile: "config/config.yaml"
 
 
 include: "workflow/rules/common.smk"

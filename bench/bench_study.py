@@ -44,7 +44,8 @@ def run_study(folder: Path, configfile: str, cores: int, cache: Path | None) -> 
                    "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"}
     if cache is not None:
         environment["NEWDYN_CACHE"] = str(cache)
-    command = [sys.executable, "-m", "snakemake", "--cores", str(cores), "--configfile", configfile]
+    # the study is the file alone, not merged over the clone's config/config.yaml
+    command = [sys.executable, "-m", "snakemake", "--cores", str(cores), "--configfile", configfile, "--replace-workflow-config"]
     start = time.perf_counter()
     run = subprocess.run(command, cwd=folder, env=environment, capture_output=True, text=True, check=False)
     elapsed = time.perf_counter() - start

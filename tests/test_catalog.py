@@ -38,6 +38,16 @@ def test_good_files_are_kept_and_each_bad_one_gets_one_line(folder, tmp_path):
     assert any("share the name 'twin'" in line for line in problems)
 
 
+def test_a_conditions_table_is_not_taken_for_a_recording(tmp_path):
+    machine = tmp_path / "pump7"
+    machine.mkdir()
+    write_good(machine / "full_load.csv")
+    (machine / "conditions.csv").write_text("recording,T0\nfull_load,1100\n")
+    (tmp_path / "conditions.csv").write_text("recording,T0\n")
+    assert catalog.good_measurements(tmp_path, OPERATING, CHANNELS, 1000.0, tmp_path / "index.json") == (
+        {"pump7/full_load": str(machine / "full_load.csv")}, [])
+
+
 def test_a_file_is_read_again_only_when_it_or_the_settings_change(folder, tmp_path, monkeypatch):
     index = tmp_path / "index.json"
     first = catalog.good_measurements(folder, OPERATING, CHANNELS, 1000.0, index)
@@ -52,3 +62,21 @@ def test_a_file_is_read_again_only_when_it_or_the_settings_change(folder, tmp_pa
     read.clear()
     catalog.good_measurements(folder, OPERATING, ["b1_x"], 1000.0, index)  # other channels: every file again
     assert sorted(read) == ["empty.csv", "good.csv"]
+
+
+def test_a_record_off_the_rig_clocks_sample_grid_is_refused_in_one_line_and_rounded_stamps_pass(tmp_path):
+    """The search for a missing term simulates on the grid k/fs from t = 0, so t_first·fs must be whole (it crashed the
+    diagnosis before); stamps rounded to microseconds, within the time check's own tolerance, are on it."""
+    fs = 3000.0
+    times = 0.5 + np.arange(500) / fs
+    y, _ = noise.add_noise(simulate({}, model.Sampling(fs, 0.5, 500), CHANNELS), CHANNELS, 40.0, 1)
+    np.savetxt(tmp_path / "rounded.csv", np.column_stack([times, y.T]), delimiter=",", header="time,b1_x,w1", comments="",
+               fmt=["%.6f", "%.10g", "%.10g"])
+    np.savetxt(tmp_path / "off_grid.csv", np.column_stack([times + 0.4 / fs, y.T]), delimiter=",", header="time,b1_x,w1",
+               comments="", fmt="%.10g")
+    good, problems = catalog.good_measurements(tmp_path, OPERATING, CHANNELS, 1000.0, tmp_path / "index.json")
+    assert list(good) == ["rounded"]
+    assert problems == [(f"{tmp_path / 'off_grid.csv'}: time starts at 0.5001333333 s, 1500.4 sample intervals after t = 0 "
+                        "where the search for a missing term needs a whole number (t_first·fs, as 0.5 s at 5000 Hz gives "
+                        "2500): put the stamps on the rig clock's grid k/fs (resample the record) "
+                        "(docs/measurements.md#time-the-rigs-clock)")]

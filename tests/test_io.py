@@ -93,7 +93,7 @@ def _retime(ds, times):
 BAD_FILES = {
     "missing file": (lambda p: p, "file not found"),
     "truncated NetCDF": (_truncated, "unreadable or truncated"),
-    "not NetCDF at all": (lambda p: (p.write_text("hello"), p)[1], "unreadable or truncated"),
+    "not NetCDF at all": (lambda p: (p.write_text("hello"), p)[1], "is not a NetCDF file"),
     "no y": (_nc(lambda ds: ds.rename({"y": "z"})), "no variable 'y'"),
     "no channel columns": (_csv("time\n0.5\n0.5002\n"), "no channel columns"),
     "unknown channel": (_nc(lambda ds: ds.assign_coords(channel=["b1_x", "w9"])), "unknown channel 'w9'"),
@@ -106,7 +106,7 @@ BAD_FILES = {
     "time before the model's start": (_nc(lambda ds: _retime(ds, SAMPLING.times - 1.0)), "before the model's start"),
     "operating attribute not a number": (_nc(lambda ds: ds.assign_attrs(T0="fast")), "attribute T0"),
     "operating attribute infinite": (_nc(lambda ds: ds.assign_attrs(speed_rpm=np.inf)), "attribute speed_rpm"),
-    "ragged CSV": (_csv("time,b1_x,w1\n0.5,1\n"), "rows have 2 columns, header has 3"),
+    "ragged CSV": (_csv("time,b1_x,w1\n0.5,1,2\n0.5002,1\n0.5004,1,2\n"), "line 3 has 2 values where the header names 3 columns"),
     "CSV without data": (_csv("time,b1_x,w1\n"), "has a header but no data rows"),
     "unsupported type": (lambda p: (p.with_suffix(".mat").write_text("x"), p.with_suffix(".mat"))[1], "unsupported file type"),
 }
@@ -123,6 +123,80 @@ def test_bad_file_gets_one_line_naming_it(tmp_path, case):
     assert "\n" not in message
     assert message.startswith(f"{path}: ")
     assert problem in message
+
+
+def _csv_rows(times, header="time,b1_x,w1", separator=",", decimal="."):
+    """A CSV of ``times`` and two plausible channels, its numbers written with ``separator`` and ``decimal``."""
+    rows = [separator.join(f"{v:.10g}".replace(".", decimal) for v in (t, 1e-7 * np.cos(155 * t), 155.0)) for t in times]
+    return "\n".join([header.replace(",", separator), *rows]) + "\n"
+
+
+# Bad files a user meets, each with the whole line it gets after "<file>: ".
+USERS_BAD_FILES = {
+    "garbage bytes named .nc": (
+        lambda p: (p.write_bytes(b"\x13\x37\xfe\x00" * 500), p)[1],
+        ("is not a NetCDF file: it starts with b'\\x137\\xfe\\x00' where a NetCDF file starts with b'CDF' or b'\\x89HDF'; "
+        "write it with xarray's to_netcdf (docs/measurements.md#netcdf)")),
+    "a CSV named .nc": (
+        lambda p: (p.write_text(_csv_rows(SAMPLING.times)), p)[1],
+        ("is not a NetCDF file: it starts with b'time' where a NetCDF file starts with b'CDF' or b'\\x89HDF' (text: a CSV "
+        "file is named .csv); write it with xarray's to_netcdf (docs/measurements.md#netcdf)")),
+    "semicolons between columns": (
+        _csv(_csv_rows(SAMPLING.times, separator=";")),
+        ("columns are separated by ';', the format needs commas, with a dot as the decimal mark (time,b1_x,w1 / "
+        "0.5,1.2e-07,155.0; docs/measurements.md#csv)")),
+    "semicolons and decimal commas": (
+        _csv(_csv_rows(SAMPLING.times, separator=";", decimal=",")),
+        ("columns are separated by ';', the format needs commas, with a dot as the decimal mark (time,b1_x,w1 / "
+        "0.5,1.2e-07,155.0; docs/measurements.md#csv)")),
+    "tabs between columns": (
+        _csv(_csv_rows(SAMPLING.times, separator="\t")),
+        ("columns are separated by '\\t', the format needs commas, with a dot as the decimal mark (time,b1_x,w1 / "
+        "0.5,1.2e-07,155.0; docs/measurements.md#csv)")),
+    "last row cut short": (
+        _csv(_csv_rows(SAMPLING.times) + "0.62,1.1e-"),
+        (f"line {SAMPLING.n_samples + 2}, the last, has 2 values where the header names 3 columns: the file looks cut short; "
+        "write it again")),
+    "time in milliseconds": (
+        _csv(_csv_rows(1000.0 * SAMPLING.times)),
+        ("sampling rate 5 Hz is below twice the shaft's rotation frequency (25 Hz): time looks like milliseconds (read as "
+        "such, the rate is 5000 Hz); the time column must be in seconds: divide it by 1000")),
+    "far too slow": (
+        _csv(_csv_rows(0.5 + np.arange(50) / 0.01)),
+        ("sampling rate 0.01 Hz is below twice the shaft's rotation frequency (25 Hz), too slow to show the rig's "
+        "vibration: sample faster")),
+    "empty CSV": (_csv(""), "is empty (0 bytes)"),
+    "empty NetCDF": (lambda p: (p.write_bytes(b""), p)[1], "is empty (0 bytes)"),
+    "CSV without a header": (
+        _csv(_csv_rows(SAMPLING.times).split("\n", 1)[1]),
+        ("has no header: its first line holds numbers; the first line must name the columns, time and then the channels "
+        "(time,b1_x,w1; docs/measurements.md#csv)")),
+    "CSV with another header": (
+        _csv(_csv_rows(SAMPLING.times, header="t,b1_x,w1")),
+        ("header starts with 't'; the first line must name the columns, time and then the channels (time,b1_x,w1; "
+        "docs/measurements.md#csv)")),
+    "text in a value": (_csv("time,b1_x,w1\n0.5,1e-7,155\n0.5002,1e-7,n/a\n"), "line 3, column w1: 'n/a' is not a number"),
+    "sigma as a data variable": (
+        _nc(lambda ds: ds.assign(sigma=("channel", [1e-9, 4e-3]))),
+        ("sigma is a data variable, but the noise level is read from a coordinate sigma along channel: write it with "
+        "ds.assign_coords(sigma=('channel', values)) (docs/measurements.md#the-noise-level)")),
+}
+
+
+@pytest.mark.parametrize("case", USERS_BAD_FILES)
+def test_a_users_bad_file_gets_the_line_that_names_its_problem_and_fix(tmp_path, case):
+    build, problem = USERS_BAD_FILES[case]
+    path = build(tmp_path / "bad.nc")
+    with pytest.raises(MeasurementError) as error, warnings.catch_warnings():
+        warnings.simplefilter("error")
+        read_measurement(path, OPERATING)
+    assert str(error.value) == f"{path}: {problem}"
+
+
+def test_comment_and_empty_lines_of_a_csv_are_skipped(tmp_path):
+    text = _csv_rows(SAMPLING.times).replace("\n", "\n# acquisition paused? no\n\n", 1)
+    (tmp_path / "m.csv").write_text(text)
+    assert read_measurement(tmp_path / "m.csv", OPERATING).sampling.n_samples == SAMPLING.n_samples
 
 
 def test_written_files_get_ordinary_permissions(tmp_path):

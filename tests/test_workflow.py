@@ -324,6 +324,36 @@ def test_bad_config_fails_in_one_line_before_any_job(tmp_path):
     assert not (tmp_path / "work" / "results").exists()
 
 
+def with_base_config(workdir, override_text):
+    """``workdir`` holding the CI config as its config/config.yaml, and an override file of ``override_text``."""
+    (workdir / "config").mkdir(parents=True)
+    shutil.copy(TEST_CONFIG, workdir / "config" / "config.yaml")
+    override = workdir / "override.yaml"
+    override.write_text(override_text)
+    return override
+
+
+def test_a_configfile_of_a_few_lines_is_merged_over_the_working_directorys_config(tmp_path):
+    """Snakemake's convention: --configfile changes what it names and keeps the rest of config/config.yaml."""
+    override = with_base_config(tmp_path, "# one more noise stream\nnoise:\n  seeds: [1, 2]\n")
+    base = planned_outputs(tmp_path, config=tmp_path / "config" / "config.yaml")
+    merged = planned_outputs(tmp_path, config=override)
+    assert "results/default/simulations/healthy/snr40_seed2.nc" in merged
+    assert {path for path in merged if "seed2" not in path} == set(base)  # the rest of the study as it was
+
+
+def test_a_bad_override_names_both_files_and_replace_workflow_config_takes_the_override_alone(tmp_path):
+    override = with_base_config(tmp_path, "noise:\n  seeds: [-1]\n")
+    run = snakemake(tmp_path, "--dry-run", config=override)
+    lines = [line for line in run.stderr.splitlines() if "bad config" in line]
+    assert lines == [f"newdyn: bad config: config/config.yaml, {override}: noise.seeds[0]: must be ≥ 0 (got -1)"]
+    override.write_text("noise:\n  seeds: [2]\n")
+    run = snakemake(tmp_path, "--dry-run", "--replace-workflow-config", config=override)
+    lines = [line for line in run.stderr.splitlines() if "bad config" in line]
+    assert lines == [(f"newdyn: bad config: {override}: rig: missing required key (also missing: operating, sampling, "
+                      "simulation, scenarios, calibration, diagnosis, hidden)")]
+
+
 def test_comparison_holds_every_pair_of_scenarios_and_agrees_with_the_summary(study):
     import xarray as xr
 

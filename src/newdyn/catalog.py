@@ -18,20 +18,21 @@ from pathlib import Path
 from . import cache
 from .measurement_files import CONDITIONS, NAME, SUFFIXES
 
-CHECKS = ("io.py", "diagnosis.py")  # the modules whose code decides whether a file is good
+CHECKS = ("io.py", "diagnosis.py", "discovery/search.py")  # the modules whose code decides whether a file is good
 
 
 def good_measurements(folder: str | os.PathLike, operating: Mapping[str, float], channels: Sequence[str], band_hz: float,
-                      index: str | os.PathLike) -> tuple[dict[str, str], list[str]]:
+                      index: str | os.PathLike | None) -> tuple[dict[str, str], list[str]]:
     """(name → path of every good measurement in ``folder``, one line per bad file naming it and its problem).
-    ``index`` is the JSON file that remembers the checks; it is rewritten only when a check was made."""
+    ``index`` is the JSON file that remembers the checks; it is rewritten only when a check was made.  Without one,
+    every file is checked and nothing is remembered."""
     settings = json.dumps({"operating": dict(operating), "channels": list(channels), "band_hz": band_hz, "checks": _checks_version()},
                           sort_keys=True)
-    document = cache.read_json(index)
+    document = cache.read_json(index) if index is not None else {}
     known = document.get("files", {}) if document.get("settings") == settings else {}
     by_name: dict[str, list[Path]] = {}
     for path in sorted([*Path(folder).glob("*"), *Path(folder).glob("*/*")]):  # a machine's recordings: <machine>/<recording>
-        if path.suffix.lower() in SUFFIXES and path.is_file():
+        if path.suffix.lower() in SUFFIXES and path.name != CONDITIONS and path.is_file():
             by_name.setdefault(path.relative_to(folder).with_suffix("").as_posix(), []).append(path)
     machines = {name.split("/")[0] for name in by_name if "/" in name}
     good, problems, checked, changed = {}, [], {}, False
@@ -48,13 +49,12 @@ def good_measurements(folder: str | os.PathLike, operating: Mapping[str, float],
         if entry is None or entry["stamp"] != stamp:
             entry, changed = {"stamp": stamp, "problem": _problem(path, operating, channels, band_hz)}, True
         checked[str(path)] = entry
-        problem = entry["problem"] or (None if all(NAME.fullmatch(part) for part in name.split("/"))
-                                       else f"{path}: names of files and folders may hold letters, digits, '_', '-' and '.' only")
+        problem = entry["problem"] or name_problem(path, name)
         if problem:
             problems.append(problem)
         else:
             good[name] = str(path)
-    if changed or set(checked) != set(known):
+    if index is not None and (changed or set(checked) != set(known)):
         cache.write_json(index, {"settings": settings, "files": checked})
     return good, problems
 
@@ -65,11 +65,29 @@ def _checks_version() -> str:
     return hashlib.sha256(b"".join((here / name).read_bytes() for name in CHECKS)).hexdigest()[:16]
 
 
-def _problem(path: Path, operating, channels, band_hz) -> str | None:
+def checked_measurement(path: str | os.PathLike, operating: Mapping[str, float], channels: Sequence[str], band_hz: float):
+    """The measurement in ``path``, read and checked as the workflow does before a diagnosis (:func:`newdyn.io.
+    read_measurement`, :func:`newdyn.diagnosis.check_measurement`); a bad one raises :class:`newdyn.io.MeasurementError`."""
     from . import diagnosis, io
 
+    measurement = io.read_measurement(path, operating)
+    diagnosis.check_measurement(measurement, channels, band_hz, path)
+    return measurement
+
+
+def name_problem(path: str | os.PathLike, name: str) -> str | None:
+    """The line refusing the measurement ``path`` for its ``name`` (``<recording>`` or ``<machine>/<recording>``), if
+    the name holds what a file or folder name of the measurements may not."""
+    if all(NAME.fullmatch(part) for part in name.split("/")):
+        return None
+    return f"{path}: names of files and folders may hold letters, digits, '_', '-' and '.' only"
+
+
+def _problem(path: Path, operating, channels, band_hz) -> str | None:
+    from . import io
+
     try:
-        diagnosis.check_measurement(io.read_measurement(path, operating), channels, band_hz, path)
+        checked_measurement(path, operating, channels, band_hz)
     except io.MeasurementError as error:
         return str(error)
     return None

@@ -1,7 +1,9 @@
 """``newdyn`` command line: one subcommand per workflow stage, each a thin call into the package.
 
 Snakemake rules run these as shell commands so every job is its own process (its thread count
-honoured, runnable on a cluster through Snakemake's executor plugins).
+honoured, runnable on a cluster through Snakemake's executor plugins).  A user runs ``newdyn check``
+(measurement files) and ``newdyn check-config`` by hand.  A bad file, config or path given to any
+command ends it with one line on stderr naming the file and the problem, and exit status 1.
 """
 
 from __future__ import annotations
@@ -15,6 +17,62 @@ from pathlib import Path
 
 log = logging.getLogger("newdyn")
 DIAGNOSIS_FIGURES = ("overlays", "residuals", "hypotheses", "error_fall", "discovery", "effect_posterior")
+DEFAULT_CONFIG = "config/config.yaml"  # the workflow's configfile, in the directory it runs in
+
+
+def check_measurements(paths: list[str], config_paths: list[str]) -> int:
+    """Print one line per measurement file of ``paths`` (files, or folders as the workflow lists measurements/ and a
+    machine's folder): OK with what the diagnosis will use, or its problem as the workflow would skip it; checked against
+    the config of ``config_paths`` merged in order.  Returns the exit status: 1 if a file is bad, else 0."""
+    from . import catalog, config, io
+
+    study = config.load_merged(config_paths)
+    operating, channels = study["operating"], study["diagnosis"]["channels"]
+    band_hz = study["diagnosis"]["noise_band_hz"]
+    bad = 0
+    for path in map(Path, paths):
+        if path.is_dir():
+            good, problems = catalog.good_measurements(path, operating, channels, band_hz, index=None)
+            if not good and not problems:
+                problems = [f"{path}: holds no measurement file (.nc or .csv), nor a machine's folder of them"]
+            found = [(str(file), None) for file in good.values()] + [(line.split(": ", 1)[0], line) for line in problems]
+        else:
+            found = [(str(path), catalog.name_problem(path, path.stem))]
+        for file, problem in sorted(found):
+            if problem is None:
+                try:
+                    print(_measurement_summary(catalog.checked_measurement(file, operating, channels, band_hz), file,
+                                               channels, band_hz))
+                    continue
+                except io.MeasurementError as error:
+                    problem = str(error)
+            print(problem)
+            bad += 1
+    return 1 if bad else 0
+
+
+def _measurement_summary(measurement, path: str, channels: list[str], band_hz: float) -> str:
+    """``<path>: OK: …``, what a diagnosis of ``measurement`` uses: its channels, sampling, noise level and condition."""
+    from . import diagnosis
+
+    used = diagnosis.present_channels(measurement, channels)
+    _, noise_source = diagnosis.noise_level(measurement, [measurement.channels.index(c) for c in used], band_hz)
+    missing = [c for c in channels if c not in used]
+    sampling = measurement.sampling
+    return (f"{path}: OK: channels {', '.join(measurement.channels)}, diagnosed on {', '.join(used)}"
+            + (f" (without {', '.join(missing)} of diagnosis.channels)" if missing else "")
+            + f"; {sampling.fs:.6g} Hz, {sampling.n_samples} samples, {sampling.n_samples / sampling.fs:.6g} s from "
+              f"t = {sampling.t_first:.6g} s; noise level from {noise_source}; operating condition "
+            + ", ".join(f"{name} {value:g}" for name, value in measurement.operating.items()))
+
+
+def check_config(paths: list[str]) -> None:
+    """Print ``<files>: OK`` when the config files ``paths``, merged in order, make a good study (else
+    :class:`newdyn.config.ConfigError` names the files, the field and the problem)."""
+    from . import config
+
+    config.load_merged(paths)
+    print(f"{', '.join(paths)}: OK")
 
 
 def simulate_scenario(spec: dict, output: str, code_hash: str) -> None:
@@ -445,9 +503,33 @@ def _sampling(window: dict):
     return model.Sampling(fs=window["fs"], t_first=window["t_first"], n_samples=int(window["n_samples"]))
 
 
-def main(argv: list[str] | None = None) -> int:
+def _users_problem(error: Exception) -> str | None:
+    """The one line of an error in what the user gave (a measurement, a config, an effect file, a path), else None:
+    any other error is a bug in newdyn and keeps its traceback."""
+    from . import config, effects, io
+
+    if isinstance(error, (io.MeasurementError, config.ConfigError, effects.EffectError)):
+        return str(error)
+    if isinstance(error, OSError):
+        return f"{error.filename}: {error.strerror}" if error.filename and error.strerror else str(error)
+    return None
+
+
+def _parser() -> argparse.ArgumentParser:
+    from . import __version__
+
     parser = argparse.ArgumentParser(prog="newdyn", description=__doc__.splitlines()[0])
+    parser.add_argument("--version", action="version", version=f"newdyn {__version__}")
     commands = parser.add_subparsers(dest="command", required=True)
+    p = commands.add_parser("check", help="check measurement files by hand, as the workflow does before a diagnosis")
+    p.add_argument("paths", nargs="+", metavar="path",
+                   help="a measurement file (.nc or .csv), or a folder of them (measurements/, a machine's folder)")
+    p.add_argument("--config", action="append", dest="configs", metavar="FILE",
+                   help=f"the study's config (default {DEFAULT_CONFIG}); repeat it to merge files in order, as "
+                        "snakemake --configfile merges them over the default")
+    p = commands.add_parser("check-config", help="check a study config as the workflow does, without running anything")
+    p.add_argument("paths", nargs="*", default=[DEFAULT_CONFIG], metavar="file",
+                   help=f"config files, merged in the order given as Snakemake merges them (default {DEFAULT_CONFIG})")
 
     def command(name, help, spec=None):
         """A subcommand with the --output and --code-hash every workflow job passes (and --spec if given)."""
@@ -525,47 +607,65 @@ def main(argv: list[str] | None = None) -> int:
     p = command("summarize", "the summary table of all calibrations")
     p.add_argument("inputs", nargs="+", help="calibration files")
 
-    args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s", stream=sys.stderr)
-    # Every job works with the same effects: the built-ins and the study's own (files in effects/).
-    from . import config
+    return parser
 
-    config.use_effects(json.loads(args.spec) if getattr(args, "spec", None) else {"effects": getattr(args, "effects", [])})
-    if args.command == "simulate":
-        simulate_scenario(json.loads(args.spec), args.output, args.code_hash)
-    elif args.command == "add-noise":
-        add_noise_to_file(args.input, args.output, args.snr_db, args.seed, args.code_hash)
-    elif args.command == "grid-models":
-        simulate_grid_models(json.loads(args.spec), args.output, args.code_hash)
-    elif args.command == "calibrate-grid":
-        calibrate_on_grids(args.measurement, args.grids, json.loads(args.spec), args.outputs, args.code_hash)
-    elif args.command == "calibrate-mcmc":
-        calibrate_with_mcmc(args.measurement, args.grid_result, json.loads(args.spec), args.output, args.code_hash)
-    elif args.command == "calibrate-joint":
-        calibrate_jointly(args.measurement, args.grid_results, json.loads(args.spec), args.output, args.code_hash)
-    elif args.command == "compare":
-        compare(args.inputs, args.output, args.code_hash)
-    elif args.command == "plot":
-        plot_figures(args.kind, json.loads(args.figures), args.code_hash)
-    elif args.command == "diagnose":
-        diagnose_measurement(args.measurement, args.grids, args.bank, json.loads(args.spec), args.verdict, args.table, args.netcdf,
-                             args.posterior, args.discovery, args.code_hash)
-    elif args.command == "diagnose-machine":
-        diagnose_machine(args.name, args.recordings, args.verdicts, json.loads(args.spec), args.output, args.code_hash)
-    elif args.command == "bank":
-        write_bank(json.loads(args.spec), args.grids, args.output, args.code_hash)
-    elif args.command == "plot-diagnosis":
-        plot_diagnosis(args.verdict, args.netcdf, args.posterior, {name: getattr(args, name) for name in DIAGNOSIS_FIGURES},
-                       args.code_hash)
-    elif args.command == "hidden-draw":
-        draw_hidden(json.loads(args.spec), args.output, args.code_hash)
-    elif args.command == "hidden-measurement":
-        write_hidden_measurement(args.truth, args.case, json.loads(args.spec), args.output, args.code_hash)
-    elif args.command == "hidden-score":
-        score_hidden(args.truth, args.verdicts, args.output, args.table, args.figure, args.chi2_max, args.code_hash,
-                     args.recordings)
-    elif args.command == "summarize":
-        summarize(args.inputs, args.output)
+
+def main(argv: list[str] | None = None) -> int:
+    """Run one command (the stages' dispatch is read by :func:`newdyn.provenance.command_modules`); a bad file, config
+    or path the user gave ends it with one line on stderr and status 1."""
+    args = _parser().parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s", stream=sys.stderr)
+    try:
+        if args.command == "check":
+            return check_measurements(args.paths, args.configs or [DEFAULT_CONFIG])
+        if args.command == "check-config":
+            check_config(args.paths)
+            return 0
+        # Every job works with the same effects: the built-ins and the study's own (files in effects/).
+        from . import config
+
+        config.use_effects(json.loads(args.spec) if getattr(args, "spec", None) else {"effects": getattr(args, "effects", [])})
+        if args.command == "simulate":
+            simulate_scenario(json.loads(args.spec), args.output, args.code_hash)
+        elif args.command == "add-noise":
+            add_noise_to_file(args.input, args.output, args.snr_db, args.seed, args.code_hash)
+        elif args.command == "grid-models":
+            simulate_grid_models(json.loads(args.spec), args.output, args.code_hash)
+        elif args.command == "calibrate-grid":
+            calibrate_on_grids(args.measurement, args.grids, json.loads(args.spec), args.outputs, args.code_hash)
+        elif args.command == "calibrate-mcmc":
+            calibrate_with_mcmc(args.measurement, args.grid_result, json.loads(args.spec), args.output, args.code_hash)
+        elif args.command == "calibrate-joint":
+            calibrate_jointly(args.measurement, args.grid_results, json.loads(args.spec), args.output, args.code_hash)
+        elif args.command == "compare":
+            compare(args.inputs, args.output, args.code_hash)
+        elif args.command == "plot":
+            plot_figures(args.kind, json.loads(args.figures), args.code_hash)
+        elif args.command == "diagnose":
+            diagnose_measurement(args.measurement, args.grids, args.bank, json.loads(args.spec), args.verdict, args.table, args.netcdf,
+                                 args.posterior, args.discovery, args.code_hash)
+        elif args.command == "diagnose-machine":
+            diagnose_machine(args.name, args.recordings, args.verdicts, json.loads(args.spec), args.output, args.code_hash)
+        elif args.command == "bank":
+            write_bank(json.loads(args.spec), args.grids, args.output, args.code_hash)
+        elif args.command == "plot-diagnosis":
+            plot_diagnosis(args.verdict, args.netcdf, args.posterior, {name: getattr(args, name) for name in DIAGNOSIS_FIGURES},
+                           args.code_hash)
+        elif args.command == "hidden-draw":
+            draw_hidden(json.loads(args.spec), args.output, args.code_hash)
+        elif args.command == "hidden-measurement":
+            write_hidden_measurement(args.truth, args.case, json.loads(args.spec), args.output, args.code_hash)
+        elif args.command == "hidden-score":
+            score_hidden(args.truth, args.verdicts, args.output, args.table, args.figure, args.chi2_max, args.code_hash,
+                         args.recordings)
+        elif args.command == "summarize":
+            summarize(args.inputs, args.output)
+    except (ValueError, OSError) as error:
+        problem = _users_problem(error)
+        if problem is None:
+            raise
+        print(f"newdyn {args.command}: {problem}", file=sys.stderr)
+        return 1
     return 0
 
 

@@ -88,6 +88,34 @@ class ConfigError(ValueError):
 
 def load(path: str | Path, schema_path: str | Path | None = None) -> dict:
     """Read a YAML config file, :func:`check` it and return it (a plain dict)."""
+    config = read(path)
+    check(config, str(path), schema_path)
+    return config
+
+
+def load_merged(paths: Sequence[str | Path], schema_path: str | Path | None = None) -> dict:
+    """The config files ``paths`` merged in that order as Snakemake merges a workflow's ``configfile:`` and each
+    ``--configfile`` (:func:`snakemake.utils.update_config`: a mapping key by key, anything else, a list too, replaced
+    whole), then :func:`check`-ed as one config whose problems name every file: ``a.yaml, b.yaml: field: problem``."""
+    from snakemake.utils import update_config
+
+    parts = [read(path) for path in paths]
+    if len(parts) == 1:
+        config = parts[0]
+    else:
+        config = {}
+        for path, part in zip(paths, parts):
+            if not isinstance(part, Mapping):
+                raise ConfigError(path, "(top level)", f"must be a mapping of sections (rig:, noise:, …) to merge with the "
+                                                       f"other files (got {_show(part)})")
+            update_config(config, part)
+    check(config, ", ".join(map(str, paths)), schema_path)
+    return config
+
+
+def read(path: str | Path) -> Any:
+    """The YAML of a config file, not checked; a file that cannot be read, bad YAML or a duplicate key raises
+    :class:`ConfigError`."""
     source = str(path)
     try:
         text = Path(path).read_text(encoding="utf-8")
@@ -105,7 +133,6 @@ def load(path: str | Path, schema_path: str | Path | None = None) -> dict:
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
         what = getattr(exc, "problem", None) or str(exc)
         raise ConfigError(source, "(file)", f"not valid YAML: {what}{where}") from None
-    check(config, source, schema_path)
     return config
 
 

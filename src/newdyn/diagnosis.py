@@ -59,7 +59,7 @@ from . import (
 from . import posterior as posterior_module
 from . import sensors as sensors_module
 from . import signatures as signature_module
-from .discovery import verify
+from .discovery import search, verify
 from .hypotheses import HEALTHY, PARAMETER_CHANGE
 from .verdicts import SENSOR_PROBLEM
 
@@ -144,14 +144,20 @@ def present_channels(measurement: io.Measurement, channels: Sequence[str]) -> tu
 
 def check_measurement(measurement: io.Measurement, channels: Sequence[str], band_hz: float, path=None) -> None:
     """Refuse, in one line naming ``path`` (else the measurement's name), a measurement a diagnosis
-    cannot use: it carries none of ``channels``, or it states no noise level and its spectrum
-    above ``band_hz`` is too thin to read σ from.  A measurement with some of ``channels`` is diagnosed on those."""
+    cannot use: it carries none of ``channels``, its first sample is not on the grid k/fs from t = 0 (where the
+    search for a missing term simulates), or it states no noise level and its spectrum above ``band_hz`` is too
+    thin to read σ from.  A measurement with some of ``channels`` is diagnosed on those."""
     where = path if path is not None else measurement.name
     if not present_channels(measurement, channels):
         raise io.MeasurementError(
             where, f"carries none of the channels diagnosis.channels uses ({', '.join(channels)}); it has "
                    f"{', '.join(measurement.channels)}: add one of those channels to diagnosis.channels in the config, "
                    f"or name the file's columns/variables after the channels (docs/measurements.md)")
+    try:
+        search.record_start(measurement.sampling)
+    except ValueError as error:
+        raise io.MeasurementError(where, f"{error}: put the stamps on the rig clock's grid k/fs (resample the record) "
+                                         "(docs/measurements.md#time-the-rigs-clock)") from None
     if measurement.sigma is None and "snr_db" not in measurement.attrs:
         try:
             noise.floor_band(measurement.sampling.n_samples, measurement.sampling.fs, band_hz)

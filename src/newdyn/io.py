@@ -25,6 +25,7 @@ from .measurement_files import CONDITIONS
 OPERATING_ATTRS = model.OPERATING_PARAMETERS  # speed_rpm, T0, load_amp, load_freq, load_harm
 TIME_JITTER = 1e-2  # allowed deviation of a time stamp from the uniform grid, in sample intervals
 FS_MAX = 1.0e6  # above this the fixed-step kernel would need too many steps to be useful
+NETCDF_SIGNATURES = (b"CDF", b"\x89HDF")  # the first bytes of a classic NetCDF file and of a NetCDF-4 (HDF5) one
 
 
 class MeasurementError(ValueError):
@@ -143,6 +144,8 @@ def read_measurement(path: str | os.PathLike, operating_defaults: Mapping[str, f
     path = Path(path)
     if not path.is_file():
         raise MeasurementError(path, "file not found")
+    if path.stat().st_size == 0:
+        raise MeasurementError(path, "is empty (0 bytes)")
     suffix = path.suffix.lower()
     if suffix == ".nc":
         channels, times, y, attrs, sigma = _read_netcdf(path)
@@ -171,7 +174,7 @@ def read_measurement(path: str | os.PathLike, operating_defaults: Mapping[str, f
                 raise MeasurementError(path, f"attribute {name} {problem}")
             operating[name] = float(value)
 
-    sampling = _check_time(path, times, operating["load_freq"])
+    sampling = _check_time(path, times, operating)
     snr = attrs.get("snr_db")
     if sigma is None and snr is not None and (isinstance(snr, str) or not math.isfinite(float(snr))):
         raise MeasurementError(path, f"attribute snr_db must be a finite number (got {snr!r})")
@@ -215,6 +218,13 @@ def _read_netcdf(path: Path):
         with xr.open_dataset(path, engine="netcdf4") as ds:
             ds.load()
     except Exception as exc:  # noqa: BLE001 - netCDF4 raises OSError, ValueError, RuntimeError, ... for damaged files
+        with open(path, "rb") as f:
+            start = f.read(4)
+        if not start.startswith(NETCDF_SIGNATURES):
+            text = all(32 <= byte < 127 or byte in b"\t\r\n" for byte in start)
+            raise MeasurementError(path, f"is not a NetCDF file: it starts with {start!r} where a NetCDF file starts with "
+                                         f"b'CDF' or b'\\x89HDF'{' (text: a CSV file is named .csv)' if text else ''}; "
+                                         "write it with xarray's to_netcdf (docs/measurements.md#netcdf)") from None
         raise MeasurementError(path, f"unreadable or truncated NetCDF ({type(exc).__name__}: {exc})") from None
     if "y" not in ds:
         raise MeasurementError(path, "no variable 'y'")
@@ -228,6 +238,10 @@ def _read_netcdf(path: Path):
     times = np.asarray(y["time"].values)
     if not np.issubdtype(times.dtype, np.number):
         raise MeasurementError(path, f"coordinate 'time' must be numeric seconds (is {times.dtype})")
+    if "sigma" in ds.data_vars:
+        raise MeasurementError(path, "sigma is a data variable, but the noise level is read from a coordinate sigma along "
+                                     "channel: write it with ds.assign_coords(sigma=('channel', values)) "
+                                     "(docs/measurements.md#the-noise-level)")
     sigma = np.asarray(ds["sigma"].values, dtype=float) if "sigma" in y.coords else None
     return channels, times.astype(float), np.asarray(y.values, dtype=float), dict(ds.attrs), sigma
 
@@ -235,24 +249,52 @@ def _read_netcdf(path: Path):
 def _read_csv(path: Path):
     try:
         with open(path, newline="") as f:
-            header = f.readline().strip().split(",")
-            rows = f.read().splitlines()
-        data = np.loadtxt(rows, delimiter=",", ndmin=2) if any(line.strip() for line in rows) else None
-    except (OSError, UnicodeDecodeError, ValueError) as exc:
-        raise MeasurementError(path, f"unreadable or truncated CSV ({exc})") from None
-    if data is None:
-        raise MeasurementError(path, "has a header but no data rows")
-    header = [h.strip() for h in header]
-    if header[:1] != ["time"]:
-        raise MeasurementError(path, "header must start with 'time'")
-    if len(header) < 2:
+            header = f.readline().strip()
+            lines = [(number, line) for number, line in enumerate(f.read().splitlines(), start=2)
+                     if line.strip() and not line.lstrip().startswith("#")]
+    except (OSError, UnicodeDecodeError) as exc:
+        raise MeasurementError(path, f"unreadable CSV ({exc})") from None
+    names = [name.strip() for name in header.split(",")]
+    separator = next((s for s in (";", "\t") if len(names) == 1 and s in header), None)
+    if separator is not None:
+        raise MeasurementError(path, f"columns are separated by {separator!r}, the format needs commas, with a dot as the "
+                                     "decimal mark (time,b1_x,w1 / 0.5,1.2e-07,155.0; docs/measurements.md#csv)")
+    if names[:1] != ["time"]:
+        first = "has no header: its first line holds numbers" if _numbers(names) else f"header starts with {names[0]!r}"
+        raise MeasurementError(path, f"{first}; the first line must name the columns, time and then the channels "
+                                     "(time,b1_x,w1; docs/measurements.md#csv)")
+    if len(names) < 2:
         raise MeasurementError(path, "no channel columns")
-    if data.shape[1] != len(header):
-        raise MeasurementError(path, f"rows have {data.shape[1]} columns, header has {len(header)}")
-    return header[1:], data[:, 0], data[:, 1:].T.copy()
+    if not lines:
+        raise MeasurementError(path, "has a header but no data rows")
+    for number, line in lines:
+        if line.count(",") != len(names) - 1:
+            where, cut = (f"line {number}, the last,", ": the file looks cut short; write it again") if number == lines[-1][0] \
+                else (f"line {number}", "")
+            raise MeasurementError(path, f"{where} has {line.count(',') + 1} values where the header names {len(names)} "
+                                         f"columns{cut}")
+    try:
+        data = np.loadtxt([line for _, line in lines], delimiter=",", ndmin=2)
+    except ValueError as exc:
+        found = next(((number, name, text) for number, line in lines
+                      for name, text in zip(names, line.split(",")) if not _numbers([text])), None)
+        if found is None:
+            raise MeasurementError(path, f"unreadable CSV ({exc})") from None
+        number, column, text = found
+        raise MeasurementError(path, f"line {number}, column {column}: {text.strip()!r} is not a number") from None
+    return names[1:], data[:, 0], data[:, 1:].T.copy()
 
 
-def _check_time(path: Path, times: np.ndarray, load_freq: float) -> model.Sampling:
+def _numbers(texts: Sequence[str]) -> bool:
+    """Whether every one of ``texts`` reads as a number."""
+    try:
+        [float(text) for text in texts]
+    except ValueError:
+        return False
+    return True
+
+
+def _check_time(path: Path, times: np.ndarray, operating: Mapping[str, float]) -> model.Sampling:
     if times.size < 2:
         raise MeasurementError(path, f"only {times.size} sample(s)")
     if not np.all(np.isfinite(times)):
@@ -265,6 +307,14 @@ def _check_time(path: Path, times: np.ndarray, load_freq: float) -> model.Sampli
     if worst > TIME_JITTER * dt:
         raise MeasurementError(path, f"time is not uniform (a stamp is {worst / dt:.3g} sample intervals off the grid)")
     fs = 1.0 / dt
+    rotation_hz = operating["speed_rpm"] / 60.0
+    if fs < 2.0 * rotation_hz:
+        slow = f"sampling rate {fs:.4g} Hz is below twice the shaft's rotation frequency ({rotation_hz:.4g} Hz)"
+        if 2.0 * rotation_hz <= 1000.0 * fs <= FS_MAX:
+            raise MeasurementError(path, f"{slow}: time looks like milliseconds (read as such, the rate is {1000.0 * fs:.4g} "
+                                         "Hz); the time column must be in seconds: divide it by 1000")
+        raise MeasurementError(path, f"{slow}, too slow to show the rig's vibration: sample faster")
+    load_freq = operating["load_freq"]
     if times.size * dt < 1.0 / load_freq:
         raise MeasurementError(
             path, f"{times.size} samples span {times.size * dt:.4g} s, less than one load cycle (1/{load_freq:g} Hz)"

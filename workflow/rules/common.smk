@@ -12,7 +12,13 @@ import newdyn.provenance
 import newdyn.verdicts
 from newdyn.cli import DIAGNOSIS_FIGURES
 
-CONFIG_SOURCE = ", ".join(map(str, workflow.overwrite_configfiles or ["config/config.yaml"]))
+# The files the config came from, in the order Snakemake merged them: config/config.yaml (when the working directory
+# has one and --replace-workflow-config did not drop it), then each --configfile over it.
+_BASE_REPLACED = workflow.config_settings.replace_workflow_config and bool(workflow.config_settings.overwrite_config)
+CONFIG_SOURCE = ", ".join(
+    [str(path) for path in workflow.configfiles if path not in workflow.overwrite_configfiles and not _BASE_REPLACED]
+    + [str(path) for path in workflow.overwrite_configfiles]
+)
 
 try:
     newdyn.config.check(config, CONFIG_SOURCE, workflow.source_path("../schemas/config.schema.yaml"))

@@ -25,7 +25,7 @@ import numpy as np
 from scipy import signal, stats
 from scipy.special import logsumexp
 
-from .. import likelihood, model
+from .. import io, likelihood, model
 from ..effects.base import TORSIONAL_PLACES
 from . import force
 from .forms import ESTIMABLE_PLACES, FORMS, Form, Peaks, Shape, Trajectory
@@ -101,10 +101,13 @@ class Discovery:
     first: int  # the record's first sample on the trajectory's grid
 
 
-def _record_start(sampling: model.Sampling) -> int:
+def record_start(sampling: model.Sampling) -> int:
+    """The record's first sample on the grid k/fs from t = 0, where the search simulates the rig: t_first·fs, which must
+    be a whole number to within the time stamps' own tolerance (:data:`newdyn.io.TIME_JITTER` sample intervals)."""
     first = sampling.t_first * sampling.fs
-    if abs(first - round(first)) > 1e-6:
-        raise ValueError(f"the record must start on the sample grid from t = 0 (t_first·fs = {first:g})")
+    if abs(first - round(first)) > io.TIME_JITTER:
+        raise ValueError(f"time starts at {sampling.t_first:.10g} s, {first:.6g} sample intervals after t = 0 where the "
+                         f"search for a missing term needs a whole number (t_first·fs, as 0.5 s at 5000 Hz gives 2500)")
     return round(first)
 
 
@@ -112,7 +115,7 @@ def discover(residual: np.ndarray, sigma: np.ndarray, values: Mapping[str, float
              channels: Sequence[str], max_step: float) -> Discovery:
     """Search the catalogue for the term behind ``residual`` (channel, time) of the model with ``values``."""
     residual, sigma = np.asarray(residual, dtype=float), np.asarray(sigma, dtype=float)
-    first = _record_start(sampling)
+    first = record_start(sampling)
     n_grid = first + sampling.n_samples
     trajectory = Trajectory.simulate(values, sampling.fs, n_grid, max_step)
     linear = LinearRig.build(values, sampling.fs, n_grid, channels)
