@@ -32,7 +32,7 @@ rule all:
         "results/summary.csv",
         figure_targets(),
         diagnosis_targets("results", list(MEASUREMENTS)),
-        expand("results/diagnosis/{machine}/verdict.json", machine=MACHINES),
+        expand("results/diagnosis/{machine}/{file}", machine=MACHINES, file=MACHINE_FILES),
         hidden_targets("demo"),
 
 
@@ -40,7 +40,7 @@ rule all:
 rule measurements:
     input:
         diagnosis_targets("results", list(MEASUREMENTS)),
-        expand("results/diagnosis/{machine}/verdict.json", machine=MACHINES),
+        expand("results/diagnosis/{machine}/{file}", machine=MACHINES, file=MACHINE_FILES),
 
 
 rule blind:

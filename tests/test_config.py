@@ -216,6 +216,11 @@ BAD = {
                                            "must be one of", "speed_rpm"),
     "reversed operating range": (_set("operating_range.T0", [1800.0, 800.0]), "operating_range.T0", "low < high"),
     "unphysical operating range": (_set("operating_range.speed_rpm", [0.0, 1500.0]), "operating_range.speed_rpm", "(0, inf) rpm"),
+    "machine set without an operating range": (
+        lambda c: (_set("hidden.sets.fleet", {"cases": 2, "seed": 1, "recordings": [2, 3]})(c), c.pop("operating_range")),
+        "hidden.sets.fleet.recordings", "operating_range, which is not set"),
+    "reversed recordings": (_set("hidden.sets.fleet", {"cases": 2, "seed": 1, "recordings": [3, 2]}),
+                            "hidden.sets.fleet.recordings", "low <= high"),
     "drift not calibrated": (_set("diagnosis.drift", ["k_s"]), "diagnosis.drift[0]", "not one of calibration.parameters"),
     "negative sensor spread": (_set("diagnosis.sensors.b1_x.offset_sd", -1e-8), "diagnosis.sensors.b1_x.offset_sd", "≥ 0"),
     "sensor of no channel": (_set("diagnosis.sensors.b9_x.gain_sd", 0.01), "diagnosis.sensors.b9_x", "unknown name"),

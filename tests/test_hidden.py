@@ -408,3 +408,75 @@ def test_the_score_counts_named_and_false_instrument_problems():
     result = hidden.score(cases, verdicts)
     assert result["instruments"] == {"cases": 3, "out_of_spec": 2, "named": 1, "named_as_alternative": 1, "false_alarms": 1}
     assert [row["predicted"] for row in result["rows"]] == ["healthy", "healthy", "parameter_change"]  # a sensor problem: a healthy machine
+
+
+MACHINES = {**HIDDEN, "sets": {**HIDDEN["sets"], "fleet": {"cases": 7, "seed": 11, "recordings": [2, 3]}}}
+OPERATING_RANGE = CONFIG["operating_range"]
+SHORT = model.Sampling(fs=5000.0, t_first=0.5, n_samples=1000)
+
+
+@pytest.fixture(scope="module")
+def fleet():
+    cases = hidden.draw_cases(MACHINES, "fleet", BASE, RANGES, CLASSES)
+    return hidden.draw_recordings(cases, "fleet", MACHINES["sets"]["fleet"], OPERATING_RANGE, ("b1_x", "b2_x", "w1"),
+                                  BASE, SHORT, 40.0)
+
+
+def test_a_machine_set_draws_recordings_that_the_workflow_can_name_before_the_draw(fleet):
+    names = hidden.recording_names("fleet", MACHINES["sets"]["fleet"])
+    assert {c["name"]: [f"{c['name']}/{r['name']}" for r in c["recordings"]] for c in fleet} == names
+    assert {len(r) for r in names.values()} == {2, 3}
+    assert {c["class"] for c in fleet} == set(CLASSES)  # the machines are a set's cases: every class once
+    for case in fleet:
+        for r in case["recordings"]:
+            assert set(r["condition"]) == set(OPERATING_RANGE)
+            assert all(low <= r["condition"][p] <= high for p, (low, high) in OPERATING_RANGE.items())
+            assert r["channels"] and set(r["channels"]) <= {"b1_x", "b2_x", "w1"}
+        conditions = [r["condition"]["T0"] for r in case["recordings"]]
+        assert len(set(conditions)) == len(conditions)
+    again = hidden.draw_recordings(hidden.draw_cases(MACHINES, "fleet", BASE, RANGES, CLASSES), "fleet",
+                                   MACHINES["sets"]["fleet"], OPERATING_RANGE, ("b1_x", "b2_x", "w1"), BASE, SHORT, 40.0)
+    assert again == fleet
+
+
+def test_every_hidden_machines_finding_shows_in_one_of_its_recordings(fleet):
+    """Checked here independently of the draw: the truth against the nominal model at each recording's condition."""
+    from newdyn import noise, simulation
+
+    for case in fleet:
+        if case["class"] == "healthy":
+            continue
+        excess = []
+        for r in case["recordings"]:
+            at = {**BASE, **r["condition"]}
+            truth = simulation.simulate(hidden.case_values(case, at), SHORT, r["channels"])
+            nominal = simulation.simulate(at, SHORT, r["channels"])
+            excess.append(float(np.mean(((truth - nominal) / noise.noise_sigma(truth, 40.0)[:, None]) ** 2)))
+        assert max(excess) >= hidden.VISIBLE_CHI2 - 1, (case["name"], excess)
+
+
+def test_a_machines_recording_file_holds_its_channels_at_its_condition_and_no_truth(tmp_path, fleet):
+    case = next(c for c in fleet if c["class"] == "stick_slip")
+    r = case["recordings"][0]
+    path = tmp_path / "r.nc"
+    hidden.write_recording_measurement(case, r["name"], BASE, SHORT, 40.0, path)
+    m = io.read_measurement(path)
+    assert m.channels == tuple(r["channels"]) and m.sigma is None
+    assert all(m.operating[p] == pytest.approx(v) for p, v in r["condition"].items())
+    with xr.open_dataset(path, engine="netcdf4") as ds:
+        text = json.dumps({k: str(v) for k, v in ds.attrs.items()}).lower()
+    assert "stick" not in text and "t_max" not in text and "seed" not in text
+
+
+def test_the_machine_score_sets_each_recordings_own_verdict_beside_the_machines():
+    cases = [{**_case("m_01", "stick_slip", {"T_max": 1900.0}), "recordings": [{"name": "r1"}, {"name": "r2"}]},
+             {**_case("m_02", "healthy", {}), "recordings": [{"name": "r1"}, {"name": "r2"}]}]
+    slipping = {"verdict": "new_dynamics", "effect": "stick_slip", "chi2_before": [4.0, 1.0], "chi2_after": [1.0, 1.02],
+                "parameters": {"T_max": {"mean": 1890.0, "sd": 20.0, "hdi_low": 1850.0, "hdi_high": 1930.0}}}
+    machines = hidden.score(cases, {"m_01": slipping, "m_02": {"verdict": "healthy", "chi2_before": [1.0, 1.1]}})
+    assert machines["accuracy"] == 1.0 and machines["rows"][0]["chi2_before"] == 4.0  # a machine's worst recording
+    assert machines["parameter_errors"][0]["in_hdi"]
+    alone = hidden.score_recordings(cases, {"m_01/r1": slipping, "m_01/r2": {"verdict": "healthy"},
+                                            "m_02/r1": {"verdict": "healthy"}, "m_02/r2": {"verdict": "healthy"}})
+    assert (alone["recordings"], alone["correct"], alone["accuracy"]) == (4, 3, 0.75)
+    assert [row["recording"] for row in alone["rows"] if not row["correct"]] == ["m_01/r2"]

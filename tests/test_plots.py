@@ -265,3 +265,29 @@ def test_discovery_figure_shows_the_force_where_the_best_form_acts_and_its_line(
     assert "load" in fig._suptitle.get_text() and (tmp_path / "d.pdf").exists()
     note = plots.discovered_force({"measurement": "m", "verdict": "healthy"}, _discovery_result(), tmp_path / "n.png")
     assert "no discovery" in note.texts[0].get_text()
+
+
+def machine_verdict(record_next):
+    candidates = [{"parameter": "T0", "value": v, "unit": "N·m", "expected_log_bayes_factor": f}
+                  for v, f in ((800.0, 0.0), (1300.0, 0.0), (1800.0, 4.0e4))]
+    return {
+        "machine": "pump7", "verdict": "healthy", "effect": None, "model": "healthy",
+        "recordings": [{"name": "full", "channels": ["b1_x", "w1"], "chi2_before": 1.02, "chi2_after": 1.02,
+                        "finding_log_bayes_factor": 0.0},
+                       {"name": "part", "channels": ["w1"], "chi2_before": 0.98, "chi2_after": 0.98,
+                        "finding_log_bayes_factor": 0.0}],
+        "record_next": {"model": "healthy", "rivals": [{"rival": "stick_slip", "candidates": candidates,
+                                                        "advice": {"parameter": "T0"}}]} if record_next else None,
+        "settings": {"diagnosis": {"evidence_margin": 6.9}, "calibration": {"chi2_max": 1.1}},
+    }
+
+
+def test_the_machine_figure_draws_each_recordings_misfit_and_where_a_next_recording_would_tell_the_rivals_apart(tmp_path):
+    fig = plots.machine_verdict(machine_verdict(True), tmp_path / "machine.png", code_hash="m7")
+    assert_written(tmp_path / "machine.png", "m7")
+    chi_ax, shows_ax, next_ax = fig.axes
+    assert [p.get_height() for p in chi_ax.patches] == [1.02, 0.98, 1.02, 0.98]  # nominal, then final, per recording
+    curve = line(next_ax, "stick_slip (T0)")
+    assert list(curve.get_xdata()) == [800.0, 1300.0, 1800.0] and curve.get_ydata()[-1] == 4.0e4
+    quiet = plots.machine_verdict(machine_verdict(False), tmp_path / "quiet.png")
+    assert not quiet.axes[2].axison and "nothing to record next" in quiet.axes[2].texts[0].get_text()

@@ -16,7 +16,7 @@ import pytest
 import yaml
 
 import newdyn.config
-from newdyn import calibration, io, model, noise
+from newdyn import calibration, hidden_sets, io, model, noise
 from newdyn.cli import DIAGNOSIS_FIGURES
 from newdyn.io import read_measurement
 from newdyn.simulation import simulate
@@ -462,6 +462,7 @@ def test_a_machines_folder_gets_one_verdict_from_its_recordings_each_at_its_own_
     assert lines["part_load"]["missing_channels"] == ["b1_x"]
     assert all(line["chi2_after"] <= 1.1 for line in lines.values())
     assert verdict["code_hash"] and verdict["settings"]["diagnosis"]["channels"] == ["b1_x", "w1"]
+    assert (machine / "figures" / "machine.png").exists() and (machine / "figures" / "machine.pdf").exists()
     for name in lines:  # each recording also diagnosed alone, figures included
         assert json.loads((machine / name / "verdict.json").read_text())["measurement"] == name
         assert (machine / name / "figures" / f"{DIAGNOSIS_FIGURES[0]}.png").exists()
@@ -473,11 +474,31 @@ def test_the_measurements_target_diagnoses_exactly_the_users_files_with_their_fi
     assert run.returncode == 0, run.stderr[-3000:]
     planned = set(re.findall(r"^\s+output: (.+)$", run.stdout, re.MULTILINE))
     verdicts = {path for line in planned for path in line.split(", ") if path.endswith("verdict.json")}
+    assert any("results/diagnosis/rig7/figures/machine.png" in line for line in planned)
     assert verdicts == {"results/diagnosis/plain/verdict.json", "results/diagnosis/rig7/verdict.json",
                         "results/diagnosis/rig7/full_load/verdict.json", "results/diagnosis/rig7/part_load/verdict.json"}
     assert any(f"results/diagnosis/plain/figures/{DIAGNOSIS_FIGURES[0]}.png" in line for line in planned)
     rules = set(re.findall(r"^(?:local)?rule (\w+):", run.stdout, re.MULTILINE))
     assert not rules & {"simulate", "add_noise", "calibrate_mcmc", "calibrate_joint", "hidden_draw", "plot_summary"}
+
+
+def test_a_hidden_set_of_machines_diagnoses_each_recording_then_each_machine_and_scores_both(tmp_path):
+    def fleet(config):
+        config["hidden"]["sets"] = {"fleet": {"cases": 3, "seed": 4, "recordings": [2, 3]}}
+
+    run = snakemake(tmp_path, "--dry-run", "--printshellcmds", "results/fleet/score.json", config=changed_config(tmp_path, fleet))
+    assert run.returncode == 0, run.stderr[-3000:]
+    recordings = [name for names in hidden_sets.recording_names("fleet", {"cases": 3, "seed": 4, "recordings": [2, 3]}).values()
+                  for name in names]
+    for name in recordings:
+        assert f"output: results/fleet/measurements/{name}.nc" in run.stdout
+        assert f"--verdict results/fleet/diagnosis/{name}/verdict.json" in run.stdout
+    assert run.stdout.count("newdyn diagnose-machine") == 3
+    score = next(line for line in run.stdout.splitlines() if "newdyn hidden-score" in line)
+    assert all(f"results/fleet/diagnosis/{name}/verdict.json" in score for name in recordings)
+    assert all(f"results/fleet/diagnosis/fleet_0{i}/verdict.json" in score for i in (1, 2, 3))
+    truth = "results/fleet/truth.json"
+    assert not [line for line in run.stdout.splitlines() if truth in line and ("newdyn diagnose" in line)]
 
 
 def test_hidden_measurements_are_diagnosed_without_reading_the_truth_and_then_scored(study):

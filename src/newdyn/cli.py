@@ -447,6 +447,12 @@ def plot_diagnosis(verdict: str, netcdf: str, posterior: str, outputs: dict, cod
     plots.diagnosis_figures(verdict, netcdf, posterior, outputs, code_hash)
 
 
+def plot_machine(verdict: str, output: str, code_hash: str) -> None:
+    from . import plots
+
+    plots.machine_verdict(json.loads(Path(verdict).read_text()), output, code_hash, [verdict])
+
+
 def draw_hidden(spec: dict, output: str, code_hash: str) -> None:
     """Draw a hidden set's cases and write their truth (the one file that holds it).  The spec holds
     the config's ``hidden`` section (its draw ranges and classes resolved by
@@ -590,6 +596,10 @@ def _parser() -> argparse.ArgumentParser:
     for name in ("verdict", "netcdf", "posterior", *DIAGNOSIS_FIGURES):
         p.add_argument(f"--{name.replace('_', '-')}", required=True)
     p.add_argument("--code-hash", default="")
+    p = commands.add_parser("plot-machine", help="the figure of a machine's verdict")
+    p.add_argument("--verdict", required=True)
+    p.add_argument("--output", required=True, help="the PNG (a PDF beside it)")
+    p.add_argument("--code-hash", default="")
     command("hidden-draw", "draw a hidden set's cases and write their truth", "hidden-set spec")
     p = command("hidden-measurement", "simulate one hidden case into a measurement file without its truth", "hidden-set spec")
     p.add_argument("--truth", required=True)
@@ -651,6 +661,8 @@ def main(argv: list[str] | None = None) -> int:
         elif args.command == "plot-diagnosis":
             plot_diagnosis(args.verdict, args.netcdf, args.posterior, {name: getattr(args, name) for name in DIAGNOSIS_FIGURES},
                            args.code_hash)
+        elif args.command == "plot-machine":
+            plot_machine(args.verdict, args.output, args.code_hash)
         elif args.command == "hidden-draw":
             draw_hidden(json.loads(args.spec), args.output, args.code_hash)
         elif args.command == "hidden-measurement":

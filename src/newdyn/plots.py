@@ -506,6 +506,45 @@ def error_fall(verdict: dict, result: xr.Dataset, png_path: PathLike, code_hash:
     return fig
 
 
+def machine_verdict(verdict: dict, png_path: PathLike, code_hash: str = "", sources=()) -> Figure:
+    """A machine's verdict (:func:`newdyn.machine.diagnose`): per recording the nominal and the final model's reduced χ²
+    (left) and the expected log Bayes factor of the finding in it (middle, where it shows); right, where rivals remain,
+    the expected log Bayes factor a recording would give against each across the advised operating parameter."""
+    lines = verdict["recordings"]
+    names = [f"{line['name']}\n{', '.join(line['channels'])}" for line in lines]
+    margin = float(verdict["settings"]["diagnosis"]["evidence_margin"])
+    fig = Figure(figsize=(15, 4.5), layout="constrained")
+    chi_ax, shows_ax, next_ax = fig.subplots(1, 3)
+    x = np.arange(len(lines))
+    chi_ax.bar(x - 0.2, [line["chi2_before"] for line in lines], 0.4, color="tab:grey", log=True, label="nominal")
+    chi_ax.bar(x + 0.2, [line["chi2_after"] for line in lines], 0.4, color="tab:blue", log=True, label=verdict["model"])
+    chi_ax.axhline(float(verdict["settings"]["calibration"]["chi2_max"]), color=MARK_COLOR, ls="--", label="explains: χ² ≤ this")
+    chi_ax.set_xticks(x, names)
+    chi_ax.set_ylabel(CHI2_RED)
+    chi_ax.legend(fontsize="small")
+    shows_ax.bar(x, [max(line["finding_log_bayes_factor"], 1e-3) for line in lines], color="tab:blue", log=True)
+    shows_ax.axhline(margin, color=MARK_COLOR, ls="--", label="visible above this")
+    shows_ax.set_xticks(x, names)
+    shows_ax.set_ylabel("expected log Bayes factor of the finding")
+    shows_ax.legend(fontsize="small")
+    advice = verdict.get("record_next")
+    if advice:
+        for row in advice["rivals"]:
+            moved = [c for c in row["candidates"] if c["parameter"] == row["advice"]["parameter"]]
+            next_ax.semilogy([c["value"] for c in moved], [max(c["expected_log_bayes_factor"], 1e-3) for c in moved],
+                             marker="o", label=f"{row['rival']} ({row['advice']['parameter']})")
+        next_ax.axhline(margin, color=MARK_COLOR, ls="--", label="tells apart above this")
+        next_ax.set_xlabel("operating value of a next recording (the rest as in the first)")
+        next_ax.set_ylabel(f"expected log Bayes factor against {advice['model']}")
+        next_ax.legend(fontsize="small")
+    else:
+        next_ax.set_axis_off()
+        next_ax.text(0.5, 0.5, "no rival left: nothing to record next", ha="center", va="center", transform=next_ax.transAxes)
+    fig.suptitle(f"machine {verdict['machine']}: {verdict['verdict']}" + (f" ({verdict['effect']})" if verdict["effect"] else ""))
+    save(fig, png_path, code_hash, sources)
+    return fig
+
+
 def _overlay_grid(channels, times, fs, data, fits, sigma, window, title) -> Figure:
     """Per channel (rows): the data and each fit over the first ``window`` seconds (left), and the PSD
     of the data and of each fit's residual against the noise floor 2σ²/fs where σ is known (right).

@@ -395,6 +395,8 @@ for _line in _bad:
     print(f"newdyn: skipping bad measurement: {_line}", file=sys.stderr)
 # machine -> the names of its recordings (measurements/<machine>/<recording>.nc or .csv)
 MACHINES = newdyn.catalog.machines(MEASUREMENTS)
+# what a machine's diagnosis writes that a target asks for
+MACHINE_FILES = ["verdict.json", "figures/machine.png"]
 # hidden set of machines -> machine -> its recordings' names, known from the set's seed before any draw
 HIDDEN_MACHINES = {
     name: newdyn.hidden_sets.recording_names(name, spec) for name, spec in HIDDEN_SETS.items() if "recordings" in spec

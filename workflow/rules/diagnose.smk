@@ -3,6 +3,7 @@
 wildcard_constraints:
     root="|".join(["results"] + [f"results/{name}" for name in HIDDEN_SETS]),
     name=r"[A-Za-z0-9_.-]+(/[A-Za-z0-9_.-]+)?",  # a file, or a machine's recording <machine>/<recording>
+    machine="|".join(map(re.escape, [*MACHINES, *(m for s in HIDDEN_MACHINES.values() for m in s)])) or "(?!)",
 
 
 # results/diagnosis/<machine>/verdict.json is the machine's, not a file's of that name (the catalog refuses such a file).
@@ -119,8 +120,6 @@ rule diagnose_machine:
         "{root}/logs/diagnose_machine/{machine}.log",
     benchmark:
         "{root}/benchmarks/diagnose_machine/{machine}.tsv"
-    wildcard_constraints:
-        machine="|".join(map(re.escape, [*MACHINES, *(m for s in HIDDEN_MACHINES.values() for m in s)])) or "(?!)",
     conda:
         "../envs/newdyn.yaml"
     threads: 2
@@ -134,3 +133,31 @@ rule diagnose_machine:
         "NUMBA_NUM_THREADS={threads} OPENBLAS_NUM_THREADS={threads} newdyn diagnose-machine --name {wildcards.machine} "
         "--recordings {input.recordings} --verdicts {input.verdicts} --spec {params.spec:q} --code-hash {params.code} "
         "--output {output} > {log} 2>&1"
+
+
+rule plot_machine:
+    input:
+        "{root}/diagnosis/{machine}/verdict.json",
+    output:
+        png=report(
+            "{root}/diagnosis/{machine}/figures/machine.png",
+            caption="../report/diagnosis_machine.rst",
+            category="4 Diagnosis",
+            subcategory="{machine}",
+            labels={"measurement": "{machine}", "figure": "machine"},
+        ),
+        pdf="{root}/diagnosis/{machine}/figures/machine.pdf",
+    log:
+        "{root}/logs/plot_machine/{machine}.log",
+    benchmark:
+        "{root}/benchmarks/plot_machine/{machine}.tsv"
+    localrule: True
+    conda:
+        "../envs/newdyn.yaml"
+    resources:
+        mem_mb=per_attempt(1024),
+        runtime=per_attempt(10),
+    params:
+        code=code_hash("plot-machine"),
+    shell:
+        "newdyn plot-machine --verdict {input} --output {output.png} --code-hash {params.code} > {log} 2>&1"
