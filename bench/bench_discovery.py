@@ -17,8 +17,9 @@ from pathlib import Path
 import numba
 import yaml
 
-from newdyn import diagnosis, effects, hypotheses, io, model, noise, simulation
+from newdyn import effects, hypotheses, io, model, noise, simulation
 from newdyn.discovery import verify
+from newdyn.settings import Settings
 
 GOAL_SECONDS = 120.0
 ROOT = Path(__file__).resolve().parents[1]
@@ -28,7 +29,7 @@ def main() -> None:
     numba.set_num_threads(2)
     logging.basicConfig(level=logging.WARNING)
     config = yaml.safe_load((ROOT / "config" / "config.yaml").read_text())
-    settings = diagnosis.Settings.from_config(config)
+    settings = Settings.from_config(config)
     sampling = model.Sampling()
     effects.use(["torque_ripple"], ROOT / "tests" / "effects")
     truth = model.complete({"torque_ripple": 1.0, "torque_ripple.amplitude": 10.0, "torque_ripple.order": 3.0})

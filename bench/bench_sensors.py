@@ -22,6 +22,7 @@ import numpy as np
 import yaml
 
 from newdyn import calibration, diagnosis, faults, hypotheses, io, likelihood, model, noise, sensors, simulation
+from newdyn.settings import Settings
 
 ROOT = Path(__file__).resolve().parents[1]
 GOAL = 1.2
@@ -41,7 +42,7 @@ def timed(stage, scale, repeat=3) -> float:
 
 def main() -> None:
     numba.set_num_threads(2)
-    settings = diagnosis.Settings.from_config(yaml.safe_load((ROOT / "config" / "config.yaml").read_text()))
+    settings = Settings.from_config(yaml.safe_load((ROOT / "config" / "config.yaml").read_text()))
     sampling, channels = model.Sampling(), settings.channels
     values = model.complete(settings.rig)
     clean = simulation.simulate(values, sampling, channels)
@@ -74,7 +75,7 @@ def whole_diagnoses() -> None:
     instruments and with the config's datasheets; the total over the measurements whose two verdicts agree (where
     they differ, the datasheets change what the diagnosis does, not only its cost)."""
     config = yaml.safe_load((ROOT / "config" / "config.yaml").read_text())
-    settings = diagnosis.Settings.from_config(config)
+    settings = Settings.from_config(config)
     sampling, channels = model.Sampling(), settings.channels
     operating = {k: config["operating"][k] for k in model.OPERATING_PARAMETERS}
     base = {**settings.rig, **operating}

@@ -19,6 +19,7 @@ from newdyn import (
     hypotheses,
     io,
     likelihood,
+    measurement_checks,
     model,
     noise,
     sampling,
@@ -26,10 +27,11 @@ from newdyn import (
     simulation,
 )
 from newdyn.effects.library import stick_slip
+from newdyn.settings import Settings
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = yaml.safe_load((ROOT / ".test" / "config.yaml").read_text())
-SETTINGS = diagnosis.Settings.from_config(CONFIG)
+SETTINGS = Settings.from_config(CONFIG)
 SAMPLING = model.Sampling(fs=5000.0, t_first=0.1, n_samples=500)  # the CI config's window
 CHANNELS = ("b1_x", "w1", "torque_c")
 
@@ -120,7 +122,7 @@ def test_stick_slip_is_new_dynamics_and_adding_it_brings_chi2_to_the_noise(diagn
 def test_the_noise_level_is_inferred_from_the_noise_floor_when_the_file_has_none():
     m = measurement("no_sigma", {}, known_sigma=False)
     rows = [CHANNELS.index(c) for c in SETTINGS.channels]
-    sigma, source = diagnosis.noise_level(m, rows, SETTINGS.noise_band_hz)
+    sigma, source = measurement_checks.noise_level(m, rows, SETTINGS.noise_band_hz)
     _, true_sigma = noise.add_noise(simulation.simulate({}, SAMPLING, CHANNELS), CHANNELS, 40.0, 1)
     np.testing.assert_allclose(sigma, true_sigma[rows], rtol=0.15)  # 500 samples: ~4.5 % standard error
     assert "noise floor" in source
@@ -140,7 +142,7 @@ def test_a_measurement_without_any_diagnosis_channel_is_refused_naming_what_it_h
     m = io.Measurement(m.name, ("torque_c",), m.y[2:], m.sampling, m.operating, m.sigma[2:])
     with pytest.raises(io.MeasurementError, match=r"^measurements/torque_only.nc: carries none of the channels diagnosis.channels "
                                                   r"uses \(b1_x, w1\); it has torque_c: add one .* to diagnosis.channels"):
-        diagnosis.check_measurement(m, SETTINGS.channels, SETTINGS.noise_band_hz, "measurements/torque_only.nc")
+        measurement_checks.check_measurement(m, SETTINGS.channels, SETTINGS.noise_band_hz, "measurements/torque_only.nc")
 
 
 def test_a_measurement_with_some_diagnosis_channels_is_diagnosed_on_those_and_says_what_the_others_would_tell():
@@ -164,9 +166,9 @@ def test_a_measurement_whose_noise_level_cannot_be_read_is_refused_before_any_wo
     operating = {k: model.DEFAULTS[k] for k in model.OPERATING_PARAMETERS}
     blind = io.Measurement("slow", CHANNELS, y, slow, operating)
     with pytest.raises(io.MeasurementError, match=r"^measurements/slow.nc: states no noise level .* below Nyquist \(750 Hz\)"):
-        diagnosis.check_measurement(blind, SETTINGS.channels, SETTINGS.noise_band_hz, "measurements/slow.nc")
+        measurement_checks.check_measurement(blind, SETTINGS.channels, SETTINGS.noise_band_hz, "measurements/slow.nc")
     stated = io.Measurement("slow", CHANNELS, y, slow, operating, np.ones(len(CHANNELS)))
-    diagnosis.check_measurement(stated, SETTINGS.channels, SETTINGS.noise_band_hz)
+    measurement_checks.check_measurement(stated, SETTINGS.channels, SETTINGS.noise_band_hz)
 
 
 def test_signatures_vary_each_effects_severity_across_its_range_the_rest_at_defaults():
@@ -309,12 +311,12 @@ def test_an_unexplained_verdict_says_where_the_residual_remains():
 def test_effect_mcmc_rounds_default_to_the_calibrations_and_can_be_set_apart():
     assert SETTINGS.mcmc["max_rounds"] == CONFIG["calibration"]["mcmc"]["max_rounds"]
     config = {**CONFIG, "diagnosis": {**CONFIG["diagnosis"], "mcmc": {**CONFIG["diagnosis"]["mcmc"], "max_rounds": 5}}}
-    assert sampling.MCMCSettings.from_config(diagnosis.Settings.from_config(config).mcmc).max_rounds == 5
+    assert sampling.MCMCSettings.from_config(Settings.from_config(config).mcmc).max_rounds == 5
 
 
 def test_settings_from_the_workflows_json_spec_keep_whole_numbers_whole():
     # The workflow hands the diagnosis its settings as canonical JSON, where every number is a float.
-    spec = diagnosis.Settings.from_config(json.loads(newdyn.config.canonical_json(CONFIG)))
+    spec = Settings.from_config(json.loads(newdyn.config.canonical_json(CONFIG)))
     assert spec.posterior == SETTINGS.posterior
     for field in fields(SETTINGS.posterior):
         value = getattr(spec.posterior, field.name)

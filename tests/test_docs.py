@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import yaml
 
-from newdyn import effects, model, noise
+from newdyn import effects, measurement_checks, model, noise
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
@@ -111,7 +111,7 @@ def test_noise_floor_rule_in_the_docs_is_the_codes():
 def test_measurement_examples_make_files_a_diagnosis_takes(tmp_path, monkeypatch):
     """Every Python example of docs/measurements.md, run in order in an empty folder, writes files that pass the
     checks a diagnosis makes before it runs (those of the default config)."""
-    from newdyn import diagnosis, io
+    from newdyn import io
 
     text = (DOCS / "measurements.md").read_text(encoding="utf-8")
     examples = re.findall(r"^```python\n(.*?)^```", text, re.MULTILINE | re.DOTALL)
@@ -126,5 +126,5 @@ def test_measurement_examples_make_files_a_diagnosis_takes(tmp_path, monkeypatch
     assert {path.suffix for path in written} == {".nc", ".csv"}
     for path in written:
         measurement = io.read_measurement(path, config["operating"])
-        diagnosis.check_measurement(measurement, config["diagnosis"]["channels"], config["diagnosis"]["noise_band_hz"], path)
+        measurement_checks.check_measurement(measurement, config["diagnosis"]["channels"], config["diagnosis"]["noise_band_hz"], path)
         assert np.all(np.isfinite(measurement.y))

@@ -11,7 +11,8 @@ import xarray as xr
 import yaml
 from matplotlib.figure import Figure
 
-from newdyn import config, diagnosis, effects, faults, hidden, io, model, plots, signatures
+from newdyn import config, effects, faults, hidden, io, model, plots, signatures
+from newdyn.settings import Settings
 
 BASE = model.complete()
 CONFIG = yaml.safe_load((Path(__file__).resolve().parents[1] / "config" / "config.yaml").read_text())
@@ -324,7 +325,7 @@ def torque_ripple(request):
 
 def test_a_users_effect_is_a_hypothesis_of_the_diagnosis_and_a_class_of_the_blind_test(torque_ripple):
     # the diagnosis fits it, with its prior range and the drift parameters, like any built-in effect
-    settings = diagnosis.Settings.from_config(CONFIG)
+    settings = Settings.from_config(CONFIG)
     assert settings.fault_ranges["torque_ripple"] == {"amplitude": (0.0, 50.0), "order": (1.0, 12.0)}
     hypothesis = next(h for h in settings.hypotheses() if h.name == "torque_ripple")
     assert (hypothesis.kind, hypothesis.effect) == ("torque_ripple", "torque_ripple")

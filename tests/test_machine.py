@@ -7,9 +7,10 @@ import pytest
 import yaml
 
 from newdyn import diagnosis, faults, io, machine, model, noise, simulation
+from newdyn.settings import Settings
 
 ROOT = Path(__file__).resolve().parents[1]
-SETTINGS = diagnosis.Settings.from_config(yaml.safe_load((ROOT / ".test" / "config.yaml").read_text()))
+SETTINGS = Settings.from_config(yaml.safe_load((ROOT / ".test" / "config.yaml").read_text()))
 SAMPLING = model.Sampling(fs=5000.0, t_first=0.1, n_samples=500)  # the CI config's window
 CHANNELS = ("b1_x", "w1", "torque_c")
 FULL_LOAD, PART_LOAD = 1613.0, 1100.0

@@ -6,11 +6,12 @@ import numpy as np
 import pytest
 import yaml
 
-from newdyn import diagnosis, hypotheses, model, next_condition
+from newdyn import hypotheses, model, next_condition
+from newdyn.settings import Settings
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = yaml.safe_load((ROOT / "config" / "config.yaml").read_text())
-SETTINGS = diagnosis.Settings.from_config(CONFIG)
+SETTINGS = Settings.from_config(CONFIG)
 HYPOTHESES = {h.name: h for h in SETTINGS.hypotheses()}
 SAMPLING = model.Sampling(fs=5000.0, t_first=0.5, n_samples=1000)  # 0.2 s: more than two load cycles
 PART_LOAD = {k: model.DEFAULTS[k] for k in model.OPERATING_PARAMETERS} | {"T0": 1100.0}

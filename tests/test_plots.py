@@ -287,6 +287,7 @@ def test_the_machine_figure_draws_each_recordings_misfit_and_where_a_next_record
     assert_written(tmp_path / "machine.png", "m7")
     chi_ax, shows_ax, next_ax = fig.axes
     assert [p.get_height() for p in chi_ax.patches] == [1.02, 0.98, 1.02, 0.98]  # nominal, then final, per recording
+    assert [p.get_height() for p in shows_ax.patches] == [1e-3, 1e-3]  # nowhere visible: at the log axis's floor
     curve = line(next_ax, "stick_slip (T0)")
     assert list(curve.get_xdata()) == [800.0, 1300.0, 1800.0] and curve.get_ydata()[-1] == 4.0e4
     quiet = plots.machine_verdict(machine_verdict(False), tmp_path / "quiet.png")

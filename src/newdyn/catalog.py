@@ -2,7 +2,7 @@
 
 The Snakefile asks this while it builds the job graph, and on a cluster every job builds it again: reading
 every file each time would make parsing grow with the data.  A file is read and checked (:func:`newdyn.io.
-read_measurement`, :func:`newdyn.diagnosis.check_measurement`) only when the index has not seen it at its
+read_measurement`, :func:`newdyn.measurement_checks.check_measurement`) only when the index has not seen it at its
 size and time stamp under the same settings; the numerical stack is imported only then.  A folder of recordings
 in the measurements folder is a machine: its files are named `<machine>/<recording>`.
 """
@@ -18,7 +18,7 @@ from pathlib import Path
 from . import cache
 from .measurement_files import CONDITIONS, NAME, SUFFIXES
 
-CHECKS = ("io.py", "diagnosis.py", "discovery/search.py")  # the modules whose code decides whether a file is good
+CHECKS = ("io.py", "measurement_checks.py", "discovery/search.py")  # the modules whose code decides whether a file is good
 
 
 def good_measurements(folder: str | os.PathLike, operating: Mapping[str, float], channels: Sequence[str], band_hz: float,
@@ -67,11 +67,11 @@ def _checks_version() -> str:
 
 def checked_measurement(path: str | os.PathLike, operating: Mapping[str, float], channels: Sequence[str], band_hz: float):
     """The measurement in ``path``, read and checked as the workflow does before a diagnosis (:func:`newdyn.io.
-    read_measurement`, :func:`newdyn.diagnosis.check_measurement`); a bad one raises :class:`newdyn.io.MeasurementError`."""
-    from . import diagnosis, io
+    read_measurement`, :func:`newdyn.measurement_checks.check_measurement`); a bad one raises :class:`newdyn.io.MeasurementError`."""
+    from . import io, measurement_checks
 
     measurement = io.read_measurement(path, operating)
-    diagnosis.check_measurement(measurement, channels, band_hz, path)
+    measurement_checks.check_measurement(measurement, channels, band_hz, path)
     return measurement
 
 

@@ -53,10 +53,10 @@ def check_measurements(paths: list[str], config_paths: list[str]) -> int:
 
 def _measurement_summary(measurement, path: str, channels: list[str], band_hz: float) -> str:
     """``<path>: OK: …``, what a diagnosis of ``measurement`` uses: its channels, sampling, noise level and condition."""
-    from . import diagnosis
+    from . import measurement_checks
 
-    used = diagnosis.present_channels(measurement, channels)
-    _, noise_source = diagnosis.noise_level(measurement, [measurement.channels.index(c) for c in used], band_hz)
+    used = measurement_checks.present_channels(measurement, channels)
+    _, noise_source = measurement_checks.noise_level(measurement, [measurement.channels.index(c) for c in used], band_hz)
     missing = [c for c in channels if c not in used]
     sampling = measurement.sampling
     return (f"{path}: OK: channels {', '.join(measurement.channels)}, diagnosed on {', '.join(used)}"
@@ -394,8 +394,9 @@ def diagnose_measurement(measurement_path: str, grid_paths: list[str], bank_path
     """Diagnose one measurement file: verdict (JSON), model versions and posteriors (NetCDF), the effect's posterior,
     and a folder with the discovered term's effect file when nothing of the library explains it."""
     from . import calibration, config, diagnosis, io, model
+    from .settings import Settings
 
-    settings = diagnosis.Settings.from_config(spec)
+    settings = Settings.from_config(spec)
     measurement = io.read_measurement(measurement_path, {k: spec["operating"][k] for k in model.OPERATING_PARAMETERS})
     start = time.perf_counter()
     result = diagnosis.diagnose(measurement, settings, calibration.grid_files(grid_paths), bank_path=bank_path)
@@ -408,11 +409,12 @@ def diagnose_measurement(measurement_path: str, grid_paths: list[str], bank_path
 def diagnose_machine(name: str, measurement_paths: list[str], verdict_paths: list[str], spec: dict, output: str,
                      code_hash: str) -> None:
     """One verdict for a machine from its recordings, each diagnosed alone before (its verdict.json, in the same order)."""
-    from . import config, diagnosis, io, machine, model, provenance
+    from . import config, io, machine, model, provenance
+    from .settings import Settings
 
     if len(measurement_paths) != len(verdict_paths):
         raise SystemExit(f"newdyn diagnose-machine: {len(measurement_paths)} recordings but {len(verdict_paths)} verdicts")
-    settings = diagnosis.Settings.from_config(spec)
+    settings = Settings.from_config(spec)
     operating = {k: spec["operating"][k] for k in model.OPERATING_PARAMETERS}
     recordings = [machine.Diagnosed(io.read_measurement(m, operating), json.loads(Path(v).read_text()))
                   for m, v in zip(measurement_paths, verdict_paths)]
@@ -426,8 +428,9 @@ def write_bank(spec: dict, grid_paths: list[str], output: str, code_hash: str) -
     """The study's bank (newdyn.bank) for a diagnosis spec at its operating condition and record (``spec["sampling"]``),
     on the study's coarse grids where they hold its channels: every diagnosis at that condition reuses it."""
     from . import calibration, diagnosis, io, model, provenance
+    from .settings import Settings
 
-    settings = diagnosis.Settings.from_config(spec)
+    settings = Settings.from_config(spec)
     values = model.complete({**spec["rig"], **spec["operating"]})
     sampling = _sampling(spec["sampling"])
     paths = calibration.grid_files(grid_paths)

@@ -36,7 +36,7 @@ import logging
 import math
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 import xarray as xr
@@ -59,122 +59,13 @@ from . import (
 from . import posterior as posterior_module
 from . import sensors as sensors_module
 from . import signatures as signature_module
-from .discovery import search, verify
+from .discovery import verify
 from .hypotheses import HEALTHY, PARAMETER_CHANGE
+from .measurement_checks import check_measurement, noise_level, present_channels
+from .settings import Settings
 from .verdicts import SENSOR_PROBLEM
 
 log = logging.getLogger("newdyn")
-
-
-@dataclass(frozen=True)
-class Settings:
-    """What a diagnosis needs from config (see ``Settings.from_config`` and config/README.md)."""
-
-    rig: Mapping[str, float]
-    channels: tuple[str, ...]
-    grids: Mapping[str, calibration.GridSpec]
-    priors: Mapping[str, calibration.NormalPrior]
-    fault_ranges: Mapping[str, Mapping[str, tuple[float, float]]]
-    drift: tuple[str, ...]
-    severities: int
-    drift_sizes: tuple[float, ...]
-    noise_band_hz: float
-    evidence_margin: float
-    chi2_max: float
-    refine_points: int
-    max_step: float
-    posterior: posterior_module.PosteriorSettings
-    mcmc: Mapping[str, float | int | str] = field(default_factory=dict)
-    discovery: str = "unexplained"  # or "always"
-    sensors: Mapping[str, sensors_module.Sensor] = field(default_factory=dict)  # instrument errors per channel
-    noise_colour_order: int = 0  # highest AR order of the noise's colour; 0: white
-    operating_range: Mapping[str, tuple[float, float]] = field(default_factory=dict)  # where a next recording may be made
-
-    @classmethod
-    def from_config(cls, config: Mapping) -> Settings:
-        """From a study config (or a diagnosis spec holding its rig, diagnosis, calibration and
-        simulation sections); the effects' ranges by :func:`newdyn.config.diagnosis_ranges`."""
-        from . import config as config_module
-
-        d, c = config["diagnosis"], config["calibration"]
-        return cls(
-            rig=dict(config["rig"]),
-            channels=tuple(d["channels"]),
-            grids={p: calibration.GridSpec.from_config(p, s["grid"]) for p, s in c["parameters"].items()},
-            priors={p: calibration.NormalPrior(**s["prior"]) for p, s in c["parameters"].items()},
-            fault_ranges={kind: {n: (float(low), float(high)) for n, (low, high) in ranges.items()}
-                          for kind, ranges in config_module.diagnosis_ranges(config).items()},
-            drift=tuple(d["drift"]),
-            severities=int(d["severities"]),
-            drift_sizes=tuple(float(x) for x in d["drift_sizes"]),
-            noise_band_hz=float(d["noise_band_hz"]),
-            evidence_margin=float(d["evidence_margin"]),
-            chi2_max=float(c["chi2_max"]),
-            refine_points=int(c["refine_points"]),
-            max_step=float(config["simulation"]["max_step"]),
-            mcmc={**{k: c["mcmc"][k] for k in ("rhat_max", "ess_min", "move", "max_rounds")}, **d["mcmc"]},
-            posterior=posterior_module.PosteriorSettings.from_config(d["mcmc"]["seed"], c["mcmc"]["ess_min"],
-                                                                     d.get("posterior", {})),
-            discovery=d.get("discovery", "unexplained"),
-            sensors={c: sensors_module.Sensor(**spec) for c, spec in d.get("sensors", {}).items()},
-            noise_colour_order=int(d.get("noise_colour_order", 0)),
-            operating_range={p: (float(low), float(high)) for p, (low, high) in config.get("operating_range", {}).items()},
-        )
-
-    def instruments(self, fs: float, colour: noise.Colour | None = None) -> sensors_module.Instruments | None:
-        """The diagnosis channels' instrument errors at sampling rate ``fs`` and their noise's ``colour``; None
-        when all are exact and the noise white."""
-        return sensors_module.Instruments.of(self.sensors, self.channels, fs, colour)
-
-    def calibration_priors(self) -> dict[str, hypotheses.Prior]:
-        return {
-            p: hypotheses.Prior(p, self.grids[p].low, self.grids[p].high, self.priors[p].mean, self.priors[p].sd)
-            for p in self.grids
-        }
-
-    def hypotheses(self) -> list[hypotheses.Hypothesis]:
-        return hypotheses.library(self.calibration_priors(), self.fault_ranges, self.drift)
-
-
-def present_channels(measurement: io.Measurement, channels: Sequence[str]) -> tuple[str, ...]:
-    """The ones of ``channels`` (``diagnosis.channels``, in its order) that ``measurement`` carries: what it is
-    diagnosed on."""
-    return tuple(c for c in channels if c in measurement.channels)
-
-
-def check_measurement(measurement: io.Measurement, channels: Sequence[str], band_hz: float, path=None) -> None:
-    """Refuse, in one line naming ``path`` (else the measurement's name), a measurement a diagnosis
-    cannot use: it carries none of ``channels``, its first sample is not on the grid k/fs from t = 0 (where the
-    search for a missing term simulates), or it states no noise level and its spectrum above ``band_hz`` is too
-    thin to read σ from.  A measurement with some of ``channels`` is diagnosed on those."""
-    where = path if path is not None else measurement.name
-    if not present_channels(measurement, channels):
-        raise io.MeasurementError(
-            where, f"carries none of the channels diagnosis.channels uses ({', '.join(channels)}); it has "
-                   f"{', '.join(measurement.channels)}: add one of those channels to diagnosis.channels in the config, "
-                   f"or name the file's columns/variables after the channels (docs/measurements.md)")
-    try:
-        search.record_start(measurement.sampling)
-    except ValueError as error:
-        raise io.MeasurementError(where, f"{error}: put the stamps on the rig clock's grid k/fs (resample the record) "
-                                         "(docs/measurements.md#time-the-rigs-clock)") from None
-    if measurement.sigma is None and "snr_db" not in measurement.attrs:
-        try:
-            noise.floor_band(measurement.sampling.n_samples, measurement.sampling.fs, band_hz)
-        except ValueError as error:
-            raise io.MeasurementError(where, f"states no noise level (sigma or snr_db) and its {error}; state one in the file, "
-                                             f"lower diagnosis.noise_band_hz or sample faster (docs/measurements.md)") from None
-
-
-def noise_level(measurement: io.Measurement, rows: Sequence[int], band_hz: float) -> tuple[np.ndarray, str]:
-    """Per-channel noise σ of the measurement's ``rows`` and where it came from."""
-    if measurement.sigma is not None:
-        return measurement.sigma[rows], "the file's sigma coordinate"
-    y = measurement.y[rows]
-    if "snr_db" in measurement.attrs:
-        return noise.sigma_from_snr(y, float(measurement.attrs["snr_db"])), f"the file's snr_db = {measurement.attrs['snr_db']} dB"
-    sigma, error = noise.noise_floor_sigma(y, measurement.sampling.fs, band_hz)
-    return sigma, f"the noise floor above {band_hz:g} Hz (relative standard error {float(np.max(error / sigma)):.1%})"
 
 
 def coloured_level(channels: Sequence[str], sigma: np.ndarray, source: str, colour: noise.Colour,

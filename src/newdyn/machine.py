@@ -24,8 +24,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from . import comparison, concurrency, effects, hypotheses, io, model, next_condition, noise
-from .diagnosis import Settings
 from .hypotheses import HEALTHY, PARAMETER_CHANGE
+from .settings import Settings
 
 
 @dataclass(frozen=True)

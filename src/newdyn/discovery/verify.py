@@ -22,7 +22,7 @@ from .. import cache, effects, hypotheses, io, model, noise, sensors, simulation
 from . import effect_file, search
 
 if TYPE_CHECKING:
-    from ..diagnosis import Settings
+    from ..settings import Settings
 
 FULL_FIT_TERMS = 2
 FULL_FIT_PLACES = 2
