@@ -87,5 +87,5 @@ rule hidden_score:
         effects=" ".join(f"--effect {name}" for name in EFFECTS),
     shell:
         "newdyn hidden-score --truth {input.truth} --chi2-max {params.chi2_max} --code-hash {params.code} {params.effects} "
-        "--output {output.score} --table {output.table} --figure {output.png} --recordings {input.recordings} "
-        "{input.verdicts} > {log} 2>&1"
+        "--output {output.score} --table {output.table} --figure {output.png} {input.verdicts} "
+        "--recordings {input.recordings} > {log} 2>&1"
