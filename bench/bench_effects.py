@@ -6,7 +6,7 @@ Prints, for the healthy rig and each built-in effect (stick-slip at several poin
 on one core and alone, now and at ``--before`` (run from a temporary git worktree), and each over the healthy rig's;
 then what a user's effect costs against the built-in of
 the same arithmetic (a copy of cubic_coupling's force in a file of its own), and how long compiling
-the kernel takes for a new effect and loading it from the cache afterwards.  README quotes them.
+the kernel takes for a new effect and loading it from the cache afterwards.  docs/benchmarks.md quotes them.
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 more diagnosis time), side by side with exact instruments on the stages that evaluate it most: a drift's grid
 calibration, a fault's fit (breathing crack with the drift, least squares through the windows) and the
 likelihood of an MCMC batch.  Default record (1 s at 40 dB, the config's diagnosis channels), a healthy rig whose
-b1_x reads 0.2 of its std high; the sensor model is the README's (b1_x offset sd 100 nm, gain sd 2 %; w1 0.01 rad/s,
+b1_x reads 0.2 of its std high; the sensor model is docs/validation.md's (b1_x offset sd 100 nm, gain sd 2 %; w1 0.01 rad/s,
 0.1 %; other channels exact), then the same with a delay sd of 0.2 ms on both.  With ``--diagnosis``, whole
 diagnoses of every scenario of the config and of that measurement, with exact instruments and with the config's
 datasheets (half an hour).

@@ -1,7 +1,7 @@
 """Speed of the compiled kernel against SciPy's DOP853 on the same equations, against its speed goals.
 
 Run: python bench/bench_simulation.py [--batch 64] [--repeat 5]
-Prints the measured figures side by side with the baseline and the goals; README quotes them.
+Prints the measured figures side by side with the baseline and the goals; docs/benchmarks.md quotes them.
 """
 
 from __future__ import annotations

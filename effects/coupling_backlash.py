@@ -1,7 +1,7 @@
 """Backlash in the coupling: a free play of ±b in which the coupling element carries no torque.
 
-An effect the built-in library lacks, written as a user would: README "Add an effect the library
-lacks" walks through it.  Only a load that reverses the coupling torque opens the free play.
+An effect the built-in library lacks, written as a user would: effects/README.md ("Worked example")
+walks through it.  Only a load that reverses the coupling torque opens the free play.
 """
 
 from __future__ import annotations

@@ -128,3 +128,29 @@ def test_measurement_examples_make_files_a_diagnosis_takes(tmp_path, monkeypatch
         measurement = io.read_measurement(path, config["operating"])
         measurement_checks.check_measurement(measurement, config["diagnosis"]["channels"], config["diagnosis"]["noise_band_hz"], path)
         assert np.all(np.isfinite(measurement.y))
+
+
+README = ROOT / "README.md"
+
+
+def test_readme_is_a_guide_with_the_two_commands_and_no_history():
+    """README.md: the two commands for a fresh machine verbatim (.ci/run runs the second), the target that diagnoses
+    the user's files, its picture; no commit hash and no date (history and measured figures live in docs/ and the
+    changelog), and short enough to read in five minutes."""
+    text = README.read_text(encoding="utf-8")
+    assert "python3 -m venv .venv && . .venv/bin/activate && pip install -e . && snakemake --cores 2\n" in text
+    assert "python3 -m venv .venv && . .venv/bin/activate && pip install -e '.[test]' && pytest\n" in text
+    assert "snakemake --cores 2 measurements" in text
+    assert (ROOT / "docs" / "img" / "error_fall.png").is_file() and "](docs/img/error_fall.png)" in text
+    assert not re.findall(r"\b(?=[0-9a-f]*[a-f])(?=[0-9a-f]*[0-9])[0-9a-f]{7,40}\b", text), "a commit hash in the README"
+    assert not re.findall(r"\b20\d\d-\d\d-\d\d\b", text), "a date in the README: history belongs in CHANGELOG.md"
+    assert len(text.splitlines()) <= 170
+
+
+def test_readme_links_reach_files_of_the_repository():
+    """The site's build checks the pages' links; the README is no page of it, so its relative links are checked here."""
+    text = README.read_text(encoding="utf-8")
+    targets = [link.split("#")[0] for link in re.findall(r"\]\(([^)\s]+)\)", text) if "://" not in link]
+    assert len(targets) > 10
+    missing = sorted({target for target in targets if target and not (ROOT / target).exists()})
+    assert not missing, f"README.md links to files the repository does not have: {missing}"

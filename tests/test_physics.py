@@ -12,7 +12,7 @@ from newdyn import effects, faults, model, reference
 from newdyn.simulation import DEFAULT_MAX_STEP, STATE_NAMES, simulate, simulate_batch
 
 DEFAULT_SAMPLING = model.Sampling()
-# Every effect gets these checks: the built-ins, the study's own in effects/ (the README's example
+# Every effect gets these checks: the built-ins, the study's own in effects/ (effects/README.md's example
 # among them), or those named in NEWDYN_EFFECTS (name[,name...], files in effects/).
 STUDY_EFFECTS = Path(__file__).resolve().parents[1] / "effects"
 OWN = [n for n in os.environ.get("NEWDYN_EFFECTS", "").split(",") if n] or sorted(p.stem for p in STUDY_EFFECTS.glob("*.py"))

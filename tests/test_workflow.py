@@ -553,7 +553,7 @@ STAND_IN_SUBMIT = ROOT / ".test" / "stand-in-submit"  # every job a detached pro
 def test_on_a_batch_system_killed_and_resumed_the_study_gives_the_local_results_bit_for_bit(study, tmp_path):
     """The CI study through Snakemake's cluster-generic executor plugin, every job a separate process started by a
     submit script, the computing rules on two threads where the local run gave them one.  The workflow is killed
-    (kill -9) once results appear, its jobs left running; then the README's recovery, `snakemake --unlock` and the
+    (kill -9) once results appear, its jobs left running; then docs/running.md's recovery, `snakemake --unlock` and the
     same command.  Every NetCDF, JSON and CSV result is the local run's, bit for bit."""
     workdir, jobs = tmp_path / "cluster", tmp_path / "jobs"
     workdir.mkdir()
