@@ -17,7 +17,7 @@ from pathlib import Path
 import numba
 import yaml
 
-from newdyn import effects, hypotheses, io, model, noise, simulation
+from newdyn import effects, hypotheses, io, model, noise, simulation, slots
 from newdyn.discovery import verify
 from newdyn.settings import Settings
 
@@ -32,13 +32,13 @@ def main() -> None:
     settings = Settings.from_config(config)
     sampling = model.Sampling()
     effects.use(["torque_ripple"], ROOT / "tests" / "effects")
-    truth = model.complete({"torque_ripple": 1.0, "torque_ripple.amplitude": 10.0, "torque_ripple.order": 3.0})
+    truth = slots.complete({"torque_ripple": 1.0, "torque_ripple.amplitude": 10.0, "torque_ripple.order": 3.0})
     clean = simulation.simulate(truth, sampling, settings.channels)
     effects.use([])
     y, sigma = noise.add_noise(clean, settings.channels, 40.0, 1)
     measurement = io.Measurement("ripple", tuple(settings.channels), y, sampling,
                                  {k: config["operating"][k] for k in model.OPERATING_PARAMETERS}, sigma)
-    values = model.complete({**settings.rig, **measurement.operating})
+    values = slots.complete({**settings.rig, **measurement.operating})
     nominal = hypotheses.fit(hypotheses.Hypothesis("healthy", "healthy"), y, sigma, values, sampling, settings.channels,
                              max_step=settings.max_step)
     print("a 10 N·m ripple at 3x the motor speed, 1-s record at 40 dB (b1_x, w1), 2 cores")

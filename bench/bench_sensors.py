@@ -21,7 +21,7 @@ import numba
 import numpy as np
 import yaml
 
-from newdyn import calibration, diagnosis, faults, hypotheses, io, likelihood, model, noise, sensors, simulation
+from newdyn import calibration, diagnosis, faults, hypotheses, io, likelihood, model, noise, sensors, simulation, slots
 from newdyn.settings import Settings
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -44,7 +44,7 @@ def main() -> None:
     numba.set_num_threads(2)
     settings = Settings.from_config(yaml.safe_load((ROOT / "config" / "config.yaml").read_text()))
     sampling, channels = model.Sampling(), settings.channels
-    values = model.complete(settings.rig)
+    values = slots.complete(settings.rig)
     clean = simulation.simulate(values, sampling, channels)
     data, sigma = noise.add_noise(clean, channels, 40.0, 3)
     data[0] += 0.2 * np.std(clean[0])
@@ -80,7 +80,7 @@ def whole_diagnoses() -> None:
     operating = {k: config["operating"][k] for k in model.OPERATING_PARAMETERS}
     base = {**settings.rig, **operating}
     cases = [(name, faults.scenario_values(spec, base), 0.0) for name, spec in config["scenarios"].items()]
-    cases.append(("healthy + b1_x offset", model.complete(base), 0.2))
+    cases.append(("healthy + b1_x offset", slots.complete(base), 0.2))
     print(f"whole diagnoses, 1-s record at 40 dB ({', '.join(channels)}), 2 cores")
     print(f"{'measurement':24s} {'exact':>9s} {'datasheets':>11s} {'ratio':>6s}   verdicts")
     total = np.zeros(2)

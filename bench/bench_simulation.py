@@ -14,7 +14,7 @@ import time
 import numba
 import numpy as np
 
-from newdyn import model, reference
+from newdyn import model, reference, slots
 from newdyn.simulation import DEFAULT_MAX_STEP, simulate, simulate_batch
 
 SAMPLING = model.Sampling()  # the default 1.5-s simulation: 0.5 s warm-up, 1 s recorded at 5 kHz
@@ -41,7 +41,7 @@ def main() -> None:
     error = np.max(np.sqrt(np.mean((ours - ref) ** 2, axis=-1)) / np.std(ref, axis=-1))
 
     kT1 = np.linspace(2.0e6, 4.0e6, args.batch)
-    batch = np.tile(model.parameter_vector(), (args.batch, 1))
+    batch = np.tile(slots.parameter_vector(), (args.batch, 1))
     batch[:, model.PARAMETER_INDEX["kT1"]] = kT1
     threads = numba.get_num_threads()
     numba.set_num_threads(1)

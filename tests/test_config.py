@@ -16,7 +16,7 @@ import yaml
 from jsonschema.validators import validator_for
 
 from newdyn import config as cfg
-from newdyn import effects, faults, model
+from newdyn import effects, faults, model, slots
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT = ROOT / "config" / "config.yaml"
@@ -66,14 +66,14 @@ def test_shipped_configs_pass(path):
         "hidden"}
     for name in config["scenarios"]:
         values = cfg.scenario_values(config, name)
-        assert set(values) == set(model.slot_names())
+        assert set(values) == set(slots.slot_names())
 
 
 @pytest.mark.parametrize("path", [DEFAULT, CI], ids=["default", "ci"])
 def test_scenario_values_are_exactly_the_model_slots(path):
     config = cfg.load(path, SCHEMA)
     for name in config["scenarios"]:
-        assert tuple(cfg.scenario_values(config, name)) == model.slot_names(), name
+        assert tuple(cfg.scenario_values(config, name)) == slots.slot_names(), name
 
 
 def test_the_schema_with_the_effects_kinds_injected_is_a_valid_json_schema():
@@ -610,7 +610,7 @@ def test_invalid_yaml_and_missing_file(tmp_path):
 def test_scenario_values(default_config):
     c = copy.deepcopy(default_config)
     assert cfg.scenario_values(c, "kT1_up")["kT1"] == 3.25e6
-    assert cfg.scenario_values(c, "healthy") == model.complete(cfg.base_values(c))
+    assert cfg.scenario_values(c, "healthy") == slots.complete(cfg.base_values(c))
     crack = cfg.scenario_values(c, "breathing_crack")
     assert (crack["breathing_crack"], crack["breathing_crack.alpha"]) == (1.0, 0.3)
     assert cfg.scenario_values(c, "loose_bearing")["loose_bearing.gap"] == 2e-8
@@ -929,7 +929,7 @@ def test_user_effect_is_a_kind_like_the_builtins(default_config, effect_folder):
     assert cfg.hidden_ranges(config)["torque_ripple"] == {"amplitude": (5.0, 20.0), "order": (1.0, 12.0)}
     assert cfg.hidden_classes(config)[-1] == "torque_ripple"  # drawn in the blind test with no other edit
     values = cfg.scenario_values(config, "ripple")
-    assert tuple(values) == model.slot_names()
+    assert tuple(values) == slots.slot_names()
     assert (values["torque_ripple"], values["torque_ripple.amplitude"], values["torque_ripple.order"]) == (1.0, 10.0, 6.0)
     assert cfg.scenario_values(config, "healthy")["torque_ripple"] == 0.0
     # its ranges can be overridden and checked like a built-in's

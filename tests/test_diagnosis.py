@@ -25,6 +25,7 @@ from newdyn import (
     sampling,
     signatures,
     simulation,
+    slots,
 )
 from newdyn.effects.library import stick_slip
 from newdyn.settings import Settings
@@ -45,7 +46,7 @@ STICK_SLIP = fault("stick_slip", T_max=1854.95, r_k=1.0)
 
 
 def measurement(name, truth, seed=1, snr_db=40.0, known_sigma=True):
-    clean = simulation.simulate(model.complete(truth), SAMPLING, CHANNELS)
+    clean = simulation.simulate(slots.complete(truth), SAMPLING, CHANNELS)
     y, sigma = noise.add_noise(clean, CHANNELS, snr_db, seed)
     operating = {k: model.DEFAULTS[k] for k in model.OPERATING_PARAMETERS}
     return io.Measurement(name, CHANNELS, y, SAMPLING, operating, sigma if known_sigma else None)
@@ -174,7 +175,7 @@ def test_a_measurement_whose_noise_level_cannot_be_read_is_refused_before_any_wo
 def test_signatures_vary_each_effects_severity_across_its_range_the_rest_at_defaults():
     """Each effect's first fitted parameter is its severity; its other parameters sit at their
     defaults (mid-range without one), the drift parameters at the rig's values."""
-    values = model.complete({})
+    values = slots.complete({})
     hyps = {h.name: h for h in SETTINGS.hypotheses()}
     entries = signatures.entries(hyps, list(SETTINGS.grids), SETTINGS.drift_sizes, SETTINGS.fault_ranges, SETTINGS.severities, values)
     assert {name for name, _ in entries} == set(hyps)
@@ -198,7 +199,7 @@ def test_laplace_evidence_of_a_drift_agrees_with_exact_quadrature():
     data, sigma = m.y[:2], m.sigma[:2]
     channels = CHANNELS[:2]
     spec, prior = SETTINGS.grids["kT1"], SETTINGS.priors["kT1"]
-    values = model.complete({})
+    values = slots.complete({})
     coarse = calibration.simulate_grid(values, "kT1", spec.axis, SAMPLING, channels)
     exact = diagnosis._grid_evidence(calibration.calibrate(data, sigma, spec, prior, coarse, values, SAMPLING, channels, 41, 1.1).posterior)
     drift = next(h for h in SETTINGS.hypotheses() if h.name == "parameter_change:kT1")
@@ -215,22 +216,22 @@ def test_a_fault_fit_reports_the_values_the_model_ran_with():
     (finding the truth from the prior box is the next test's)."""
     m = measurement("stick", fault("stick_slip", T_max=1950.0, r_k=0.95), seed=2)
     stick = next(h for h in SETTINGS.hypotheses() if h.name == "stick_slip")
-    fit = hypotheses.fit(stick, m.y[:2], m.sigma[:2], model.complete({}), SAMPLING, CHANNELS[:2],
+    fit = hypotheses.fit(stick, m.y[:2], m.sigma[:2], slots.complete({}), SAMPLING, CHANNELS[:2],
                          [{"T_max": 1950.0, "r_k": 0.95, "J2a_share": 1 / 3, "kT1": 3e6}], search=False)
     assert fit.chi2_red < 1.1
     assert fit.values["T_max"] * fit.values["r_k"] == pytest.approx(1950.0 * 0.95, rel=0.01)  # the slipping torque
     assert fit.values["J2a_share"] == pytest.approx(1 / 3, abs=0.1)
-    rows = stick.parameter_rows(fit.theta[None], model.complete({}))
-    index = model.slot_index()
+    rows = stick.parameter_rows(fit.theta[None], slots.complete({}))
+    index = slots.slot_index()
     assert rows[0, index["stick_slip"]] == 1.0 and rows[0, index["stick_slip.T_max"]] == fit.values["T_max"]
     assert rows[0, index["J2a"]] + rows[0, index["J2b"]] == pytest.approx(0.15)
     assert rows[0, index["J2a"]] / 0.15 == pytest.approx(fit.values["J2a_share"])
     # below the stall limit r_k·T_max = T0 the model runs with r_k raised to it, and says so
     below = np.array([[1700.0, 0.6, 0.3, 3e6]])
-    stalled = stick.parameter_rows(below, model.complete({}))[0]
+    stalled = stick.parameter_rows(below, slots.complete({}))[0]
     assert stalled[index["stick_slip.r_k"]] * 1700.0 == pytest.approx(model.DEFAULTS["T0"] * (1 + stick_slip.STALL_MARGIN))
     assert stalled[index["kT1"]] == 3e6
-    ran = stick.effective_values(below[0], model.complete({}))
+    ran = stick.effective_values(below[0], slots.complete({}))
     assert ran == pytest.approx({"T_max": 1700.0, "r_k": stalled[index["stick_slip.r_k"]], "J2a_share": 0.3, "kT1": 3e6})
 
 
@@ -244,8 +245,8 @@ def test_a_stick_slip_fit_over_several_load_cycles_reaches_the_misfit_of_the_tru
     clean = simulation.simulate(fault("stick_slip", **truth), record, CHANNELS[:2])
     y, sigma = noise.add_noise(clean, CHANNELS[:2], 40.0, 5)
     stick = next(h for h in SETTINGS.hypotheses() if h.name == "stick_slip")
-    fit = hypotheses.fit(stick, y, sigma, model.complete({}), record, CHANNELS[:2])
-    at_truth = hypotheses.fit(stick, y, sigma, model.complete({}), record, CHANNELS[:2], [{**truth, "kT1": 3e6}], search=False)
+    fit = hypotheses.fit(stick, y, sigma, slots.complete({}), record, CHANNELS[:2])
+    at_truth = hypotheses.fit(stick, y, sigma, slots.complete({}), record, CHANNELS[:2], [{**truth, "kT1": 3e6}], search=False)
     assert fit.chi2_red < at_truth.chi2_red + 0.05 < 1.1
     assert fit.values["T_max"] * fit.values["r_k"] == pytest.approx(2024.0 * 0.90, rel=0.005)
 
@@ -255,7 +256,7 @@ def test_a_two_parameter_fit_from_the_banks_members_reaches_the_searchs_optimum_
     ends where it ends from the differential evolution there."""
     m = measurement("crack", fault("breathing_crack", alpha=0.35, kT3=2.5e6), seed=6)
     crack = next(h for h in SETTINGS.hypotheses() if h.name == "breathing_crack")
-    values, channels = model.complete({}), CHANNELS[:2]
+    values, channels = slots.complete({}), CHANNELS[:2]
     hyps = {h.name: h for h in SETTINGS.hypotheses()}
     sets = bank.member_sets(hyps, ["breathing_crack", "stick_slip"], values, SAMPLING, channels, simulation.DEFAULT_MAX_STEP)
     assert list(sets) == ["breathing_crack"]  # stick-slip fits four parameters: its fits keep their search
@@ -270,7 +271,7 @@ def test_a_two_parameter_fit_from_the_banks_members_reaches_the_searchs_optimum_
 
 def test_a_bank_is_reused_only_at_the_condition_and_settings_it_was_made_for(tmp_path):
     hyps = {h.name: h for h in SETTINGS.hypotheses()}
-    values = model.complete({})
+    values = slots.complete({})
     study = diagnosis.study_bank(None, SETTINGS, hyps, values, SAMPLING)
     path = tmp_path / "bank.nc"
     io.write_netcdf(study, path)
@@ -279,16 +280,16 @@ def test_a_bank_is_reused_only_at_the_condition_and_settings_it_was_made_for(tmp
     np.testing.assert_array_equal(again["log_likelihood"].values, study["log_likelihood"].values)
     for kind in bank.banked(hyps, list(SETTINGS.fault_ranges)):
         np.testing.assert_array_equal(bank.members(again, kind).outputs, bank.members(study, kind).outputs)
-    other = diagnosis.study_bank(str(path), SETTINGS, hyps, model.complete({"T0": 1500.0}), SAMPLING)
+    other = diagnosis.study_bank(str(path), SETTINGS, hyps, slots.complete({"T0": 1500.0}), SAMPLING)
     assert other.attrs["key"] != study.attrs["key"]
 
 
 def test_a_parameter_the_data_ignore_costs_at_most_a_nat_of_evidence():
     """Its uniform prior keeps its width in the Laplace approximation: no spurious Occam factor."""
     m = measurement("healthy", {}, seed=3)
-    data, sigma, values = m.y[:2], m.sigma[:2], model.complete({})
+    data, sigma, values = m.y[:2], m.sigma[:2], slots.complete({})
     drift = next(h for h in SETTINGS.hypotheses() if h.name == "parameter_change:kT1")
-    absent = next(name for name in model.slot_names() if "." in name)  # a parameter of an effect that is not present
+    absent = next(name for name in slots.slot_names() if "." in name)  # a parameter of an effect that is not present
     ignored = hypotheses.Hypothesis("ignored", "parameter_change", drift.priors + (hypotheses.Prior(absent, 0.0, 1e-12),))
     base = hypotheses.fit(drift, data, sigma, values, SAMPLING, CHANNELS[:2])
     extra = hypotheses.fit(ignored, data, sigma, values, SAMPLING, CHANNELS[:2])
@@ -382,3 +383,13 @@ def test_a_speed_sensor_out_of_its_spec_is_a_sensor_problem_not_a_machine_fault(
     assert found == [] and "explains the data as well through an instrument out of its spec (w1 reads 2.4 % high)" in diagnosis.statement(
         {"verdict": "parameter_change", "effect": "kT1", "equivalent": ["kT1"], "parameters": {}, "chi2_before": 3.0, "chi2_after": 1.0,
          **report, "sensor_problems": [], "sensor_alternatives": [{"hypothesis": "healthy", "sensor_problems": report["sensor_problems"]}]}, 1.1)
+
+
+@pytest.mark.parametrize(("exact", "through", "said"), [(1.0104, 1.0096, False), (3.2, 1.01, True)])
+def test_the_statement_names_what_the_instruments_took_only_where_it_is_something(exact, through, said):
+    verdict = {"verdict": "healthy", "effect": None, "equivalent": [], "parameters": {}, "chi2_before": through,
+               "chi2_after": through, "sensor_problems": [], "instruments_took": {"chi2_exact": exact, "chi2": through}}
+    sentence = diagnosis.statement(verdict, 1.1)
+    assert sentence.startswith("healthy: the nominal model explains the data")
+    assert ("took the final model's reduced chi2 from 3.2 (exact instruments) to 1.01" in sentence) == said
+    assert said or "instruments" not in sentence

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy import integrate, stats
 
-from newdyn import effects, faults, model, simulation
+from newdyn import effects, faults, model, simulation, slots
 from newdyn import noise as measurement_noise
 from newdyn.discovery import effect_file, force, search, verify
 from newdyn.discovery.forms import FORMS, Peaks, Trajectory
@@ -107,7 +107,7 @@ def test_bad_shapes_and_scale_ranges_are_refused():
 
 FS = 5000.0
 RECORD = model.Sampling()  # rig.md's: 0.5 s of warm-up, 1 s recorded
-BASE = model.complete()
+BASE = slots.complete()
 
 
 @pytest.fixture(scope="module")
@@ -153,7 +153,7 @@ def test_linear_response_to_a_crack_is_the_simulators_to_first_order():
     sizes, errors = [], []
     for alpha in (0.02, 0.04):
         crack = faults.scenario_values({"fault": {"kind": "breathing_crack", "parameters": {"alpha": alpha}}}, model.DEFAULTS)
-        change = simulation.simulate(model.complete(crack), RECORD, channels) - healthy
+        change = simulation.simulate(slots.complete(crack), RECORD, channels) - healthy
         force_history = -0.5 * alpha * (1 - np.cos(theta4)) * BASE["kT3"] * (x + BASE["beta"] * v)
         predicted = linear.response("load_shaft", force_history)[:, 2500:]
         sizes.append(np.sqrt(np.mean((change / sigma[:, None]) ** 2)))
@@ -207,7 +207,7 @@ def test_a_small_breathing_crack_is_found_as_a_stiffness_turning_with_the_load(m
     # stiffness modulated once per revolution of disk 4, and its frequency that speed.
     channels = ("b1_x", "w1")
     crack = faults.scenario_values({"fault": {"kind": "breathing_crack", "parameters": {"alpha": 0.02}}}, model.DEFAULTS)
-    data, sigma = measurement_noise.add_noise(simulation.simulate(model.complete(crack), RECORD, channels), channels, 40.0, 3)
+    data, sigma = measurement_noise.add_noise(simulation.simulate(slots.complete(crack), RECORD, channels), channels, 40.0, 3)
     residual = data - simulation.simulate(BASE, RECORD, channels)
     found = search.discover(residual, sigma, BASE, RECORD, channels, simulation.DEFAULT_MAX_STEP)
     best = found.candidates[0]
@@ -230,7 +230,7 @@ def test_including_an_effect_file_adds_it_for_the_block_only(tmp_path):
     before = list(effects.active())
     with effects.including(tmp_path / "torque_ripple.py") as effect:
         assert list(effects.active()) == [*before, "torque_ripple"] and effect.name == "torque_ripple"
-        assert "torque_ripple.amplitude" in model.slot_names()
+        assert "torque_ripple.amplitude" in slots.slot_names()
         with pytest.raises(effects.EffectError, match="already active"), effects.including(tmp_path / "torque_ripple.py"):
             pass
     assert list(effects.active()) == before

@@ -11,10 +11,10 @@ import xarray as xr
 import yaml
 from matplotlib.figure import Figure
 
-from newdyn import config, effects, faults, hidden, io, model, plots, signatures
+from newdyn import config, effects, faults, hidden, io, model, plots, signatures, slots
 from newdyn.settings import Settings
 
-BASE = model.complete()
+BASE = slots.complete()
 CONFIG = yaml.safe_load((Path(__file__).resolve().parents[1] / "config" / "config.yaml").read_text())
 HIDDEN = CONFIG["hidden"]
 HIDDEN["sets"]["other"] = {"cases": 24, "seed": 2027}
@@ -57,7 +57,7 @@ def test_every_case_admissible_and_within_ranges(blind):
     for case in blind + draw("other"):
         kind, truth, scenario = case["class"], case["truth"], case["scenario"]
         values = faults.scenario_values(scenario, BASE)
-        assert set(values) == set(model.slot_names())
+        assert set(values) == set(slots.slot_names())
         if kind == "healthy":
             assert truth == {} and values == BASE
         elif kind == "parameter_change":
@@ -123,7 +123,7 @@ def test_measurement_file_carries_no_truth(tmp_path):
     sampling = model.Sampling(fs=2500.0, t_first=0.5, n_samples=1500)
     forbidden_keys = {"scenario", "fault", "class", "truth", "description", "sigma", "snr_db", "seed", "noise_seed",
                       "parameters", "overrides", "kind", *hidden.CLASSES, *model.RIG_PARAMETERS,
-                      *(slot for slot in model.slot_names() if slot not in model.PARAMETER_NAMES),
+                      *(slot for slot in slots.slot_names() if slot not in model.PARAMETER_NAMES),
                       *(p for effect in effects.active().values() for p in effect.parameter_names()),
                       *(part for kind in hidden.FAULT_CLASSES for part in kind.split("_"))}
     for case in cases:
@@ -331,13 +331,13 @@ def test_a_users_effect_is_a_hypothesis_of_the_diagnosis_and_a_class_of_the_blin
     assert (hypothesis.kind, hypothesis.effect) == ("torque_ripple", "torque_ripple")
     assert hypothesis.parameters == ["amplitude", "order", *settings.drift]
     row = hypothesis.parameter_rows(np.array([[20.0, 3.0, *(1.1 * BASE[name] for name in settings.drift)]]), BASE)[0]
-    index = model.slot_index()
+    index = slots.slot_index()
     assert row[index["torque_ripple"]] == 1.0 and row[index["torque_ripple.amplitude"]] == 20.0
     assert row[index["torque_ripple.order"]] == 3.0
     assert all(row[index[name]] == pytest.approx(1.1 * BASE[name]) for name in settings.drift)
     assert all(row[index[kind]] == 0.0 for kind in effects.active() if kind != "torque_ripple")
     entries = signatures.entries({h.name: h for h in settings.hypotheses()}, list(settings.grids), settings.drift_sizes,
-                                 settings.fault_ranges, settings.severities, model.complete())
+                                 settings.fault_ranges, settings.severities, slots.complete())
     assert [v["amplitude"] for name, v in entries if name == "torque_ripple"] == pytest.approx(
         [50.0 * (i + 0.5) / settings.severities for i in range(settings.severities)])
 

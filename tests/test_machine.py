@@ -6,7 +6,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from newdyn import diagnosis, faults, io, machine, model, noise, simulation
+from newdyn import diagnosis, faults, io, machine, model, noise, simulation, slots
 from newdyn.settings import Settings
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -19,7 +19,7 @@ FULL_LOAD, PART_LOAD = 1613.0, 1100.0
 def diagnosed(name, truth, T0, seed):
     """A recording of the rig ``truth`` at mean torque ``T0``, diagnosed alone as the workflow does (its verdict as JSON)."""
     operating = {k: model.DEFAULTS[k] for k in model.OPERATING_PARAMETERS} | {"T0": T0}
-    y, sigma = noise.add_noise(simulation.simulate(model.complete({**truth, **operating}), SAMPLING, CHANNELS), CHANNELS, 40.0, seed)
+    y, sigma = noise.add_noise(simulation.simulate(slots.complete({**truth, **operating}), SAMPLING, CHANNELS), CHANNELS, 40.0, seed)
     m = io.Measurement(name, CHANNELS, y, SAMPLING, operating, sigma)
     d = diagnosis.diagnose(m, SETTINGS)
     return machine.Diagnosed(m, json.loads(json.dumps({**d.verdict, "channels": list(d.channels)}, default=float)))

@@ -49,3 +49,7 @@ def test_compare_ranks_the_model_that_made_the_data_above_one_without_it():
     # Without the term each block loses the term's Σ (s/σ)²/2: elpd_diff is that total, to the noise's share.
     expected = 0.5 * np.sum((SHAPE / SIGMA[:, None]) ** 2)
     assert rows[1]["elpd_diff"] == pytest.approx(expected, rel=0.05) and rows[0]["weight"] > 0.99
+    assert [r["rank"] for r in rows] == [0, 1] and all(isinstance(r["rank"], int) for r in rows)
+    # The version without parameters is exact (one model for every draw), the one that made the data well sampled.
+    assert rows[1]["pareto_k_max"] is None and not rows[1]["warning"] and rows[1]["warning_reason"] == ""
+    assert rows[0]["pareto_k_max"] < model_comparison.PARETO_K_MAX and not rows[0]["warning"]

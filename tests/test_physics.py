@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.linalg import eigh
 
-from newdyn import effects, faults, model, reference
+from newdyn import effects, faults, model, reference, slots
 from newdyn.simulation import DEFAULT_MAX_STEP, STATE_NAMES, simulate, simulate_batch
 
 DEFAULT_SAMPLING = model.Sampling()
@@ -119,7 +119,7 @@ def total_energy(values, state):
 
     Written from the Lagrangian (eccentric masses included), independently of the kernel's forces.
     """
-    v = model.complete(values)
+    v = slots.complete(values)
     s = dict(zip(STATE_NAMES, state))
     kinetic = 0.5 * sum(v[J] * s["d" + th] ** 2 for J, th in
                         (("J1", "theta1"), ("J2a", "theta2a"), ("J2b", "theta2b"), ("J3", "theta3"), ("J4", "theta4")))

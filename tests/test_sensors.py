@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from newdyn import likelihood, noise, sensors
+from newdyn import likelihood, noise, sensors, slots
 
 RNG = np.random.default_rng(11)
 N = 60
@@ -159,10 +159,10 @@ def test_datasheet_offsets_and_delays_are_not_a_misfit_but_a_stiffer_shaft_still
 
     def chi2(truth, offset=0.0, delay=0.0):
         late = model.Sampling(sampling.fs, sampling.t_first - delay, sampling.n_samples)  # the rig's state `delay` earlier
-        clean = simulation.simulate(model.complete(truth), late, channels)
+        clean = simulation.simulate(slots.complete(truth), late, channels)
         data, sigma = noise.add_noise(clean, channels, 40.0, 2)
         data[0] += offset * np.std(clean[0])
-        return [hypotheses.fit(healthy, data, sigma, model.complete({}), sampling, channels, instruments=s).chi2_red
+        return [hypotheses.fit(healthy, data, sigma, slots.complete({}), sampling, channels, instruments=s).chi2_red
                 for s in (None, instruments)]
 
     exact, with_instruments = chi2({}, offset=0.2)

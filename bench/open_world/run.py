@@ -24,7 +24,7 @@ import math
 import sys
 from pathlib import Path
 
-from newdyn import effects, hidden, model
+from newdyn import effects, hidden, model, slots
 
 FOLDER = Path(__file__).resolve().parent / "effects"
 SNR_DB = 40.0
@@ -42,7 +42,7 @@ def draw(measurements: Path, truth_path: Path, cases: int, seed: int) -> None:
     found = generators()
     section = {"sets": {"open": {"cases": cases, "seed": seed, "classes": list(found)}}}
     drawn = hidden.draw_cases(section, "open", model.DEFAULTS)
-    base = model.complete()
+    base = slots.complete()
     speed_hz = base["speed_rpm"] / 60.0
     for case in drawn:
         effect = found[case["class"]]

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 import xarray as xr
 
-from . import likelihood, model, sensors, simulation
+from . import likelihood, model, sensors, simulation, slots
 
 log = logging.getLogger("newdyn")
 
@@ -112,7 +112,7 @@ def simulate_points(
 ) -> np.ndarray:
     """Model outputs (n, len(channels), n_samples) with ``parameters`` set to each row of ``points``
     (n, len(parameters)) and the others to ``values`` (missing names: the rig.md defaults)."""
-    params = np.tile(model.parameter_vector(values), (len(points), 1))
+    params = np.tile(slots.parameter_vector(values), (len(points), 1))
     params[:, [model.PARAMETER_INDEX[p] for p in parameters]] = points
     return simulation.simulate_batch(params, sampling, channels, max_step)
 
@@ -144,7 +144,7 @@ def coarse_models(
             np.array_equal(coarse["time"].values, sampling.times)
             and np.array_equal(coarse["grid"].values, spec.axis)
             and set(channels) <= set(coarse["channel"].values.tolist())
-            and model.complete(json.loads(coarse.attrs["values"])) == model.complete(values)
+            and slots.complete(json.loads(coarse.attrs["values"])) == slots.complete(values)
             and float(coarse.attrs["max_step"]) == max_step
         )
         if same:

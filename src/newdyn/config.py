@@ -46,7 +46,7 @@ from typing import Any
 
 import yaml
 
-from . import effects, faults, model
+from . import effects, faults, model, slots
 
 #: The schema of the source tree this module lives in (src/newdyn/config.py -> workflow/schemas/...).
 #: From an installed (non-editable) package, pass ``schema_path`` explicitly.
@@ -504,7 +504,7 @@ def _scenario_problems(
     overrides = scenario.get("overrides", {})
     fault = scenario.get("fault")
     values = faults.scenario_values(scenario, base)
-    set_by_fault = _rig_values_set_by_fault(where, fault, model.complete({**base, **overrides})) if fault else {}
+    set_by_fault = _rig_values_set_by_fault(where, fault, slots.complete({**base, **overrides})) if fault else {}
     for name in model.PARAMETER_NAMES:
         problem = model.PARAMETER_BY_NAME[name].problem(values[name])
         if problem is None:
@@ -555,7 +555,7 @@ def _scenario_spec_problems(where: str, scenario: Mapping, base: Mapping[str, fl
 def _effect_owning(name: str) -> str | None:
     """The active effect that has a parameter ``name`` (or model value ``<kind>.<parameter>``), if any."""
     for kind, effect in effects.active().items():
-        if name in effect.parameter_names() or name in (model.effect_slot(kind, p) for p in effect.parameter_names()):
+        if name in effect.parameter_names() or name in (slots.effect_slot(kind, p) for p in effect.parameter_names()):
             return kind
     return None
 

@@ -55,6 +55,7 @@ from . import (
     model,
     noise,
     residuals,
+    slots,
 )
 from . import posterior as posterior_module
 from . import sensors as sensors_module
@@ -119,7 +120,7 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
     rows = [measurement.channels.index(c) for c in settings.channels]
     channels, data, sampling = settings.channels, measurement.y[rows], measurement.sampling
     sigma, noise_source = noise_level(measurement, rows, settings.noise_band_hz)
-    values = model.complete({**settings.rig, **measurement.operating})
+    values = slots.complete({**settings.rig, **measurement.operating})
     hyps = {h.name: h for h in settings.hypotheses()}
     if colour is not None:
         sigma, noise_source = coloured_level(channels, sigma, noise_source, colour, level)
@@ -504,8 +505,11 @@ def _with_instruments(verdict: Mapping, chi2_max: float) -> str:
                      + "; ".join(p["statement"] for p in alternative["sensor_problems"])
                      + "): only the prior odds against a bad instrument chose, a check of that sensor would tell")
     took = verdict["instruments_took"]
+    exact, through = f"{took['chi2_exact']:.3g}", f"{took['chi2']:.3g}"
+    if exact == through:  # the instruments took nothing worth a word
+        return sentence
     return sentence + (f"; the instruments' offsets, gains and delays took the final model's reduced chi2 from "
-                       f"{took['chi2_exact']:.3g} (exact instruments) to {took['chi2']:.3g}")
+                       f"{exact} (exact instruments) to {through}")
 
 
 def _machine_statement(verdict: Mapping, chi2_max: float) -> str:

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
-from . import effects, model
+from . import effects, model, slots
 
 PARAMETER_CHANGE = "parameter_change"
 
@@ -35,8 +35,8 @@ def model_values(kind: str, parameters: Mapping[str, float], base: Mapping[str, 
         return {name: float(value) for name, value in parameters.items()}
     effect = effects.active()[kind]
     values = effect_values(kind, parameters, base)
-    out = {model.effect_slot(kind): 1.0}
-    out.update({model.effect_slot(kind, p.name): values[p.name] for p in effect.kernel_parameters()})
+    out = {slots.effect_slot(kind): 1.0}
+    out.update({slots.effect_slot(kind, p.name): values[p.name] for p in effect.kernel_parameters()})
     out.update(effect.rig_values(values, base))
     return out
 
@@ -79,7 +79,7 @@ def fault_problems(
 
 def scenario_values(scenario: Mapping[str, object], base: Mapping[str, float]) -> dict[str, float]:
     """All model values of a scenario: base, then its overrides, then its fault."""
-    values = model.complete({**base, **scenario.get("overrides", {})})
+    values = slots.complete({**base, **scenario.get("overrides", {})})
     fault = scenario.get("fault")
     if fault:
         values.update(model_values(fault["kind"], fault.get("parameters", {}), values))

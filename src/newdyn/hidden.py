@@ -34,7 +34,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from . import effects, faults, io, model, noise, provenance, sensors, simulation
+from . import effects, faults, io, model, noise, provenance, sensors, simulation, slots
 from .hidden_sets import case_names, recording_names
 from .verdicts import HEALTHY, NEW_DYNAMICS, PARAMETER_CHANGE, SENSOR_PROBLEM, UNEXPLAINED, VERDICTS
 
@@ -109,7 +109,7 @@ def draw_cases(
     n, seed = int(spec["cases"]), int(spec["seed"])
     ranges = default_ranges() if ranges is None else ranges
     chosen = list(spec.get("classes", all_classes() if classes is None else classes))
-    base = model.complete(base_values)
+    base = slots.complete(base_values)
     # One stream shuffles the classes, one per case draws it: a case's draw does not depend on how
     # often another case had to be redrawn.
     streams = [np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(n + 1)]
@@ -184,7 +184,7 @@ def draw_recordings(cases: Sequence[Mapping], set_name: str, spec: Mapping, oper
     ``channels`` and ``noise_seed``, redrawn from the machine's own stream until its finding shows in one of them."""
     names = recording_names(set_name, spec)
     streams = [np.random.default_rng(s) for s in np.random.SeedSequence([int(spec["seed"]), 3]).spawn(len(cases))]
-    base = model.complete(base_values)
+    base = slots.complete(base_values)
     machines = []
     for case, rng in zip(cases, streams):
         for _ in range(MAX_DRAWS):

@@ -19,7 +19,7 @@ import numpy as np
 from scipy import optimize
 from scipy.special import erfinv
 
-from . import concurrency, effects, faults, likelihood, model, sensors, simulation
+from . import concurrency, effects, faults, likelihood, model, sensors, simulation, slots
 
 HEALTHY = "healthy"
 PARAMETER_CHANGE = faults.PARAMETER_CHANGE
@@ -112,23 +112,23 @@ class Hypothesis:
         return effect, others, rig, {name: np.broadcast_to(np.asarray(v, dtype=float), (len(theta),)) for name, v in admissible.items()}
 
     def parameter_rows(self, theta: np.ndarray, base: Mapping[str, float]) -> np.ndarray:
-        """Kernel parameter vectors (n, len(model.slot_names())) for rows of fitted values (n, k).
+        """Kernel parameter vectors (n, len(slots.slot_names())) for rows of fitted values (n, k).
 
         A fitted rig parameter (a drift) sets its column.  An effect's parameters go through the
         effect: its presence flag is set, its values are made admissible (:meth:`Effect.admissible`,
         e.g. a friction joint kept able to carry the mean load) and set its kernel slots and the rig
         values it sets (:meth:`Effect.rig_values`, on the drifted rig)."""
         theta = np.atleast_2d(np.asarray(theta, dtype=float))
-        base = model.complete(base)
-        index = model.slot_index()
-        rows = np.tile(model.parameter_vector(base), (len(theta), 1))
+        base = slots.complete(base)
+        index = slots.slot_index()
+        rows = np.tile(slots.parameter_vector(base), (len(theta), 1))
         effect, others, rig, values = self._values(theta, base)
         for name, column in others.items():
             rows[:, index[name]] = column
         if effect is not None:
-            rows[:, index[model.effect_slot(self.kind)]] = 1.0
+            rows[:, index[slots.effect_slot(self.kind)]] = 1.0
             for p in effect.kernel_parameters():
-                rows[:, index[model.effect_slot(self.kind, p.name)]] = values[p.name]
+                rows[:, index[slots.effect_slot(self.kind, p.name)]] = values[p.name]
             for name, column in effect.rig_values(values, rig).items():
                 rows[:, index[name]] = column
         return rows
@@ -137,7 +137,7 @@ class Hypothesis:
         """Rows of fitted values (n, k) as the model runs with them on ``base``: made admissible by the effect
         (:meth:`Effect.admissible`)."""
         theta = np.atleast_2d(np.asarray(theta, dtype=float))
-        _, others, _, values = self._values(theta, model.complete(base))
+        _, others, _, values = self._values(theta, slots.complete(base))
         return np.stack([np.asarray(values[name] if name in values else others[name], dtype=float) for name in self.parameters],
                         axis=1) if self.parameters else theta
 

@@ -23,7 +23,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from . import comparison, concurrency, effects, hypotheses, io, model, next_condition, noise
+from . import comparison, concurrency, effects, hypotheses, io, model, next_condition, noise, slots
 from .hypotheses import HEALTHY, PARAMETER_CHANGE
 from .settings import Settings
 
@@ -43,7 +43,7 @@ def recording(diagnosed: Diagnosed, settings: Settings) -> hypotheses.Recording:
     colour = noise.Colour.from_summary(v["noise"].get("colour", {}), channels)
     return hypotheses.Recording(
         m.y[[m.channels.index(c) for c in channels]], np.array([v["noise"]["sigma"][c] for c in channels]),
-        model.complete({**settings.rig, **m.operating}), m.sampling, channels,
+        slots.complete({**settings.rig, **m.operating}), m.sampling, channels,
         replace(settings, channels=channels).instruments(m.sampling.fs, colour),
     )
 

@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import xarray as xr
 
-from . import likelihood, model, posterior, simulation
+from . import likelihood, model, posterior, simulation, slots
 from .calibration import GridSpec, NormalPrior, explanation_verdict, simulate_points
 
 if TYPE_CHECKING:  # sampling imports arviz (slow); import it where a run needs it
@@ -359,7 +359,7 @@ def _joint_start(data, sigma, variables, priors, grid_posteriors, values, sampli
     low, high = np.array([v.sampled_bounds for v in params]).T
     inner = 1e-9 * (high - low)  # the start stays strictly inside, also after 1/(1/x)
     best = int(np.argmax([g.log_likelihood.max() for g in grid_posteriors]))
-    k0 = np.array([model.complete(values)[name] for name in names])
+    k0 = np.array([slots.complete(values)[name] for name in names])
     k0[best] = grid_posteriors[best].map
     k0 = np.clip(k0, [v.low for v in params], [v.high for v in params])
     x0 = np.clip(sampled_rows(params, k0[None])[0], low + inner, high - inner)

@@ -2,9 +2,8 @@
 
 Every model quantity has one name used everywhere: in config, in the kernel's flat parameter
 vector, in file attributes and in the calibration.  A model instance is just a mapping from these
-names to values; :func:`parameter_vector` packs it for the compiled kernel.  Beside the rig and
-operating parameters, each active effect (:mod:`newdyn.effects`) has slots: ``<kind>`` (1 where the
-effect is present, else 0) and ``<kind>.<parameter>`` for each parameter its functions read.
+names to values; :mod:`newdyn.slots` completes it with the active effects' values and packs it for the
+compiled kernel.
 """
 
 from __future__ import annotations
@@ -119,49 +118,6 @@ def omega(values: Mapping[str, float]) -> float:
     return 2.0 * math.pi * values["speed_rpm"] / 60.0
 
 
-def effect_slot(kind: str, parameter: str | None = None) -> str:
-    """The model value name of an effect's presence flag (``parameter`` None) or of one of its parameters."""
-    return kind if parameter is None else f"{kind}.{parameter}"
-
-
-def slot_names() -> tuple[str, ...]:
-    """The names of the kernel's parameter vector for the active effects: rig, operating, then per
-    effect its presence flag and the parameters its functions read."""
-    from . import effects  # here: effects build on this module
-
-    names = list(PARAMETER_NAMES)
-    for kind, effect in effects.active().items():
-        names += [effect_slot(kind)] + [effect_slot(kind, p.name) for p in effect.kernel_parameters()]
-    return tuple(names)
-
-
-def slot_index() -> dict[str, int]:
-    return {name: i for i, name in enumerate(slot_names())}
-
-
-def complete(values: Mapping[str, float] | None = None) -> dict[str, float]:
-    """All model values: the rig.md defaults overridden by ``values``, then every active effect's
-    slots (absent, its parameters at their defaults, unless ``values`` sets them); unknown names are an error."""
-    from . import effects  # here: effects build on this module
-
-    values = dict(values or {})
-    unknown = sorted(set(values) - set(slot_names()))
-    if unknown:
-        raise KeyError(f"unknown model parameter(s): {', '.join(unknown)}")
-    full = {name: float(values.get(name, DEFAULTS[name])) for name in PARAMETER_NAMES}
-    for kind, effect in effects.active().items():
-        full[effect_slot(kind)] = float(values.get(effect_slot(kind), 0.0))
-        for p in effect.kernel_parameters():
-            default = p.default_value(full) if p.default is not None else p.prior[0]
-            full[effect_slot(kind, p.name)] = float(values.get(effect_slot(kind, p.name), default))
-    return full
-
-
-def parameter_vector(values: Mapping[str, float] | None = None) -> np.ndarray:
-    """The kernel's flat parameter vector for ``values`` (missing names take their defaults)."""
-    return np.array(list(complete(values).values()), dtype=np.float64)
-
-
 @dataclass(frozen=True)
 class Sampling:
     """Recorded samples: ``t_k = t_first + k / fs`` for ``k = 0 … n_samples-1``; the model starts at t = 0."""
@@ -186,7 +142,7 @@ def linear_matrices(values: Mapping[str, float] | None = None) -> tuple[np.ndarr
     The motor's torque slope c_m acts as a viscous damper on θ1 to ground.
     Independent of the compiled kernel, so it serves as a check on it.
     """
-    v = complete(values)
+    v = {**DEFAULTS, **(values or {})}
     n = 20
     M = np.zeros((n, n))
     K = np.zeros((n, n))

@@ -61,18 +61,37 @@ def inference_data(log_likelihood: np.ndarray, parameters: Mapping[str, np.ndarr
                         dims={"y": ["channel", "cycle"]})
 
 
+PARETO_K_MAX = 0.7  # above it, a block's PSIS-LOO estimate is unreliable (ArviZ's threshold for its warning)
+
+
 def compare(versions: Mapping[str, object]) -> list[dict]:
-    """``az.compare`` of the versions' InferenceData by PSIS-LOO: one row per version, best first."""
+    """``az.compare`` of the versions' InferenceData by PSIS-LOO: one row per version, best first, with ``warning``
+    true only where some block's Pareto k̂ exceeds :data:`PARETO_K_MAX`, and ``warning_reason`` saying how many.  A
+    version without parameters has one model for every draw: leaving a block out changes nothing, its elpd_loo is its
+    log-likelihood exactly, and ArviZ's flag for its undefined k̂ is no warning."""
     import warnings
 
     import arviz as az
 
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # a constant version's Pareto k is undefined: its `warning` column says so
+        warnings.simplefilter("ignore")  # a constant version's Pareto k is undefined: handled below
         table = az.compare(dict(versions), ic="loo", method="pseudo-BMA")
-    return [{"version": str(name), **{key: (bool(value) if key == "warning" else float(value)) for key, value in row.items()
-                                      if key in ("rank", "elpd_loo", "p_loo", "elpd_diff", "weight", "se", "dse", "warning")}}
-            for name, row in table.iterrows()]
+        pareto_k = {name: np.asarray(az.loo(idata, pointwise=True).pareto_k).ravel() for name, idata in versions.items()}
+    rows = []
+    for name, row in table.iterrows():
+        exact = "no_parameters" in versions[name].posterior
+        flagged = 0 if exact else int(np.sum(pareto_k[name] > PARETO_K_MAX))
+        rows.append({
+            "version": str(name), "rank": int(row["rank"]),
+            **{key: float(row[key]) for key in ("elpd_loo", "p_loo", "elpd_diff", "weight", "se", "dse")},
+            "pareto_k_max": None if exact else float(np.max(pareto_k[name])),
+            "warning": flagged > 0,
+            "warning_reason": "" if not flagged else (
+                f"Pareto k above {PARETO_K_MAX:g} at {flagged} of {pareto_k[name].size} blocks: leaving those out moves "
+                "this version's posterior more than importance sampling can follow, so its elpd_loo is approximate "
+                "there (a version that misfits some load cycles does this)"),
+        })
+    return rows
 
 
 class Version(NamedTuple):

@@ -18,7 +18,7 @@ from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
 
-from . import hypotheses, model, simulation
+from . import hypotheses, model, simulation, slots
 
 POINTS = 9  # candidate values of each operating parameter, evenly across its range
 BISECTIONS = 5  # halvings of the grid step that place where a rival starts (or stops) being told apart
@@ -66,7 +66,7 @@ def _expected_log_bayes_factors(top: hypotheses.JointFit, rival: hypotheses.Hypo
                                 sampling: model.Sampling, channels: Sequence[str], snr_db: float,
                                 max_step: float) -> list[float]:
     """Per condition, ½ Σ ((m_top − m_rival)/σ)² averaged over the rival's ``draws``; all runs in one batch each."""
-    bases = [model.complete({**rig, **c}) for c in conditions]
+    bases = [slots.complete({**rig, **c}) for c in conditions]
     expected = simulation.simulate_batch(
         np.concatenate([top.hypothesis.parameter_rows(top.theta[None], base) for base in bases]), sampling, channels, max_step)
     rivals = simulation.simulate_batch(

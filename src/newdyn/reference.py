@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.integrate import solve_ivp
 
-from . import effects, model
+from . import effects, model, slots
 from .effects.check import effect_parameters_type
 
 N_DOF = 21  # θ1 θ2a θ2b θ3 θ4, x[8], y[8]
@@ -89,16 +89,16 @@ class Rig:
 
 def prepare(values: Mapping[str, float] | None = None) -> Rig:
     """The :class:`Rig` constants for ``values`` (missing names take their defaults)."""
-    v = model.complete(values)
+    v = slots.complete(values)
     M, C, K = model.linear_matrices(v)
     # The lateral part is exactly the healthy matrix form; the torsional part is written element by
     # element in rhs() because θ2 splits into 2a/2b.
     names = ("J1", "J2a", "J2b", "J3", "J4", "m1", "m4", "kT1", "kT2", "kT3", "beta", "T0", "u1", "u4", "load_amp", "load_freq")
     present = []
     for kind, effect in effects.active().items():
-        if v[model.effect_slot(kind)] != 0.0:
+        if v[slots.effect_slot(kind)] != 0.0:
             parameters = effect_parameters_type(effect)(
-                *[v[model.effect_slot(kind, p.name)] for p in effect.kernel_parameters()])
+                *[v[slots.effect_slot(kind, p.name)] for p in effect.kernel_parameters()])
             present.append((effect, parameters))
     return Rig(
         values=v,

@@ -19,7 +19,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 import xarray as xr
 
-from . import calibration, comparison, effects, hypotheses, likelihood, model, sensors, simulation
+from . import calibration, comparison, effects, hypotheses, likelihood, model, sensors, simulation, slots
 from .hypotheses import HEALTHY, PARAMETER_CHANGE
 
 REFERENCE_SNR_DB = 40.0  # the library's noise: this far below each channel's healthy signal (its std)
@@ -64,7 +64,7 @@ def spec(hyps: Mapping[str, hypotheses.Hypothesis], signature_entries, values: M
     """What a library depends on, as plain data."""
     kinds = sorted({name for name, _ in signature_entries} & set(effects.active()))
     return {
-        "values": dict(model.complete(values)), "fs": sampling.fs, "t_first": sampling.t_first, "n_samples": sampling.n_samples,
+        "values": dict(slots.complete(values)), "fs": sampling.fs, "t_first": sampling.t_first, "n_samples": sampling.n_samples,
         "channels": list(channels), "grids": {p: [g.low, g.high, g.points] for p, g in grids.items()},
         "priors": {p: [prior.mean, prior.sd] for p, prior in priors.items()},
         "entries": sorted(json.dumps([name, v], sort_keys=True) for name, v in signature_entries),  # in any order

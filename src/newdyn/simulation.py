@@ -11,7 +11,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from . import kernels, model
+from . import kernels, model, slots
 
 # Longest RK4 step [s]: step halving stays within rig.md's bounds at it (tests/test_physics.py); a rig
 # whose slip joint opens steps finer while it is open (kernels.fine_steps).
@@ -56,7 +56,7 @@ def simulate_batch(
     """Simulate many parameter sets at once: (n_sets, len(outputs), n_samples).
 
     ``values`` is a sequence of parameter mappings or an array of parameter vectors
-    (rows laid out as ``model.slot_names()``).  Each sample interval is split into the fewest
+    (rows laid out as ``slots.slot_names()``).  Each sample interval is split into the fewest
     equal RK4 steps no longer than ``max_step``, and finer while a slip joint is open or settling.  For a
     ``search`` those finer steps are twice as long (``kernels.SEARCH_STEP_FACTOR``): cheaper where the joint slips, and
     less accurate where kinetic friction is well below static — for a global search that only chooses where least
@@ -65,9 +65,9 @@ def simulate_batch(
     if isinstance(values, np.ndarray):
         params = np.ascontiguousarray(values, dtype=np.float64)
     else:
-        params = np.stack([model.parameter_vector(v) for v in values]) if len(values) else np.empty((0, len(model.slot_names())))
-    if params.ndim != 2 or params.shape[1] != len(model.slot_names()):
-        raise ValueError(f"parameter array must be (n, {len(model.slot_names())}), got {params.shape}")
+        params = np.stack([slots.parameter_vector(v) for v in values]) if len(values) else np.empty((0, len(slots.slot_names())))
+    if params.ndim != 2 or params.shape[1] != len(slots.slot_names()):
+        raise ValueError(f"parameter array must be (n, {len(slots.slot_names())}), got {params.shape}")
     return kernels.simulate_batch(
         params, float(sampling.t_first), float(sampling.fs), int(sampling.n_samples), substeps(sampling.fs, max_step), output_codes(outputs),
         search,

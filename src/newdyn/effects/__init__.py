@@ -20,6 +20,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from .base import PLACES, Effect, Kinematics, Parameter, RigValues, kernel_function, sincos
+from .check import problems
 
 __all__ = ["PLACES", "USER_FOLDER", "Effect", "EffectError", "Kinematics", "Parameter", "RigValues", "active", "builtin",
            "including", "kernel_function", "load_file", "loaded", "sincos", "use"]
@@ -52,8 +53,6 @@ def load_file(path: str | Path) -> type[Effect]:
     """The effect declared in ``path``, checked (:func:`newdyn.effects.check.problems`); raises
     :class:`EffectError` with one line naming the file and its first problem.  A file is read again
     when it changed."""
-    from .check import problems  # here: check needs the model, which needs this package
-
     path = Path(path)
     if not path.is_file():
         raise EffectError(path, "no such file")
