@@ -216,9 +216,8 @@ BAD = {
                                            "must be one of", "speed_rpm"),
     "reversed operating range": (_set("operating_range.T0", [1800.0, 800.0]), "operating_range.T0", "low < high"),
     "unphysical operating range": (_set("operating_range.speed_rpm", [0.0, 1500.0]), "operating_range.speed_rpm", "(0, inf) rpm"),
-    "machine set without an operating range": (
-        lambda c: (_set("hidden.sets.fleet", {"cases": 2, "seed": 1, "recordings": [2, 3]})(c), c.pop("operating_range")),
-        "hidden.sets.fleet.recordings", "operating_range, which is not set"),
+    "machine set without an operating range": (lambda c: c.pop("operating_range"), "hidden.sets.machines.recordings",
+                                                "operating_range, which is not set"),
     "reversed recordings": (_set("hidden.sets.fleet", {"cases": 2, "seed": 1, "recordings": [3, 2]}),
                             "hidden.sets.fleet.recordings", "low <= high"),
     "drift not calibrated": (_set("diagnosis.drift", ["k_s"]), "diagnosis.drift[0]", "not one of calibration.parameters"),
