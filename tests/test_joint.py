@@ -207,7 +207,7 @@ def test_too_few_walkers_or_a_missing_sigma_are_refused(kT1_up):
         mcmc_calibration.calibrate_joint(data, sigma, GRIDS, PRIORS, posteriors, {}, SAMPLING, CHANNELS, settings, infer_sigma=True)
 
 
-def test_cli_round_trip(tmp_path):
+def test_cli_round_trip(tmp_path, capsys):
     """grid-models per parameter → calibrate-grid of them all → calibrate-joint, on tiny files; with σ inferred the
     measurement needs no sigma coordinate."""
     window = {"fs": SAMPLING.fs, "t_first": SAMPLING.t_first, "n_samples": float(SAMPLING.n_samples)}
@@ -266,8 +266,9 @@ def test_cli_round_trip(tmp_path):
 
     known_sigma = ["calibrate-joint", "--measurement", str(without_sigma), "--grid-results", *results,
                    "--spec", json.dumps({**spec, "infer_sigma": False}), "--output", str(tmp_path / "x.nc")]
-    with pytest.raises(io.MeasurementError, match="sigma"):  # known σ needs it in the file
-        cli.main(known_sigma)
+    assert cli.main(known_sigma) == 1  # known σ needs it in the file: one line naming it, no traceback
+    line = capsys.readouterr().err.strip().splitlines()[-1]
+    assert line.startswith("newdyn calibrate-joint: ") and "nosigma.nc" in line and "sigma" in line
     with pytest.raises(ValueError, match="grid calibration of 'kT3', expected 'kT1'"):
         cli.main(["calibrate-joint", "--measurement", str(with_sigma), "--grid-results", *results[::-1],
                   "--spec", json.dumps(spec), "--output", str(tmp_path / "y.nc")])
