@@ -43,7 +43,7 @@ SEARCH_POPULATION = 16  # members per fitted parameter
 # up to the whole record.  Over a long record a switching effect's misfit is a golf course (plateaus,
 # one per slip pattern, and a needle at the truth) that no search of this size crosses; over part of a
 # cycle the truth's basin is wide enough to be found, though not always on the same window, and a
-# longer window only narrows it around where the shorter one left off (README: Diagnose your own measurement).
+# longer window only narrows it around where the shorter one left off (docs/validation.md: Stick-slip fits).
 SEARCH_WINDOW = 0.05  # s
 SEARCHES = 2  # on the first this many windows
 

@@ -1,8 +1,8 @@
 """A two-sided contact with a clearance: an element that acts only against a wall at ±gap (a dead zone).
 
-Shared by effects of that shape (``loose_bearing``: b1's ground spring in a loose housing; the README's
-``coupling_backlash``: the coupling element in a free play).  The mode is 0 free inside the clearance and
-±1 against the wall at ±gap.
+Shared by effects of that shape (``loose_bearing``: b1's ground spring in a loose housing; ``coupling_backlash`` of
+effects/README.md's worked example: the coupling element in a free play).  The mode is 0 free inside the clearance
+and ±1 against the wall at ±gap.
 """
 
 from __future__ import annotations
