@@ -94,6 +94,30 @@ def test_mcmc_on_the_simulator_agrees_with_the_grid(coarse_models):
     assert row["chi2_red"] == pytest.approx(grid.chi2_red, abs=0.01)
 
 
+def test_grid_proposal_samples_the_simulators_posterior_with_few_simulations(coarse_models):
+    """proposal="grid": walkers propose from the grid posterior and the simulator decides; nearly every move is
+    accepted, so 8 walkers x 80 steps (680 simulations) give the convergence thresholds in one round, and the
+    posterior agrees with the grid's and with the KDE sampler's (600 simulations per 100 steps more)."""
+    truth = {"kT1": 3.25e6}
+    clean = simulate(truth, SAMPLING, CHANNELS)
+    data, sigma = noise.add_noise(clean, CHANNELS, 40.0, 1)
+    grid = calibration.calibrate(data, sigma, GRIDS["kT1"], PRIORS["kT1"], coarse_models["kT1"], {}, SAMPLING, CHANNELS, 41, 1.1)
+    settings = MCMCSettings(n_walkers=8, n_steps=80, n_burn=5, seed=1)
+    idata = mcmc_calibration.calibrate_mcmc(data, sigma, GRIDS["kT1"], PRIORS["kT1"], grid.posterior, {}, SAMPLING, CHANNELS,
+                                            settings, proposal="grid")
+    row = mcmc_calibration.mcmc_summary(idata, "kT1", PRIORS["kT1"], grid.posterior, sigma, 1.1)
+    assert row["converged"] and row["verdict"] == "explained"
+    assert int(idata.attrs["rounds"]) == 1
+    assert float(idata.sample_stats["acceptance_fraction"].mean()) > 0.8
+    assert "grid posterior" in idata.attrs["sampler"]
+    assert row["hellinger_to_grid"] < 0.08
+    assert abs(row["mean"] - grid.posterior.mean) < 0.2 * grid.posterior.sd
+    assert row["sd"] == pytest.approx(grid.posterior.sd, rel=0.15)
+    with pytest.raises(ValueError, match="proposal must be one of"):
+        mcmc_calibration.calibrate_mcmc(data, sigma, GRIDS["kT1"], PRIORS["kT1"], grid.posterior, {}, SAMPLING, CHANNELS,
+                                        settings, proposal="nearest")
+
+
 def test_posterior_cut_by_the_grid_bound_is_resolved_there(coarse_models):
     """Stick-slip pushes kT1 against the grid's upper bound: the posterior is the exponential tail the
     bound cuts, and the refinement must still put many points within its decay length."""

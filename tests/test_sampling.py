@@ -69,6 +69,31 @@ def test_conjugate_gaussian_matches_closed_form_and_converges():
     )
 
 
+def test_an_independence_proposal_far_from_the_posterior_still_samples_it_exactly():
+    """The Metropolis-Hastings correction, not the proposal, sets what the chain samples: a Student-t proposal centred
+    one posterior sd off and twice as wide gives the closed-form posterior, and the moves it makes are recorded."""
+    precision = 1 / TAU0**2 + len(Y) / SIGMA**2
+    mean_exact, sd_exact = Y.sum() / SIGMA**2 / precision, precision**-0.5
+    centre, scale, df = mean_exact + sd_exact, 2 * sd_exact, 5.0
+    from scipy import stats
+
+    move = sampling.independence_move(
+        lambda random, n: stats.t.rvs(df, centre, scale, size=(n, 1), random_state=random),
+        lambda x: stats.t.logpdf(x[:, 0], df, centre, scale),
+    )
+    settings = sampling.MCMCSettings(n_walkers=8, n_steps=1500, n_burn=20, seed=1)
+    start = np.random.default_rng(0).normal(0.0, 1.0, size=(8, 1))
+    idata = sampling.run(conjugate_loglik, conjugate_logprior, ["theta"], start, settings, move=(move, "t proposal"))
+    theta = draws(idata, "theta")
+    mean, mean_se = mean_and_mcse(theta)
+    var, var_se = mean_and_mcse((theta - mean) ** 2)
+    sd, sd_se = np.sqrt(var), var_se / (2 * np.sqrt(var))
+    assert abs(mean - mean_exact) < 4 * mean_se
+    assert abs(sd - sd_exact) < 4 * sd_se
+    assert 0.2 < float(idata.sample_stats["acceptance_fraction"].mean()) < 0.9  # rejections did the correcting
+    assert "t proposal" in idata.attrs["sampler"]
+
+
 def short_run(seed):
     settings = sampling.MCMCSettings(n_walkers=16, n_steps=200, n_burn=50, seed=seed)
     start = np.random.default_rng(0).normal(0.0, 1.0, size=(16, 1))

@@ -215,6 +215,7 @@ def calibrate_with_mcmc(measurement_path: str, grid_result_path: str, spec: dict
         data, sigma, grid, prior, grid_posterior, values, measurement.sampling, spec["channels"],
         mcmc.MCMCSettings.from_config(spec["mcmc"]), spec["max_step"],
         attrs={"settings": json.dumps(spec, sort_keys=True), **provenance.attributes(code_hash)},
+        proposal=spec["mcmc"].get("proposal", "move"),
     )
     row = mcmc_calibration.mcmc_summary(idata, grid.parameter, prior, grid_posterior, sigma, spec["chi2_max"])
     log.info("MCMC of %s on %s in %.1f s: %s", grid.parameter, measurement.name, time.perf_counter() - start, row)

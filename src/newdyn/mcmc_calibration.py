@@ -165,9 +165,10 @@ def sample_posterior(
     rng: np.random.Generator,
     observed: Mapping | None = None,
     attrs: Mapping[str, object] | None = None,
+    move: tuple | None = None,
 ):
     """emcee (:func:`sampling.run`) over ``variables`` from ``initial`` (n_walkers, n_variables), the
-    walkers' positions in the sampled coordinates.
+    walkers' positions in the sampled coordinates (``move``: as :func:`sampling.run`'s, else ``settings.move``).
 
     The walkers move in each variable's coordinate; the posterior group holds values, and the
     convergence diagnostics are those of the values.  ``rng`` draws the prior group.
@@ -182,6 +183,7 @@ def sample_posterior(
         names, initial, settings, to_values=lambda x: _values(variables, x),
         prior_samples=prior_samples, observed=observed,
         attrs={**(attrs or {}), "coordinates": {v.name: v.coordinate + (", mirrored" if v.mirrored else "") for v in variables}},
+        move=move,
     )
 
 
@@ -201,6 +203,7 @@ def calibrate_mcmc(
     settings: MCMCSettings,
     max_step: float = simulation.DEFAULT_MAX_STEP,
     attrs: Mapping[str, object] | None = None,
+    proposal: str = "move",
 ):
     """MCMC posterior (emcee, ArviZ InferenceData) of ``spec.parameter`` on the real simulator.
 
@@ -213,11 +216,50 @@ def calibrate_mcmc(
     """
     rng = np.random.default_rng(settings.seed)
     initial = np.interp(rng.uniform(size=settings.n_walkers), grid_posterior.cdf, grid_posterior.grid)[:, None]
+    if proposal not in PROPOSALS:
+        raise ValueError(f"proposal must be one of {', '.join(PROPOSALS)}, got {proposal!r}")
     return sample_posterior(  # linear coordinate: the positions are the values, folded at the bounds
         [_parameter_variable(spec, prior)],
         _simulator_log_likelihood(data, sigma, [spec.parameter], values, sampling, channels, max_step),
         initial, settings, rng, _observed(data, sampling, channels), attrs,
+        move=grid_move(grid_posterior, spec.low, spec.high) if proposal == "grid" else None,
     )
+
+
+PROPOSALS = ("move", "grid")  # a one-parameter run's proposal: emcee's ensemble move (settings.move), or the grid's
+GRID_DEFENSIVE = 0.05  # the share of a grid proposal's draws that are uniform over the grid range
+
+
+def grid_move(grid_posterior: likelihood.GridPosterior, low: float, high: float):
+    """An independence proposal from the measurement's grid posterior (:func:`newdyn.sampling.independence_move`), the
+    study's own surrogate of the one-parameter posterior, so that each simulation gives nearly an independent draw
+    (emcee's KDE move, which learns the posterior from the other walkers, decorrelates in about two): walkers propose
+    from the grid's cdf, linear between grid points (a density constant on each grid cell), mixed with
+    ``GRID_DEFENSIVE`` uniform over [low, high].  The uniform share keeps the proposal's density above zero wherever the
+    posterior has mass, cells the grid gave none included, so the ratio of posterior to proposal stays bounded and the
+    chain is uniformly ergodic even where the grid misses (Hesterberg's defensive mixture).  The simulator's
+    likelihood decides every move: the draws follow the posterior on the simulator, not the grid's."""
+    from .sampling import independence_move
+
+    grid = grid_posterior.grid
+    cdf = grid_posterior.cdf / grid_posterior.cdf[-1]
+    with np.errstate(divide="ignore"):
+        cell_density = np.diff(cdf) / np.diff(grid)
+    share = GRID_DEFENSIVE
+
+    def draw(random, n):
+        u, uniform = random.uniform(size=n), random.uniform(size=n) < share
+        x = np.where(uniform, low + u * (high - low), np.interp(u, cdf, grid))
+        return x[:, None]
+
+    def log_density(x):
+        x = x[:, 0]
+        cell = np.clip(np.searchsorted(grid, x, side="right") - 1, 0, grid.size - 2)
+        inside = (x >= low) & (x <= high)
+        with np.errstate(divide="ignore"):
+            return np.where(inside, np.log((1 - share) * cell_density[cell] + share / (high - low)), -np.inf)
+
+    return independence_move(draw, log_density), f"independence MHMove(grid posterior, {share:g} uniform)"
 
 
 def calibrate_joint(

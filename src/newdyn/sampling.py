@@ -124,6 +124,7 @@ def run(
     prior_samples: Mapping[str, np.ndarray] | None = None,
     observed: Mapping[str, np.ndarray | xr.DataArray] | None = None,
     attrs: Mapping[str, object] | None = None,
+    move: tuple[emcee.moves.Move, str] | None = None,
 ) -> az.InferenceData:
     """Sample the posterior with emcee's ensemble sampler and return it as InferenceData.
 
@@ -134,6 +135,8 @@ def run(
     (emcee's ``tau`` stays in the walkers' coordinates).
     ``prior_samples`` ({name: (draw,) or (chain, draw) array}) becomes the ``prior`` group and
     ``observed`` ({name: array or DataArray}, e.g. a measurement Dataset) the ``observed_data`` group.
+    ``move`` (an emcee move and its description) replaces ``settings.move``, e.g. an independence proposal
+    (:func:`independence_move`).
     Identical arguments give bit-identical chains: all randomness comes from ``settings.seed``.
     """
     names = list(names)
@@ -157,7 +160,8 @@ def run(
             ll[inside] = _batch(log_likelihood_batch, theta[inside], "log_likelihood_batch")
         return np.column_stack([lp + ll, ll])
 
-    sampler = emcee.EnsembleSampler(n_walkers, ndim, log_prob, vectorize=True, moves=MOVES[settings.move]())
+    chosen, described = move if move is not None else (MOVES[settings.move](), f"{MOVES[settings.move].__name__}()")
+    sampler = emcee.EnsembleSampler(n_walkers, ndim, log_prob, vectorize=True, moves=chosen)
     # Seed emcee's own generator (sampler._random, which draws the move, the split and the stretch
     # factors), never numpy's global one: sample() sets it from the State's random_state.
     start = emcee.State(initial, random_state=np.random.RandomState(settings.seed).get_state())
@@ -169,7 +173,7 @@ def run(
             **{k: netcdf_attribute(v) for k, v in (attrs or {}).items()},
             "mcmc_settings": json.dumps(dataclasses.asdict(settings)),
             "seed": settings.seed,
-            "sampler": f"emcee.EnsembleSampler(moves={MOVES[settings.move].__name__}(), vectorize=True); chain = walker",
+            "sampler": f"emcee.EnsembleSampler(moves={described}, vectorize=True); chain = walker",
             "emcee_version": emcee.__version__,
             "arviz_version": az.__version__,
             "rounds": rounds,
@@ -178,6 +182,19 @@ def run(
             return idata
         sampler.run_mcmc(None, settings.n_steps, progress=False)  # continues from the last state and random state
         rounds += 1
+
+
+def independence_move(draw: Callable[[np.random.RandomState, int], np.ndarray], log_density: BatchFn) -> emcee.moves.MHMove:
+    """emcee's Metropolis-Hastings move with an independence proposal: every walker proposes a fresh draw of ``draw``
+    (random state, n) -> (n, ndim), whose log density is ``log_density``; the posterior's ratio times the proposal's
+    decides each move, so the chain targets the posterior exactly whatever the proposal, and the closer the proposal
+    is to the posterior the more moves are accepted and the less consecutive draws are correlated."""
+
+    def propose(coords, random):
+        new = draw(random, len(coords))
+        return new, log_density(coords) - log_density(new)  # ln q(x) - ln q(x'): emcee's factors
+
+    return emcee.moves.MHMove(propose)
 
 
 def _inference_data(sampler, names, settings, to_values, prior_samples, observed) -> az.InferenceData:

@@ -208,7 +208,13 @@ def joint_spec(wildcards):
         {
             "parameters": {name: calibration["parameters"][name] for name in joint["parameters"]},
             "infer_sigma": joint["infer_sigma"],
-            "mcmc": {**calibration["mcmc"], "walkers": joint["walkers"], "steps": joint["steps"]},
+            # the joint runs take emcee's move (the grid proposal is one parameter's) and their own burn-in, if set
+            "mcmc": {
+                **{key: value for key, value in calibration["mcmc"].items() if key != "proposal"},
+                "walkers": joint["walkers"],
+                "steps": joint["steps"],
+                "burn": joint.get("burn", calibration["mcmc"]["burn"]),
+            },
             **_calibration_settings(study(wildcards)),
         }
     )
