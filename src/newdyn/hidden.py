@@ -199,10 +199,8 @@ def draw_recordings(cases: Sequence[Mapping], set_name: str, spec: Mapping, oper
 
 def _draw_recording(name: str, operating_range: Mapping[str, Sequence[float]], compared: Sequence[str],
                     rng: np.random.Generator) -> dict:
-    condition = {}
-    for parameter, (low, high) in sorted(operating_range.items()):
-        value = float(rng.uniform(low, high))
-        condition[parameter] = float(round(value)) if model.PARAMETER_BY_NAME[parameter].integer else value
+    condition = {parameter: model.PARAMETER_BY_NAME[parameter].rounded(rng.uniform(low, high))
+                 for parameter, (low, high) in sorted(operating_range.items())}
     channels = [c for c in compared if rng.random() < 0.5] or [str(rng.choice(list(compared)))]
     return {"name": name, "condition": condition, "channels": channels, "noise_seed": int(rng.integers(0, 2**31 - 1))}
 

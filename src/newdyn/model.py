@@ -29,6 +29,10 @@ class Parameter:
     upper_inclusive: bool = False
     integer: bool = False
 
+    def rounded(self, value: float) -> float:
+        """``value`` as this parameter takes it: the nearest whole number for an integer parameter."""
+        return float(round(value)) if self.integer else float(value)
+
     def problem(self, value: float) -> str | None:
         """Why ``value`` is not physical for this parameter, or None when it is."""
         if isinstance(value, bool) or not isinstance(value, (int, float)):

@@ -31,21 +31,20 @@ def rank(top: hypotheses.JointFit, rivals: Sequence[hypotheses.JointFit], refere
     """Per rival of ``top``: the expected log Bayes factor between them at each candidate condition, and the advice
     read from it (the operating parameter whose move tells them apart best, and the stretch of its range that does)."""
 
-    def separation(rival, draws):
-        def at(parameter, values):
+    rows = []
+    for rival in rivals:
+        draws = _posterior_draws(rival, rng)
+
+        def at(parameter, values, rival=rival, draws=draws):
             conditions = [{**reference, parameter: value} for value in values]
             return _expected_log_bayes_factors(top, rival.hypothesis, draws, conditions, rig, sampling, channels,
                                                snr_db, max_step)
-        return at
 
-    rows = []
-    for rival in rivals:
-        at = separation(rival, _posterior_draws(rival, rng))
         candidates = []
         for parameter, (low, high) in ranges.items():
-            unit = model.PARAMETER_BY_NAME[parameter]
-            values = [_round_if(unit.integer, v) for v in np.linspace(low, high, POINTS)]
-            candidates += [{"parameter": parameter, "value": value, "unit": unit.unit, "expected_log_bayes_factor": factor}
+            spec = model.PARAMETER_BY_NAME[parameter]
+            values = [spec.rounded(v) for v in np.linspace(low, high, POINTS)]
+            candidates += [{"parameter": parameter, "value": value, "unit": spec.unit, "expected_log_bayes_factor": factor}
                            for value, factor in zip(values, at(parameter, values))]
         rows.append({"rival": rival.hypothesis.name, "candidates": candidates, "advice": _advice(candidates, margin, at)})
     return {"model": top.hypothesis.name, "reference": dict(reference), "channels": list(channels), "snr_db": snr_db,
@@ -77,10 +76,6 @@ def _expected_log_bayes_factors(top: hypotheses.JointFit, rival: hypotheses.Hypo
             for k in range(len(bases))]
 
 
-def _round_if(integer: bool, value: float) -> float:
-    return float(round(value)) if integer else float(value)
-
-
 def _advice(candidates: Sequence[Mapping], margin: float, at: Callable[[str, list[float]], list[float]]) -> dict:
     """The operating parameter whose move tells the pair apart best, and the stretch of its range around that best
     value where the expected log Bayes factor passes ``margin``, its ends placed by bisection between the grid's
@@ -97,11 +92,11 @@ def _advice(candidates: Sequence[Mapping], margin: float, at: Callable[[str, lis
         first -= 1
     while last < len(own) - 1 and own[last + 1]["expected_log_bayes_factor"] > margin:
         last += 1
-    integer = model.PARAMETER_BY_NAME[parameter].integer
+    spec = model.PARAMETER_BY_NAME[parameter]
 
     def edge(outside, inside):
         for _ in range(BISECTIONS):
-            middle = _round_if(integer, (outside + inside) / 2)
+            middle = spec.rounded((outside + inside) / 2)
             if middle in (outside, inside):
                 break
             outside, inside = (outside, middle) if at(parameter, [middle])[0] > margin else (middle, inside)
