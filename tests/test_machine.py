@@ -3,6 +3,7 @@
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
@@ -16,12 +17,14 @@ CHANNELS = ("b1_x", "w1", "torque_c")
 FULL_LOAD, PART_LOAD = 1613.0, 1100.0
 
 
-def diagnosed(name, truth, T0, seed):
-    """A recording of the rig ``truth`` at mean torque ``T0``, diagnosed alone as the workflow does (its verdict as JSON)."""
+def diagnosed(name, truth, T0, seed, settings=SETTINGS, gains=None):
+    """A recording of the rig ``truth`` at mean torque ``T0``, seen through instruments with ``gains`` (channel -> gain,
+    else exact), diagnosed alone as the workflow does (its verdict as JSON)."""
     operating = {k: model.DEFAULTS[k] for k in model.OPERATING_PARAMETERS} | {"T0": T0}
-    y, sigma = noise.add_noise(simulation.simulate(slots.complete({**truth, **operating}), SAMPLING, CHANNELS), CHANNELS, 40.0, seed)
+    exact = simulation.simulate(slots.complete({**truth, **operating}), SAMPLING, CHANNELS)
+    y, sigma = noise.add_noise(exact * np.array([(gains or {}).get(c, 1.0) for c in CHANNELS])[:, None], CHANNELS, 40.0, seed)
     m = io.Measurement(name, CHANNELS, y, SAMPLING, operating, sigma)
-    d = diagnosis.diagnose(m, SETTINGS)
+    d = diagnosis.diagnose(m, settings)
     return machine.Diagnosed(m, json.loads(json.dumps({**d.verdict, "channels": list(d.channels)}, default=float)))
 
 
@@ -86,3 +89,23 @@ def test_a_drift_that_needs_different_values_under_two_conditions_is_named_as_co
     assert kT1["explains_each_alone"] and not kT1["consistent"] and kT1["log_bayes_factor"] < -SETTINGS.evidence_margin
     assert kT1["hellinger"]["kT1"] > 0.9  # the recordings' posteriors hardly overlap
     assert "together they contradict" in v["statement"] and "parameter_change:kT1" in v["statement"]
+
+
+def test_a_recording_through_a_probe_out_of_its_spec_keeps_its_own_instruments_and_costs_no_consistency():
+    """One healthy rig recorded twice, once through a displacement probe reading 8 % high (8 datasheet sds): each
+    recording's own diagnosis reads the healthy model through the instruments it most probably went through, and so
+    does the machine's joint fit, so that a hypothesis without parameters has a log Bayes factor of exactly 0 for one
+    set against one per recording (the recordings are independent), and the probe is named on its recording only."""
+    config = yaml.safe_load((ROOT / ".test" / "config.yaml").read_text())
+    sensors = yaml.safe_load((ROOT / "config" / "config.yaml").read_text())["diagnosis"]["sensors"]
+    config["diagnosis"]["sensors"] = {c: sensors[c] for c in CHANNELS}
+    settings = Settings.from_config(config)
+    exact = diagnosed("exact", {}, FULL_LOAD, 6, settings)
+    high = diagnosed("high", {}, PART_LOAD, 7, settings, gains={"b1_x": 1.08})
+    assert [p["channel"] for p in high.verdict["sensor_problems"]] == ["b1_x"] and not exact.verdict["sensor_problems"]
+    v = machine.diagnose("rig", [exact, high], settings)
+    assert v["verdict"] == "healthy"
+    assert v["consistency"]["healthy"]["log_bayes_factor"] == pytest.approx(0.0, abs=1e-6)
+    lines = {line["name"]: line for line in v["recordings"]}
+    assert lines["high"]["instruments_out_of_spec"] == ["b1_x gain"] and lines["exact"]["instruments_out_of_spec"] == []
+    assert all(line["chi2_after"] <= settings.chi2_max for line in lines.values())

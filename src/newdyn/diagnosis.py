@@ -352,7 +352,7 @@ def _instruments_checked(fit: hypotheses.Fit, data, sigma, margin: float) -> hyp
     if not found.out_of_spec:
         return fit
     return replace(fit, instruments=found.instruments, log_likelihood=fit.log_likelihood + found.gain,
-                   log_evidence=fit.log_evidence + found.gain - margin * len(found.out_of_spec),
+                   log_evidence=fit.log_evidence + found.log_evidence_change,
                    chi2_red=float(likelihood.reduced_chi2(data, fit.model, sigma, n_fitted=len(fit.values), instruments=found.instruments)))
 
 

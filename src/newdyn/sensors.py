@@ -276,6 +276,7 @@ class Check:
     instruments: Instruments  # the priors, with those out of spec widened OUT_OF_SPEC times
     gain: float  # log p(y | m, instruments) − log p(y | m, datasheet priors)
     out_of_spec: tuple[tuple[int, int, float], ...]  # (channel, quantity, log Bayes factor of widening it, given those before)
+    log_evidence_change: float  # gain less the prior odds, margin per instrument out of spec
 
 
 def check(data: np.ndarray, model: np.ndarray, sigma: np.ndarray, instruments: Instruments, margin: float) -> Check:
@@ -299,7 +300,7 @@ def check(data: np.ndarray, model: np.ndarray, sigma: np.ndarray, instruments: I
         found += out
         current = log_likelihood(data, model, sigma, used, per_channel=True)
     gain = float(np.sum(current - log_likelihood(data, model, sigma, instruments, per_channel=True))) if found else 0.0
-    return Check(used, gain, tuple(found))
+    return Check(used, gain, tuple(found), gain - margin * len(found))
 
 
 def in_words(channel: str, quantity: str, value: float, unit: str) -> str:
