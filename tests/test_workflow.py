@@ -1,6 +1,7 @@
 """The Snakemake study end to end on the small CI config (.test/config.yaml)."""
 
 import csv
+import html
 import json
 import os
 import re
@@ -393,13 +394,17 @@ def test_every_figure_is_drawn_as_png_and_pdf(study):
 def test_report_is_one_self_contained_html_with_every_figure(study):
     run = snakemake(study, "--report", "results/report.html")
     assert run.returncode == 0, run.stderr[-3000:]
-    html = (study / "results" / "report.html").read_text()
-    assert not re.search(r"<script[^>]+src=\"http", html)  # no network needed to open it
+    report = (study / "results" / "report.html").read_text()
+    assert not re.search(r"<script[^>]+src=\"http", report)  # no network needed to open it
     for png in (study / "results").rglob("*.png"):
-        assert png.name in html
+        assert png.name in report
     for caption in ("The paper's Fig. 3 analog", "The paper's Fig. 4 analog", "Posterior signatures", "MCMC diagnostics"):
-        assert caption in html
-    assert "summary.csv" in html and "Every calibration of the study" in html
+        assert caption in report
+    assert "summary.csv" in report and "Every calibration of the study" in report
+    assert "verdict.html" in report
+    numbered = dict(re.findall(r"\b(\d) (Summary|The paper's figures|Calibration|Model vs data|MCMC diagnostics|Comparison|"
+                               r"Diagnosis|Blind test)\b", report))
+    assert len(numbered) == 8 and sorted(numbered) == [str(n) for n in range(8)]  # every category once, numbered in order
 
 
 def test_every_default_channel_is_a_model_channel():
@@ -445,6 +450,9 @@ def test_a_users_csv_and_a_hidden_netcdf_measurement_get_their_verdicts(study):
         assert v["code_hash"] and v["newdyn_version"] and v["settings"]["diagnosis"]["channels"] == ["b1_x", "w1"]
         assert set(v["rmse_before"]) == set(v["rmse_after"]) == {"b1_x", "w1"}
         assert all({"hypothesis", "confidence", "chi2"} <= set(row) for row in v["ranking"])
+    for name, folder in (("plain", "diagnosis/plain"), ("demo", "demo/diagnosis/demo_01")):  # the report's page of each
+        page = (study / "results" / folder / "verdict.html").read_text()
+        assert html.escape(verdict[name]["statement"]) in page and 'name="code_hash"' in page
 
 
 def test_a_machines_folder_gets_one_verdict_from_its_recordings_each_at_its_own_condition_and_channels(study_run):
@@ -454,6 +462,7 @@ def test_a_machines_folder_gets_one_verdict_from_its_recordings_each_at_its_own_
     # the run's last lines say what each of the user's files and machines was found to be
     assert f"results/diagnosis/rig7/verdict.json: {verdict['statement']}" in run.stdout
     assert "results/diagnosis/plain/verdict.json: healthy" in run.stdout
+    assert re.search(r"INFO plain: fits of .+ in [\d.]+ s", run.stdout)  # each stage as it ends, in the terminal too
     assert next(iter(verdict)) == "statement" and verdict["machine"] == "rig7"
     assert verdict["verdict"] == "healthy" and verdict["statement"].startswith("healthy: the nominal model explains all 2 recordings")
     lines = {line["name"]: line for line in verdict["recordings"]}
@@ -463,6 +472,7 @@ def test_a_machines_folder_gets_one_verdict_from_its_recordings_each_at_its_own_
     assert all(line["chi2_after"] <= 1.1 for line in lines.values())
     assert verdict["code_hash"] and verdict["settings"]["diagnosis"]["channels"] == ["b1_x", "w1"]
     assert (machine / "figures" / "machine.png").exists() and (machine / "figures" / "machine.pdf").exists()
+    assert html.escape(verdict["statement"]) in (machine / "verdict.html").read_text()
     for name in lines:  # each recording also diagnosed alone, figures included
         assert json.loads((machine / name / "verdict.json").read_text())["measurement"] == name
         assert (machine / name / "figures" / f"{DIAGNOSIS_FIGURES[0]}.png").exists()

@@ -451,6 +451,13 @@ def plot_diagnosis(verdict: str, netcdf: str, posterior: str, outputs: dict, cod
     plots.diagnosis_figures(verdict, netcdf, posterior, outputs, code_hash)
 
 
+def verdict_page(verdict: str, output: str, code_hash: str) -> None:
+    from . import io, provenance, verdicts
+
+    text = verdicts.page(json.loads(Path(verdict).read_text()), provenance.attributes(code_hash))
+    io.atomic_write(output, lambda tmp: Path(tmp).write_text(text))
+
+
 def plot_machine(verdict: str, output: str, code_hash: str) -> None:
     from . import plots
 
@@ -600,6 +607,8 @@ def _parser() -> argparse.ArgumentParser:
     for name in ("verdict", "netcdf", "posterior", *DIAGNOSIS_FIGURES):
         p.add_argument(f"--{name.replace('_', '-')}", required=True)
     p.add_argument("--code-hash", default="")
+    p = command("verdict-page", "a verdict's statement and findings as an HTML page for the report")
+    p.add_argument("--verdict", required=True)
     p = commands.add_parser("plot-machine", help="the figure of a machine's verdict")
     p.add_argument("--verdict", required=True)
     p.add_argument("--output", required=True, help="the PNG (a PDF beside it)")
@@ -629,6 +638,7 @@ def main(argv: list[str] | None = None) -> int:
     or path the user gave ends it with one line on stderr and status 1."""
     args = _parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s", stream=sys.stderr)
+    logging.getLogger("arviz").setLevel(logging.WARNING)  # its optional subpackages' absence is no news to a user
     try:
         if args.command == "check":
             return check_measurements(args.paths, args.configs or [DEFAULT_CONFIG])
@@ -665,6 +675,8 @@ def main(argv: list[str] | None = None) -> int:
         elif args.command == "plot-diagnosis":
             plot_diagnosis(args.verdict, args.netcdf, args.posterior, {name: getattr(args, name) for name in DIAGNOSIS_FIGURES},
                            args.code_hash)
+        elif args.command == "verdict-page":
+            verdict_page(args.verdict, args.output, args.code_hash)
         elif args.command == "plot-machine":
             plot_machine(args.verdict, args.output, args.code_hash)
         elif args.command == "hidden-draw":

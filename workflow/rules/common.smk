@@ -251,14 +251,36 @@ def all_calibration_targets():
 
 
 # --- figures: one job per stage draws every figure of that stage (figures.smk), each with its own inputs
+# The report's categories in the order a reader meets them; each result names its category, the number is derived.
+REPORT_CATEGORIES = [
+    "Summary",
+    "The paper's figures",
+    "Calibration",
+    "Model vs data",
+    "MCMC diagnostics",
+    "Comparison",
+    "Diagnosis",
+    "Blind test",
+]
+
+
+def category(name):
+    """A report category's title, numbered by its place in REPORT_CATEGORIES."""
+    return f"{REPORT_CATEGORIES.index(name)} {name}"
+
+
 PAPER_FIGURES = {"fig3": ("kT1_up", ["kT1"]), "fig4": ("stick_slip", ["kT1", "kT3"])}
 
 
-def _figure(stem, caption, category, subcategory=None, labels=None, inputs=(), **drawing):
+def _figure(stem, caption, report_category, subcategory=None, labels=None, inputs=(), **drawing):
     """A figure: its PNG (in the report, captioned) and PDF, the files it is drawn from and what else its drawing
     takes (newdyn plot's --figures)."""
     png = report(
-        f"{stem}.png", caption=f"../report/{caption}.rst", category=category, subcategory=subcategory, labels=labels
+        f"{stem}.png",
+        caption=f"../report/{caption}.rst",
+        category=report_category,
+        subcategory=subcategory,
+        labels=labels,
     )
     return {"png": png, "pdf": f"{stem}.pdf", "inputs": list(inputs), **drawing}
 
@@ -271,12 +293,14 @@ def _measurement_figures(variant, cfg, scenario, snr, seed):
     stem = f"results/{variant}/figures/{{kind}}/{scenario}_snr{snr}_seed{seed}"
     labels = {"scenario": scenario, "snr_dB": snr, "seed": seed}
     figures = {
-        "posteriors": [_figure(stem.format(kind="posteriors"), "posteriors", "2 Calibration", variant, labels, grid)],
+        "posteriors": [
+            _figure(stem.format(kind="posteriors"), "posteriors", category("Calibration"), variant, labels, grid)
+        ],
         "overlays": [
             _figure(
                 stem.format(kind="overlays"),
                 "overlays",
-                "3 Model vs data",
+                category("Model vs data"),
                 variant,
                 labels,
                 grid,
@@ -286,7 +310,9 @@ def _measurement_figures(variant, cfg, scenario, snr, seed):
     }
     if mcmc_runs(cfg):
         runs = expand(results, parameter=mcmc_runs(cfg), method="mcmc")
-        figures["mcmc"] = [_figure(stem.format(kind="mcmc"), "mcmc", "4 MCMC diagnostics", variant, labels, runs)]
+        figures["mcmc"] = [
+            _figure(stem.format(kind="mcmc"), "mcmc", category("MCMC diagnostics"), variant, labels, runs)
+        ]
     return figures
 
 
@@ -310,7 +336,7 @@ def _variant_figures(variant, cfg):
                         _figure(
                             f"results/{variant}/figures/{figure}_snr{snr}_seed{seed}",
                             f"paper_{figure}",
-                            "1 The paper's figures",
+                            category("The paper's figures"),
                             variant,
                             {"figure": figure, "snr_dB": snr, "seed": seed},
                             grid,
@@ -320,7 +346,7 @@ def _variant_figures(variant, cfg):
                 _figure(
                     f"results/{variant}/figures/signatures_snr{snr}_seed{seed}",
                     "signatures",
-                    "5 Comparison",
+                    category("Comparison"),
                     variant,
                     {"snr_dB": snr, "seed": seed},
                     [f"results/{variant}/comparison/hellinger.nc"],
@@ -337,8 +363,10 @@ def _study_figures():
     for variant, cfg in VARIANTS.items():
         for stage, figures in _variant_figures(variant, cfg).items():
             stages[stage] += figures
-    summary = _figure("results/figures/summary_hellinger", "summary", "0 Summary", inputs=["results/summary.csv"])
-    chi2 = report("results/figures/summary_chi2.png", caption="../report/summary.rst", category="0 Summary")
+    summary = _figure(
+        "results/figures/summary_hellinger", "summary", category("Summary"), inputs=["results/summary.csv"]
+    )
+    chi2 = report("results/figures/summary_chi2.png", caption="../report/summary.rst", category=category("Summary"))
     stages["summary"] = [{**summary, "chi2_png": chi2, "chi2_pdf": "results/figures/summary_chi2.pdf"}]
     return {stage: sorted(figures, key=lambda figure: figure["png"]) for stage, figures in stages.items()}
 
@@ -402,7 +430,7 @@ for _line in _bad:
 # machine -> the names of its recordings (measurements/<machine>/<recording>.nc or .csv)
 MACHINES = newdyn.catalog.machines(MEASUREMENTS)
 # what a machine's diagnosis writes that a target asks for
-MACHINE_FILES = ["verdict.json", "figures/machine.png"]
+MACHINE_FILES = ["verdict.json", "verdict.html", "figures/machine.png"]
 # hidden set of machines -> machine -> its recordings' names, known from the set's seed before any draw
 HIDDEN_MACHINES = {
     name: newdyn.hidden_sets.recording_names(name, spec) for name, spec in HIDDEN_SETS.items() if "recordings" in spec
@@ -477,7 +505,7 @@ def hidden_cases(set_name):
 
 
 def diagnosis_targets(root, names):
-    return expand("{root}/diagnosis/{name}/verdict.json", root=root, name=names) + expand(
+    return expand("{root}/diagnosis/{name}/verdict.{kind}", root=root, name=names, kind=["json", "html"]) + expand(
         "{root}/diagnosis/{name}/figures/{figure}.png", root=root, name=names, figure=DIAGNOSIS_FIGURES
     )
 

@@ -46,7 +46,7 @@ rule diagnose:
         table=report(
             "{root}/diagnosis/{name}/model_versions.csv",
             caption="../report/diagnosis_table.rst",
-            category="4 Diagnosis",
+            category=category("Diagnosis"),
             subcategory="{name}",
             labels={"measurement": "{name}", "figure": "model versions (table)"},
         ),
@@ -57,7 +57,8 @@ rule diagnose:
         "{root}/logs/diagnose/{name}.log",
     benchmark:
         "{root}/benchmarks/diagnose/{name}.tsv"
-    # Two threads: its hypotheses' fits, and each fit's starts, run side by side.
+    # Two threads: its hypotheses' fits, and each fit's starts, run side by side.  Its log's lines (each stage and fit
+    # as it ends) go to the terminal too, so that a long diagnosis can be watched.
     priority: 1
     conda:
         "../envs/newdyn.yaml"
@@ -72,7 +73,7 @@ rule diagnose:
         "NUMBA_NUM_THREADS={threads} OPENBLAS_NUM_THREADS={threads} newdyn diagnose --measurement {input.measurement} "
         "--grids {input.grids} --bank {input.bank} --spec {params.spec:q} --code-hash {params.code} "
         "--verdict {output.verdict} --table {output.table} "
-        "--netcdf {output.netcdf} --posterior {output.posterior} --discovery {output.discovery} > {log} 2>&1"
+        "--netcdf {output.netcdf} --posterior {output.posterior} --discovery {output.discovery} 2>&1 | tee {log}"
 
 
 rule plot_diagnosis:
@@ -85,7 +86,7 @@ rule plot_diagnosis:
             figure: report(
                 f"{{root}}/diagnosis/{{name}}/figures/{figure}.png",
                 caption=f"../report/diagnosis_{figure}.rst",
-                category="4 Diagnosis",
+                category=category("Diagnosis"),
                 subcategory="{name}",
                 labels={"measurement": "{name}", "figure": figure},
             )
@@ -111,6 +112,29 @@ rule plot_diagnosis:
         "--code-hash {params.code} > {log} 2>&1"
 
 
+# The verdict of a file or of a machine, its statement first, as a page of the report.
+rule verdict_page:
+    input:
+        "{root}/diagnosis/{name}/verdict.json",
+    output:
+        report(
+            "{root}/diagnosis/{name}/verdict.html",
+            caption="../report/diagnosis_verdict.rst",
+            category=category("Diagnosis"),
+            subcategory="{name}",
+            labels={"measurement": "{name}", "figure": "verdict"},
+        ),
+    log:
+        "{root}/logs/verdict_page/{name}.log",
+    localrule: True
+    conda:
+        "../envs/newdyn.yaml"
+    params:
+        code=code_hash("verdict-page"),
+    shell:
+        "newdyn verdict-page --verdict {input} --output {output} --code-hash {params.code} > {log} 2>&1"
+
+
 rule diagnose_machine:
     input:
         unpack(machine_inputs),
@@ -132,7 +156,7 @@ rule diagnose_machine:
     shell:
         "NUMBA_NUM_THREADS={threads} OPENBLAS_NUM_THREADS={threads} newdyn diagnose-machine --name {wildcards.machine} "
         "--recordings {input.recordings} --verdicts {input.verdicts} --spec {params.spec:q} --code-hash {params.code} "
-        "--output {output} > {log} 2>&1"
+        "--output {output} 2>&1 | tee {log}"
 
 
 rule plot_machine:
@@ -142,7 +166,7 @@ rule plot_machine:
         png=report(
             "{root}/diagnosis/{machine}/figures/machine.png",
             caption="../report/diagnosis_machine.rst",
-            category="4 Diagnosis",
+            category=category("Diagnosis"),
             subcategory="{machine}",
             labels={"measurement": "{machine}", "figure": "machine"},
         ),

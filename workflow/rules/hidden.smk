@@ -61,13 +61,13 @@ rule hidden_score:
         table=report(
             "results/{set}/cases.csv",
             caption="../report/hidden_table.rst",
-            category="5 Blind test",
+            category=category("Blind test"),
             subcategory="{set}",
         ),
         png=report(
             "results/{set}/blind_test.png",
             caption="../report/hidden_score.rst",
-            category="5 Blind test",
+            category=category("Blind test"),
             subcategory="{set}",
         ),
         pdf="results/{set}/blind_test.pdf",

@@ -2,7 +2,7 @@ rule summarize:
     input:
         all_calibration_targets(),
     output:
-        report("results/summary.csv", caption="../report/summary_table.rst", category="0 Summary"),
+        report("results/summary.csv", caption="../report/summary_table.rst", category=category("Summary")),
     log:
         "results/logs/summarize.log",
     benchmark:
