@@ -229,7 +229,7 @@ GRIDS = {"kT1.nc", "kT3.nc"}
 COMPARED = {"hellinger.nc", "summary.csv"}
 SCORED = {"score.json", "cases.csv", "blind_test.png", "blind_test.pdf"}  # the demo's reveal
 # the study's bank runs the diagnosis's code on the study's rig: it is rebuilt by what reruns a diagnosis
-DIAGNOSED = {"verdict.json", "model_versions.csv", "diagnosis.nc", "effect_posterior.nc", "discovery", "bank.nc"} | SCORED
+DIAGNOSED = {"verdict.json", "verdict.html", "model_versions.csv", "diagnosis.nc", "effect_posterior.nc", "discovery", "bank.nc"} | SCORED
 DRAWN = {"truth.json", "demo_01.nc"}  # the demo's hidden case
 
 
