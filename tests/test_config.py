@@ -16,7 +16,7 @@ import yaml
 from jsonschema.validators import validator_for
 
 from newdyn import config as cfg
-from newdyn import effects, faults, model, slots
+from newdyn import effects, faults, model, slots, study
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT = ROOT / "config" / "config.yaml"
@@ -65,7 +65,7 @@ def test_shipped_configs_pass(path):
         "rig", "operating", "operating_range", "sampling", "simulation", "noise", "scenarios", "calibration", "diagnosis",
         "hidden"}
     for name in config["scenarios"]:
-        values = cfg.scenario_values(config, name)
+        values = study.scenario_values(config, name)
         assert set(values) == set(slots.slot_names())
 
 
@@ -73,7 +73,7 @@ def test_shipped_configs_pass(path):
 def test_scenario_values_are_exactly_the_model_slots(path):
     config = cfg.load(path, SCHEMA)
     for name in config["scenarios"]:
-        assert tuple(cfg.scenario_values(config, name)) == slots.slot_names(), name
+        assert tuple(study.scenario_values(config, name)) == slots.slot_names(), name
 
 
 def test_the_schema_with_the_effects_kinds_injected_is_a_valid_json_schema():
@@ -119,7 +119,7 @@ def test_the_schemas_channels_and_sensor_model_are_the_packages():
 
 def test_default_config_is_rig_md(default_config):
     for name in model.RIG_PARAMETERS + model.OPERATING_PARAMETERS:
-        assert cfg.base_values(default_config)[name] == pytest.approx(model.DEFAULTS[name], rel=1e-12), name
+        assert study.base_values(default_config)[name] == pytest.approx(model.DEFAULTS[name], rel=1e-12), name
     assert default_config["simulation"]["channels"] == list(model.CHANNELS)
     assert default_config["simulation"]["max_step"] == 1.0e-4
     assert default_config["noise"] == {"snr_db": [40, 20], "seeds": [1]}
@@ -132,19 +132,19 @@ def test_default_config_is_rig_md(default_config):
         "cubic_coupling",
         "loose_bearing",
     ]
-    s = cfg.sampling(default_config)
+    s = study.sampling(default_config)
     assert (s.fs, s.t_first, s.n_samples) == (5000.0, 0.5, 5000)
 
 
 def test_ci_config(default_config):
     ci = cfg.load(CI, SCHEMA)
     assert ci["rig"] == default_config["rig"] and ci["operating"] == default_config["operating"]
-    assert cfg.sampling(ci).n_samples == 500
+    assert study.sampling(ci).n_samples == 500
     assert ci["simulation"] == {"channels": ["b1_x", "w1", "torque_c"], "max_step": 1.0e-4}
     assert ci["noise"] == {"snr_db": [40], "seeds": [1]}
     assert list(ci["scenarios"]) == ["healthy", "kT1_up", "stick_slip"]
     assert "faults" not in ci["diagnosis"] and "faults" not in ci["hidden"]  # the effect files' ranges
-    assert cfg.hidden_classes(ci) == ["stick_slip"]
+    assert study.hidden_classes(ci) == ["stick_slip"]
 
 
 # --------------------------------------------------------------------------------------------------
@@ -518,7 +518,7 @@ def test_resulting_rig_values_of_an_effect_are_checked(default_config, monkeypat
     config = copy.deepcopy(default_config)
     config["scenarios"]["stick_slip"]["fault"]["parameters"]["J2a_share"] = 0.3
     cfg.check(config, SOURCE, SCHEMA)
-    values = cfg.scenario_values(config, "stick_slip")
+    values = study.scenario_values(config, "stick_slip")
     assert values["J2a"] == pytest.approx(0.3 * 0.15) and values["J2a"] + values["J2b"] == pytest.approx(0.15)
     effect = effects.active()["stick_slip"]
     monkeypatch.setattr(effect, "rig_values", classmethod(lambda cls, values, rig: {"J2a": -values["J2a_share"]}))
@@ -608,17 +608,17 @@ def test_invalid_yaml_and_missing_file(tmp_path):
 
 def test_scenario_values(default_config):
     c = copy.deepcopy(default_config)
-    assert cfg.scenario_values(c, "kT1_up")["kT1"] == 3.25e6
-    assert cfg.scenario_values(c, "healthy") == slots.complete(cfg.base_values(c))
-    crack = cfg.scenario_values(c, "breathing_crack")
+    assert study.scenario_values(c, "kT1_up")["kT1"] == 3.25e6
+    assert study.scenario_values(c, "healthy") == slots.complete(study.base_values(c))
+    crack = study.scenario_values(c, "breathing_crack")
     assert (crack["breathing_crack"], crack["breathing_crack.alpha"]) == (1.0, 0.3)
-    assert cfg.scenario_values(c, "loose_bearing")["loose_bearing.gap"] == 2e-8
-    healthy = cfg.scenario_values(c, "healthy")
+    assert study.scenario_values(c, "loose_bearing")["loose_bearing.gap"] == 2e-8
+    healthy = study.scenario_values(c, "healthy")
     assert all(healthy[kind] == 0.0 for kind in effects.active())  # no effect present
     # overrides come before the fault; the stick-slip default T_max = 1.15 T0 uses the overridden T0
     c["scenarios"]["slow"] = {"overrides": {"T0": 1000.0, "speed_rpm": 990.0}, "fault": {"kind": "stick_slip"}}
     cfg.check(c, SOURCE, SCHEMA)
-    values = cfg.scenario_values(c, "slow")
+    values = study.scenario_values(c, "slow")
     assert (values["T0"], values["speed_rpm"], values["stick_slip"], values["stick_slip.T_max"], values["stick_slip.r_k"]) == (
         1000.0,
         990.0,
@@ -631,42 +631,42 @@ def test_scenario_values(default_config):
         "overrides": {"kT1": 2.0e6},
         "fault": {"kind": "parameter_change", "parameters": {"kT1": 4.0e6}},
     }
-    assert cfg.scenario_values(c, "both")["kT1"] == 4.0e6
+    assert study.scenario_values(c, "both")["kT1"] == 4.0e6
     with pytest.raises(KeyError, match="unknown scenario"):
-        cfg.scenario_values(c, "nope")
+        study.scenario_values(c, "nope")
 
 
 def test_variant_config_replaces_and_selects(default_config):
-    paper = cfg.variant_config(default_config, "paper")
+    paper = study.variant_config(default_config, "paper")
     assert "variants" not in paper and paper["rig"]["beta"] == 0.0 and default_config["rig"]["beta"] == 3.0e-5
     assert paper["calibration"]["channels"] == ["b1_x"]
     assert list(paper["scenarios"]) == ["healthy", "kT1_up", "stick_slip"]
     assert list(paper["calibration"]["parameters"]) == ["kT1", "kT3"]
     assert paper["calibration"]["mcmc"]["parameters"] == [] and paper["calibration"]["joint"]["parameters"] == []
-    assert cfg.scenario_values(paper, "kT1_up")["beta"] == 0.0  # the variant's rig under every scenario
-    default = cfg.variant_config(default_config, "default")
+    assert study.scenario_values(paper, "kT1_up")["beta"] == 0.0  # the variant's rig under every scenario
+    default = study.variant_config(default_config, "default")
     assert default == {k: v for k, v in default_config.items() if k != "variants"}
     without = {k: v for k, v in default_config.items() if k != "variants"}
-    assert cfg.variant_names(without) == ["default"] and cfg.variant_config(without, "default") == without
+    assert study.variant_names(without) == ["default"] and study.variant_config(without, "default") == without
     with pytest.raises(KeyError, match="unknown variant"):
-        cfg.variant_config(default_config, "nope")
+        study.variant_config(default_config, "nope")
 
 
 def test_joint_dimension_counts_inferred_sigmas(default_config):
     config = copy.deepcopy(default_config)
     config["calibration"]["joint"]["infer_sigma"] = True
-    assert cfg.joint_dimension(config) == 2 + 2  # kT1, kT3 and σ of b1_x, w1
+    assert study.joint_dimension(config) == 2 + 2  # kT1, kT3 and σ of b1_x, w1
     config["calibration"]["joint"]["infer_sigma"] = False
-    assert cfg.joint_dimension(config) == 2
+    assert study.joint_dimension(config) == 2
     config["calibration"]["joint"]["parameters"] = []
-    assert cfg.joint_dimension(config) == 0
+    assert study.joint_dimension(config) == 0
 
 
 def test_sampling_helper(default_config):
     c = copy.deepcopy(default_config)
     c["sampling"].update(fs=2000, t_warm=0.25, t_rec=0.5)
     cfg.check(c, SOURCE, SCHEMA)
-    s = cfg.sampling(c)
+    s = study.sampling(c)
     assert (s.fs, s.t_first, s.n_samples) == (2000.0, 0.25, 1000)
     assert s.times[1] == pytest.approx(0.25 + 1 / 2000)
 
@@ -680,12 +680,12 @@ def test_sampling_helper(default_config):
     ],
 )
 def test_canonical_json_same_text(a, b):
-    assert cfg.canonical_json(a) == cfg.canonical_json(b)
+    assert study.canonical_json(a) == study.canonical_json(b)
 
 
 def test_canonical_json_form():
-    assert cfg.canonical_json({"b": 3.25e6, "a": [1, True, None, "s"]}) == '{"a":[1.0,true,null,"s"],"b":3250000.0}'
-    assert cfg.canonical_json({"a": 1}) != cfg.canonical_json({"a": 1.5})
+    assert study.canonical_json({"b": 3.25e6, "a": [1, True, None, "s"]}) == '{"a":[1.0,true,null,"s"],"b":3250000.0}'
+    assert study.canonical_json({"a": 1}) != study.canonical_json({"a": 1.5})
 
 
 def test_reordered_yaml_changes_nothing_downstream(tmp_path, default_config):
@@ -698,10 +698,10 @@ def test_reordered_yaml_changes_nothing_downstream(tmp_path, default_config):
     path.write_text(yaml.safe_dump(reordered, sort_keys=False, allow_unicode=True), encoding="utf-8")
     loaded = cfg.load(path, SCHEMA)
     for name in default_config["scenarios"]:
-        assert cfg.canonical_json(cfg.scenario_values(loaded, name)) == cfg.canonical_json(
-            cfg.scenario_values(default_config, name)
+        assert study.canonical_json(study.scenario_values(loaded, name)) == study.canonical_json(
+            study.scenario_values(default_config, name)
         )
-    assert cfg.canonical_json(loaded) == cfg.canonical_json(default_config)
+    assert study.canonical_json(loaded) == study.canonical_json(default_config)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -734,7 +734,7 @@ def _lists(node):
 
 def test_schema_holds_no_kinds_and_gets_the_registry_injected():
     schema = _schema()
-    classes = {cfg.HEALTHY, *faults.kinds()}
+    classes = {study.HEALTHY, *faults.kinds()}
     for path, node in _subschemas(schema):  # no enum of the YAML names a kind or class
         assert not classes & {str(item) for item in node.get("enum", [])}, path
     for listed in _lists(schema):  # nor does any other list name an effect (hidden.parameter_change is a key)
@@ -744,7 +744,7 @@ def test_schema_holds_no_kinds_and_gets_the_registry_injected():
     injected = cfg.load_schema(SCHEMA)
     assert injected["$defs"]["fault"]["properties"]["kind"]["enum"] == list(faults.kinds())
     assert list(faults.kinds()) == [faults.PARAMETER_CHANGE, *effects.active()]
-    assert injected["$defs"]["hidden_classes"]["items"]["enum"] == [cfg.HEALTHY, faults.PARAMETER_CHANGE, *effects.active()]
+    assert injected["$defs"]["hidden_classes"]["items"]["enum"] == [study.HEALTHY, faults.PARAMETER_CHANGE, *effects.active()]
     for section in ("diagnosis", "hidden"):
         assert injected["properties"][section]["properties"]["faults"]["propertyNames"]["enum"] == list(effects.active())
     assert injected["properties"]["diagnosis"]["properties"]["effects"]["items"]["enum"] == list(effects.active())
@@ -837,7 +837,7 @@ def test_fault_without_severity_or_unable_to_carry_the_load_is_rejected(default_
 
 def test_ranges_default_to_the_effect_files(default_config):
     assert "faults" not in default_config["diagnosis"] and "faults" not in default_config["hidden"]
-    diagnosis, hidden = cfg.diagnosis_ranges(default_config), cfg.hidden_ranges(default_config)
+    diagnosis, hidden = study.diagnosis_ranges(default_config), study.hidden_ranges(default_config)
     assert list(diagnosis) == list(hidden) == list(effects.active())
     for kind, effect in effects.active().items():
         assert list(diagnosis[kind]) == list(hidden[kind]) == list(effect.parameter_names())  # declaration order
@@ -851,38 +851,38 @@ def test_range_overrides_replace_only_what_they_name(default_config):
     config["diagnosis"]["faults"] = {"stick_slip": {"T_max": [1700, 2400]}}
     config["hidden"]["faults"] = {"breathing_crack": {"alpha": [0.2, 0.4]}}
     cfg.check(config, SOURCE, SCHEMA)
-    diagnosis, hidden = cfg.diagnosis_ranges(config), cfg.hidden_ranges(config)
+    diagnosis, hidden = study.diagnosis_ranges(config), study.hidden_ranges(config)
     assert diagnosis["stick_slip"]["T_max"] == (1700.0, 2400.0)
     assert hidden["breathing_crack"]["alpha"] == (0.2, 0.4)
-    expected = cfg.diagnosis_ranges(default_config)
+    expected = study.diagnosis_ranges(default_config)
     expected["stick_slip"]["T_max"] = (1700.0, 2400.0)
     assert diagnosis == expected
     # a range may start at an exclusive lower bound (T_max > 0), as the effect files' may
     config["diagnosis"]["faults"]["stick_slip"]["T_max"] = [0.0, 2400.0]
     cfg.check(config, SOURCE, SCHEMA)
     # a spec holding just the section works too; a kind that is not active is an error
-    assert cfg.hidden_ranges({"hidden": config["hidden"]}) == hidden
+    assert study.hidden_ranges({"hidden": config["hidden"]}) == hidden
     with pytest.raises(KeyError, match="not an active effect"):
-        cfg.diagnosis_ranges({"diagnosis": {"faults": {"torque_ripple": {"amplitude": [0, 1]}}}})
+        study.diagnosis_ranges({"diagnosis": {"faults": {"torque_ripple": {"amplitude": [0, 1]}}}})
 
 
 def test_a_diagnosis_offers_the_effects_it_names(default_config):
     config = copy.deepcopy(default_config)
     config["diagnosis"]["effects"] = ["loose_bearing", "stick_slip"]
     cfg.check(config, SOURCE, SCHEMA)
-    assert list(cfg.diagnosis_ranges(config)) == ["loose_bearing", "stick_slip"]
-    assert list(cfg.hidden_ranges(config)) == list(effects.active())  # the blind draw is not narrowed
+    assert list(study.diagnosis_ranges(config)) == ["loose_bearing", "stick_slip"]
+    assert list(study.hidden_ranges(config)) == list(effects.active())  # the blind draw is not narrowed
     config["diagnosis"]["effects"] = ["stick_slip", "rust"]
     assert_one_line(error_of(config), SOURCE, "diagnosis.effects[1]", "must be one of", "stick_slip")
 
 
 def test_hidden_classes(default_config):
     assert "classes" not in default_config["hidden"]
-    assert cfg.hidden_classes(default_config) == [cfg.HEALTHY, *faults.kinds()]
+    assert study.hidden_classes(default_config) == [study.HEALTHY, *faults.kinds()]
     config = copy.deepcopy(default_config)
     config["hidden"]["classes"] = ["healthy", "loose_bearing"]
     cfg.check(config, SOURCE, SCHEMA)
-    assert cfg.hidden_classes(config) == ["healthy", "loose_bearing"]
+    assert study.hidden_classes(config) == ["healthy", "loose_bearing"]
     assert set(default_config["hidden"]["sets"]["demo"]["classes"]) <= set(effects.active())  # the demo keeps its own list
 
 
@@ -924,17 +924,17 @@ def test_user_effect_is_a_kind_like_the_builtins(default_config, effect_folder):
     assert "torque_ripple" in schema["$defs"]["fault"]["properties"]["kind"]["enum"]
     assert "torque_ripple" in schema["$defs"]["hidden_classes"]["items"]["enum"]
     assert "torque_ripple" in schema["properties"]["diagnosis"]["properties"]["faults"]["propertyNames"]["enum"]
-    assert cfg.diagnosis_ranges(config)["torque_ripple"] == {"amplitude": (0.0, 50.0), "order": (1.0, 12.0)}
-    assert cfg.hidden_ranges(config)["torque_ripple"] == {"amplitude": (5.0, 20.0), "order": (1.0, 12.0)}
-    assert cfg.hidden_classes(config)[-1] == "torque_ripple"  # drawn in the blind test with no other edit
-    values = cfg.scenario_values(config, "ripple")
+    assert study.diagnosis_ranges(config)["torque_ripple"] == {"amplitude": (0.0, 50.0), "order": (1.0, 12.0)}
+    assert study.hidden_ranges(config)["torque_ripple"] == {"amplitude": (5.0, 20.0), "order": (1.0, 12.0)}
+    assert study.hidden_classes(config)[-1] == "torque_ripple"  # drawn in the blind test with no other edit
+    values = study.scenario_values(config, "ripple")
     assert tuple(values) == slots.slot_names()
     assert (values["torque_ripple"], values["torque_ripple.amplitude"], values["torque_ripple.order"]) == (1.0, 10.0, 6.0)
-    assert cfg.scenario_values(config, "healthy")["torque_ripple"] == 0.0
+    assert study.scenario_values(config, "healthy")["torque_ripple"] == 0.0
     # its ranges can be overridden and checked like a built-in's
     config["diagnosis"]["faults"] = {"torque_ripple": {"amplitude": [0.0, 20.0]}}
     cfg.check(config, SOURCE, SCHEMA)
-    assert cfg.diagnosis_ranges(config)["torque_ripple"]["amplitude"] == (0.0, 20.0)
+    assert study.diagnosis_ranges(config)["torque_ripple"]["amplitude"] == (0.0, 20.0)
     config["hidden"]["faults"] = {"torque_ripple": {"order": [-1.0, 3.0]}}
     assert_one_line(error_of(config), SOURCE, "hidden.faults.torque_ripple.order", "(0, inf)")
     del config["hidden"]["faults"]
@@ -955,7 +955,7 @@ def test_user_effect_through_load(default_config, effect_folder, tmp_path):
     path = tmp_path / "config.yaml"
     path.write_text(yaml.safe_dump(_with_ripple(default_config), sort_keys=False, allow_unicode=True), encoding="utf-8")
     loaded = cfg.load(path, SCHEMA)
-    assert loaded["effects"] == ["torque_ripple"] and "torque_ripple" in cfg.hidden_ranges(loaded)
+    assert loaded["effects"] == ["torque_ripple"] and "torque_ripple" in study.hidden_ranges(loaded)
     cfg.use_effects({})  # as a job would, for a config without effects
     assert "torque_ripple" not in effects.active()
     cfg.use_effects(loaded)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import yaml
 
-import newdyn.config
+import newdyn.study
 from newdyn import (
     bank,
     calibration,
@@ -317,7 +317,7 @@ def test_effect_mcmc_rounds_default_to_the_calibrations_and_can_be_set_apart():
 
 def test_settings_from_the_workflows_json_spec_keep_whole_numbers_whole():
     # The workflow hands the diagnosis its settings as canonical JSON, where every number is a float.
-    spec = Settings.from_config(json.loads(newdyn.config.canonical_json(CONFIG)))
+    spec = Settings.from_config(json.loads(newdyn.study.canonical_json(CONFIG)))
     assert spec.posterior == SETTINGS.posterior
     for field in fields(SETTINGS.posterior):
         value = getattr(spec.posterior, field.name)

@@ -11,7 +11,7 @@ import xarray as xr
 import yaml
 from matplotlib.figure import Figure
 
-from newdyn import config, effects, faults, hidden, io, model, plots, signatures, slots
+from newdyn import effects, faults, hidden, io, model, plots, signatures, slots, study
 from newdyn.settings import Settings
 
 BASE = slots.complete()
@@ -19,8 +19,8 @@ CONFIG = yaml.safe_load((Path(__file__).resolve().parents[1] / "config" / "confi
 HIDDEN = CONFIG["hidden"]
 HIDDEN["sets"]["other"] = {"cases": 24, "seed": 2027}
 HIDDEN["sets"]["six"] = {"cases": 6, "seed": 5}
-RANGES = config.hidden_ranges(CONFIG)
-CLASSES = list(config.hidden_classes(CONFIG))
+RANGES = study.hidden_ranges(CONFIG)
+CLASSES = list(study.hidden_classes(CONFIG))
 
 
 def draw(set_name, hidden_section=HIDDEN, ranges=RANGES, classes=CLASSES):

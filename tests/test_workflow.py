@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import yaml
 
-import newdyn.config
+import newdyn.study
 from newdyn import calibration, hidden_sets, io, model, noise
 from newdyn.cli import DIAGNOSIS_FIGURES
 from newdyn.io import read_measurement
@@ -137,10 +137,10 @@ def test_summary_table_has_a_row_per_calibration_and_the_expected_verdicts(study
     with open(study / "results" / "summary.csv", newline="") as f:
         every_row = list(csv.DictReader(f))
     assert set(calibration.SUMMARY_COLUMNS) <= set(every_row[0])
-    for variant in newdyn.config.variant_names(config):
-        cfg = newdyn.config.variant_config(config, variant)
+    for variant in newdyn.study.variant_names(config):
+        cfg = newdyn.study.variant_config(config, variant)
         c = cfg["calibration"]
-        per_measurement = len(c["parameters"]) + len(c["mcmc"]["parameters"]) + newdyn.config.joint_dimension(cfg)
+        per_measurement = len(c["parameters"]) + len(c["mcmc"]["parameters"]) + newdyn.study.joint_dimension(cfg)
         assert sum(r["variant"] == variant for r in every_row) == len(cfg["scenarios"]) * per_measurement * len(cfg["noise"]["snr_db"])
     joint = [r for r in every_row if r["jointly"]]
     assert {r["parameter"] for r in joint} == {"kT1", "kT3", "sigma_b1_x", "sigma_w1"}

@@ -394,7 +394,7 @@ def diagnose_measurement(measurement_path: str, grid_paths: list[str], bank_path
                          netcdf: str, posterior: str, discovery: str, code_hash: str) -> None:
     """Diagnose one measurement file: verdict (JSON), model versions and posteriors (NetCDF), the effect's posterior,
     and a folder with the discovered term's effect file when nothing of the library explains it."""
-    from . import calibration, config, diagnosis, io, model
+    from . import calibration, diagnosis, io, model, study
     from .settings import Settings
 
     settings = Settings.from_config(spec)
@@ -404,13 +404,13 @@ def diagnose_measurement(measurement_path: str, grid_paths: list[str], bank_path
     v = result.verdict
     log.info("%s: %s %s (chi2 %.4g -> %.4g) in %.1f s", measurement_path, v["verdict"], v["effect"], v["chi2_before"],
              v["chi2_after"], time.perf_counter() - start)
-    diagnosis.write(result, verdict, table, netcdf, posterior, discovery, config.canonical_json(spec), code_hash)
+    diagnosis.write(result, verdict, table, netcdf, posterior, discovery, study.canonical_json(spec), code_hash)
 
 
 def diagnose_machine(name: str, measurement_paths: list[str], verdict_paths: list[str], spec: dict, output: str,
                      code_hash: str) -> None:
     """One verdict for a machine from its recordings, each diagnosed alone before (its verdict.json, in the same order)."""
-    from . import config, io, machine, model, provenance
+    from . import io, machine, model, provenance, study
     from .settings import Settings
 
     if len(measurement_paths) != len(verdict_paths):
@@ -422,7 +422,7 @@ def diagnose_machine(name: str, measurement_paths: list[str], verdict_paths: lis
     start = time.perf_counter()
     verdict = machine.diagnose(name, recordings, settings)
     log.info("machine %s: %s in %.1f s", name, verdict["statement"], time.perf_counter() - start)
-    io.write_json(output, {**verdict, "settings": json.loads(config.canonical_json(spec)), **provenance.attributes(code_hash)})
+    io.write_json(output, {**verdict, "settings": json.loads(study.canonical_json(spec)), **provenance.attributes(code_hash)})
 
 
 def write_bank(spec: dict, grid_paths: list[str], output: str, code_hash: str) -> None:
@@ -467,11 +467,11 @@ def plot_machine(verdict: str, output: str, code_hash: str) -> None:
 def draw_hidden(spec: dict, output: str, code_hash: str) -> None:
     """Draw a hidden set's cases and write their truth (the one file that holds it).  The spec holds
     the config's ``hidden`` section (its draw ranges and classes resolved by
-    :func:`newdyn.config.hidden_ranges` and :func:`newdyn.config.hidden_classes`)."""
-    from . import config, hidden
+    :func:`newdyn.study.hidden_ranges` and :func:`newdyn.study.hidden_classes`)."""
+    from . import hidden, study
 
-    cases = hidden.draw_cases(spec["hidden"], spec["set"], spec["values"], config.hidden_ranges(spec),
-                              config.hidden_classes(spec), spec.get("sensors"), spec.get("channels", ()))
+    cases = hidden.draw_cases(spec["hidden"], spec["set"], spec["values"], study.hidden_ranges(spec),
+                              study.hidden_classes(spec), spec.get("sensors"), spec.get("channels", ()))
     machines = spec["hidden"]["sets"][spec["set"]]
     if "recordings" in machines:
         cases = hidden.draw_recordings(cases, spec["set"], machines, spec["operating_range"], spec["channels"], spec["values"],

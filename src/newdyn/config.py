@@ -1,11 +1,11 @@
-"""The study configuration: load it, check it, and derive what the workflow needs from it.
+"""The study configuration: load it and check it, each problem in one line.
 
 A study config (``config/config.yaml``; every key is documented in ``config/README.md``) has the
 sections ``rig`` and ``operating`` (model parameter values, :mod:`newdyn.model` names), ``sampling``,
 ``simulation``, ``noise``, ``scenarios`` (name -> optional ``description``, ``overrides`` of rig or
 operating parameters and a ``fault`` from :mod:`newdyn.faults`), ``calibration``, ``diagnosis``,
 ``hidden`` and, optionally, ``effects`` (the study's own effects, files ``effects/<name>.py``) and
-``variants`` (the study rerun with other rig values or channels: :func:`variant_config`).
+``variants`` (the study rerun with other rig values or channels: :func:`newdyn.study.variant_config`).
 
 Fault kinds are never listed by hand: they are the effect registry's (:func:`newdyn.effects.active`,
 the built-ins plus the config's ``effects``), injected into the schema by :func:`load_schema`.
@@ -22,11 +22,7 @@ the built-ins plus the config's ``effects``), injected into the schema by :func:
    values of every scenario (after overrides and fault); the calibration; the diagnosis and hidden-set
    ranges; then each variant's study.
 
-The helpers (:func:`base_values`, :func:`sampling`, :func:`scenario_values`, :func:`canonical_json`)
-turn a checked config into model values and a canonical text, so that the order of keys in the YAML
-or the spelling of a number (``3.25e+6`` or ``3250000``) changes nothing downstream;
-:func:`diagnosis_ranges`, :func:`hidden_ranges` and :func:`hidden_classes` resolve the optional
-``diagnosis.faults``, ``hidden.faults`` and ``hidden.classes`` against the active effects.
+What a checked config describes (its variants, scenarios, model values, ranges) is derived by :mod:`newdyn.study`.
 
 Note on YAML numbers: YAML 1.1 (PyYAML, and so Snakemake) reads ``3.25e6`` as *text*; write exponents
 with a sign, ``3.25e+6``.  The check says so when it meets such a string.
@@ -34,11 +30,8 @@ with a sign, ``3.25e+6``.  The check says so when it meets such a string.
 
 from __future__ import annotations
 
-import copy
 import difflib
-import json
 import math
-import numbers
 import re
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
@@ -46,7 +39,7 @@ from typing import Any
 
 import yaml
 
-from . import effects, faults, model, slots
+from . import effects, faults, model, slots, study
 
 #: The schema of the source tree this module lives in (src/newdyn/config.py -> workflow/schemas/...).
 #: From an installed (non-editable) package, pass ``schema_path`` explicitly.
@@ -55,11 +48,7 @@ SCHEMA_PATH = Path(__file__).resolve().parents[2] / "workflow" / "schemas" / "co
 #: Parameters a scenario may override (an effect's parameters are set through ``fault:`` only).
 OVERRIDABLE: tuple[str, ...] = model.RIG_PARAMETERS + model.OPERATING_PARAMETERS
 
-#: The hidden-set class of a rig without any fault.
-HEALTHY = "healthy"
 
-#: ``calibration.joint`` of a config that has none.
-NO_JOINT = {"parameters": [], "infer_sigma": False, "walkers": 0, "steps": 0}
 
 _TYPE_NAMES = {
     "number": "a number",
@@ -177,7 +166,7 @@ def _use_effects(config: Any, source: str) -> None:
     """:func:`use_effects`, with a bad effect reported as ``<file>: effects[i]: <effect file>: <problem>``."""
     names = effect_names(config) if isinstance(config, Mapping) else []
     for i, name in enumerate(names):
-        if name in (HEALTHY, faults.PARAMETER_CHANGE):
+        if name in (study.HEALTHY, faults.PARAMETER_CHANGE):
             raise ConfigError(source, f"effects[{i}]", f"'{name}' is a class of its own (healthy, parameter_change); "
                                                        "give your effect another name")
     try:
@@ -192,7 +181,7 @@ def _use_effects(config: Any, source: str) -> None:
 _KIND_LISTS = {
     "faults": lambda: list(faults.kinds()),
     "effects": lambda: list(effects.active()),
-    "hidden_classes": lambda: [HEALTHY, faults.PARAMETER_CHANGE, *effects.active()],
+    "hidden_classes": lambda: [study.HEALTHY, faults.PARAMETER_CHANGE, *effects.active()],
     "operating": lambda: list(model.OPERATING_PARAMETERS),
 }
 
@@ -318,7 +307,7 @@ def _variant_problems(config: Mapping) -> Iterator[tuple[str, str]]:
         if references:
             yield from references
             return
-        for field, problem in _physical_problems(variant_config(config, name)):
+        for field, problem in _physical_problems(study.variant_config(config, name)):
             yield f"{where} (as {field})", problem
             return
 
@@ -389,7 +378,7 @@ def _calibration_problems(config: Mapping) -> Iterator[tuple[str, str]]:
     for i, name in enumerate(mcmc["parameters"]):
         if name not in calibration["parameters"]:
             yield f"calibration.mcmc.parameters[{i}]", f"'{name}' is not one of calibration.parameters ({', '.join(calibration['parameters'])})"
-    joint = calibration.get("joint", NO_JOINT)
+    joint = calibration.get("joint", study.NO_JOINT)
     for i, name in enumerate(joint["parameters"]):
         if name not in calibration["parameters"]:
             yield f"calibration.joint.parameters[{i}]", f"'{name}' is not one of calibration.parameters ({', '.join(calibration['parameters'])})"
@@ -397,7 +386,7 @@ def _calibration_problems(config: Mapping) -> Iterator[tuple[str, str]]:
     kde = 2 if mcmc["move"] == "kde" else 0
     runs = [("calibration.mcmc.walkers", mcmc["walkers"], 1)]
     if joint["parameters"]:
-        runs.append(("calibration.joint.walkers", joint["walkers"], joint_dimension(config)))
+        runs.append(("calibration.joint.walkers", joint["walkers"], study.joint_dimension(config)))
     for field, walkers, dimension in runs:
         if walkers < 2 * dimension + kde or walkers % 2:
             yield field, (
@@ -466,7 +455,7 @@ def _hidden_problems(config: Mapping) -> Iterator[tuple[str, str]]:
     for kind, ranges in (hidden.get("faults") or {}).items():
         yield from _range_problems(f"hidden.faults.{kind}", kind, ranges)
     for name, spec in hidden["sets"].items():
-        if name in variant_names(config) or name in ("diagnosis", "figures", "logs", "benchmarks"):
+        if name in study.variant_names(config) or name in ("diagnosis", "figures", "logs", "benchmarks"):
             yield f"hidden.sets.{name}", f"'{name}' would share results/{name}/ with the study; choose another name"
         if spec.get("instruments") and not config["diagnosis"].get("sensors"):
             yield f"hidden.sets.{name}.instruments", "draws instrument errors from diagnosis.sensors, which names none"
@@ -485,7 +474,7 @@ def _hidden_problems(config: Mapping) -> Iterator[tuple[str, str]]:
 
 
 def _all_scenario_problems(config: Mapping) -> Iterator[tuple[str, str]]:
-    base = base_values(config)
+    base = study.base_values(config)
     s = config["sampling"]
     for name, scenario in config["scenarios"].items():
         yield from _scenario_problems(f"scenarios.{name}", scenario, base, s["fs"], s["t_rec"])
@@ -572,142 +561,6 @@ def _load_cycle_problem(field: str, fs: float, t_rec: float, load_freq: float) -
 
 # ----------------------------------------------------------------------------------------------------
 # helpers for the workflow
-
-
-def variant_names(config: Mapping) -> list[str]:
-    """The study's variants in config order; a config without ``variants`` has one, ``default``."""
-    return list(config.get("variants") or {"default": {}})
-
-
-def variant_config(config: Mapping, name: str) -> dict:
-    """The whole study as variant ``name`` runs it: a config without ``variants`` in which the variant's
-    rig values and channels replace the study's, and its scenarios, parameters and SNRs select from them.
-
-    The MCMC runs (1-D and joint) stay only where the variant keeps ``mcmc`` and calibrates their
-    parameters; a joint calibration needs all of its parameters.
-    """
-    variants = config.get("variants") or {"default": {}}
-    if name not in variants:
-        raise KeyError(f"unknown variant {name!r} (known: {', '.join(variants)})")
-    variant = variants[name] or {}
-    derived = copy.deepcopy({key: value for key, value in config.items() if key != "variants"})
-    derived["rig"].update(variant.get("rig", {}))
-    calibration = derived["calibration"]
-    calibration["channels"] = list(variant.get("channels", calibration["channels"]))
-    keep = variant.get("parameters", list(calibration["parameters"]))
-    calibration["parameters"] = {p: spec for p, spec in calibration["parameters"].items() if p in keep}
-    if "scenarios" in variant:
-        derived["scenarios"] = {s: spec for s, spec in derived["scenarios"].items() if s in variant["scenarios"]}
-    if "snr_db" in variant:
-        derived["noise"]["snr_db"] = [snr for snr in derived["noise"]["snr_db"] if snr in variant["snr_db"]]
-    with_mcmc = variant.get("mcmc", True)
-    mcmc = calibration["mcmc"]
-    mcmc["parameters"] = [p for p in mcmc["parameters"] if with_mcmc and p in calibration["parameters"]]
-    joint = calibration.setdefault("joint", copy.deepcopy(NO_JOINT))
-    if not (with_mcmc and all(p in calibration["parameters"] for p in joint["parameters"])):
-        joint["parameters"] = []
-    return derived
-
-
-def joint_dimension(config: Mapping) -> int:
-    """Number of quantities the joint calibration samples: its parameters, and one σ per channel if inferred."""
-    calibration = config["calibration"]
-    joint = calibration.get("joint", NO_JOINT)
-    if not joint["parameters"]:
-        return 0
-    return len(joint["parameters"]) + (len(calibration["channels"]) if joint.get("infer_sigma") else 0)
-
-
-def base_values(config: Mapping) -> dict[str, float]:
-    """Rig and operating values of the config merged into one mapping of model names to floats."""
-    return {name: float(value) for section in ("rig", "operating") for name, value in config[section].items()}
-
-
-def grid_channels(config: Mapping) -> list[str]:
-    """Channels a study's coarse grids simulate: its calibrations', and its diagnoses', which reuse the grids."""
-    return list(dict.fromkeys([*config["calibration"]["channels"], *config["diagnosis"]["channels"]]))
-
-
-def sampling(config: Mapping) -> model.Sampling:
-    """The recorded samples of the study."""
-    s = config["sampling"]
-    return model.Sampling.from_window(s["fs"], s["t_warm"], s["t_rec"])
-
-
-def scenario_names(config: Mapping) -> list[str]:
-    """Scenario names in config order."""
-    return list(config["scenarios"])
-
-
-def scenario_values(config: Mapping, name: str) -> dict[str, float]:
-    """All model parameter values of scenario ``name``: rig and operating, its overrides, its fault."""
-    scenarios = config["scenarios"]
-    if name not in scenarios:
-        raise KeyError(f"unknown scenario {name!r} (known: {', '.join(scenarios)})")
-    return faults.scenario_values(scenarios[name], base_values(config))
-
-
-def diagnosis_ranges(config: Mapping) -> dict[str, dict[str, tuple[float, float]]]:
-    """The parameter ranges a diagnosis fits over of every effect it offers (``diagnosis.effects``, else
-    every active one), by kind and parameter (declaration order): ``diagnosis.faults`` where it gives
-    one, else the effect file's ``prior``.  ``config`` is a
-    checked config or a spec holding its ``diagnosis`` section."""
-    ranges = _effect_ranges(config["diagnosis"].get("faults") or {}, "diagnosis.faults", lambda p: p.prior)
-    offered = config["diagnosis"].get("effects")
-    return ranges if offered is None else {kind: ranges[kind] for kind in offered}
-
-
-def hidden_ranges(config: Mapping) -> dict[str, dict[str, tuple[float, float]]]:
-    """Every active effect's parameter ranges a blind test draws from, by kind and parameter
-    (declaration order): ``hidden.faults`` where it gives one, else the effect file's ``hidden`` range
-    (:attr:`newdyn.effects.Parameter.draw_range`).  ``config`` is a checked config or a spec holding
-    its ``hidden`` section."""
-    return _effect_ranges(config["hidden"].get("faults") or {}, "hidden.faults", lambda p: p.draw_range)
-
-
-def hidden_classes(config: Mapping) -> list[str]:
-    """The classes a hidden set draws from unless the set names its own: ``hidden.classes``, or when
-    omitted healthy, parameter_change and every active effect."""
-    classes = config["hidden"].get("classes")
-    return list(classes) if classes else [HEALTHY, faults.PARAMETER_CHANGE, *effects.active()]
-
-
-def _effect_ranges(given: Mapping[str, Mapping[str, Sequence[float]]], where: str, default) -> dict[str, dict[str, tuple[float, float]]]:
-    active = effects.active()
-    unknown = [kind for kind in given if kind not in active]
-    if unknown:
-        raise KeyError(f"{where} names '{unknown[0]}', which is not an active effect (active: {', '.join(active)}); "
-                       "call newdyn.config.use_effects(config) first")
-    ranges = {}
-    for kind, effect in active.items():
-        overrides = given.get(kind, {})
-        ranges[kind] = {p.name: tuple(float(v) for v in overrides.get(p.name, default(p))) for p in effect.parameters}
-    return ranges
-
-
-def canonical_json(obj: Any) -> str:
-    """Canonical JSON text of ``obj``: sorted keys, no spaces, every number as a float.
-
-    ``{"b": 3.25e6, "a": 1}`` and ``{"a": 1.0, "b": 3250000}`` give the same text, so reordering YAML
-    keys or respelling a number changes nothing downstream (hashes, file attributes).  Non-finite
-    floats come out as ``Infinity`` / ``NaN`` (as Python's json writes and reads them).
-    """
-    return json.dumps(_normalise(obj), sort_keys=True, separators=(",", ":"), ensure_ascii=True)
-
-
-def _normalise(obj: Any) -> Any:
-    if obj is None or isinstance(obj, (bool, str)):
-        return obj
-    if isinstance(obj, numbers.Real):
-        value = float(obj)
-        return 0.0 if value == 0.0 else value  # -0.0 and 0 -> 0.0
-    if isinstance(obj, Mapping):
-        return {str(k): _normalise(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_normalise(v) for v in obj]
-    if hasattr(obj, "tolist"):  # numpy arrays, numpy bools
-        return _normalise(obj.tolist())
-    raise TypeError(f"canonical_json cannot encode {type(obj).__name__}")
 
 
 # ----------------------------------------------------------------------------------------------------

@@ -88,9 +88,9 @@ def draw_cases(
     """The cases of hidden set ``set_name``, deterministic from the set's seed.
 
     ``hidden`` is the config's ``hidden`` section (its ``sets`` and ``parameter_change`` are read);
-    ``ranges`` (kind -> parameter -> [low, high]) the effects' draw ranges, :func:`newdyn.config.hidden_ranges`
+    ``ranges`` (kind -> parameter -> [low, high]) the effects' draw ranges, :func:`newdyn.study.hidden_ranges`
     (default: :func:`default_ranges`); ``classes`` the classes of a set that names none of its own,
-    :func:`newdyn.config.hidden_classes` (default: every class, :func:`all_classes`).
+    :func:`newdyn.study.hidden_classes` (default: every class, :func:`all_classes`).
 
     With the set's ``instruments``, ``datasheets`` (channel -> ``offset_sd``, ``gain_sd``, ``delay_sd``: the
     config's ``diagnosis.sensors``) give each case's ``instruments`` and ``compared`` (the diagnosis channels) the

@@ -7,7 +7,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
-from . import calibration, hypotheses, noise
+from . import calibration, hypotheses, noise, study
 from . import posterior as posterior_module
 from . import sensors as sensors_module
 
@@ -39,9 +39,7 @@ class Settings:
     @classmethod
     def from_config(cls, config: Mapping) -> Settings:
         """From a study config (or a diagnosis spec holding its rig, diagnosis, calibration and
-        simulation sections); the effects' ranges by :func:`newdyn.config.diagnosis_ranges`."""
-        from . import config as config_module
-
+        simulation sections); the effects' ranges by :func:`newdyn.study.diagnosis_ranges`."""
         d, c = config["diagnosis"], config["calibration"]
         return cls(
             rig=dict(config["rig"]),
@@ -49,7 +47,7 @@ class Settings:
             grids={p: calibration.GridSpec.from_config(p, s["grid"]) for p, s in c["parameters"].items()},
             priors={p: calibration.NormalPrior(**s["prior"]) for p, s in c["parameters"].items()},
             fault_ranges={kind: {n: (float(low), float(high)) for n, (low, high) in ranges.items()}
-                          for kind, ranges in config_module.diagnosis_ranges(config).items()},
+                          for kind, ranges in study.diagnosis_ranges(config).items()},
             drift=tuple(d["drift"]),
             severities=int(d["severities"]),
             drift_sizes=tuple(float(x) for x in d["drift_sizes"]),

@@ -6,6 +6,7 @@ from pathlib import Path
 import newdyn.catalog
 import newdyn.measurement_files
 import newdyn.config
+import newdyn.study
 import newdyn.effects
 import newdyn.hidden_sets
 import newdyn.provenance
@@ -26,7 +27,7 @@ except newdyn.config.ConfigError as error:
     sys.exit(f"newdyn: bad config: {error}")
 
 # Every variant is a whole study of its own (other rig values, channels, subsets) under results/<variant>/.
-VARIANTS = {name: newdyn.config.variant_config(config, name) for name in newdyn.config.variant_names(config)}
+VARIANTS = {name: newdyn.study.variant_config(config, name) for name in newdyn.study.variant_names(config)}
 SEEDS = [str(seed) for seed in config["noise"]["seeds"]]
 
 # Rules pass the hash of the code their `newdyn` command runs as a param (code_hash), so that an edit of any
@@ -84,19 +85,19 @@ def _snrs(study):
 
 
 def _sampling_spec(study):
-    sampling = newdyn.config.sampling(study)
+    sampling = newdyn.study.sampling(study)
     return {"fs": sampling.fs, "t_first": sampling.t_first, "n_samples": sampling.n_samples}
 
 
 def simulation_spec(wildcards):
     """Everything that determines one scenario's simulation, as canonical JSON."""
     cfg = study(wildcards)
-    return newdyn.config.canonical_json(
+    return newdyn.study.canonical_json(
         {
             "scenario": wildcards.scenario,
             "variant": wildcards.variant,
             "definition": cfg["scenarios"][wildcards.scenario] or {},
-            "values": newdyn.config.scenario_values(cfg, wildcards.scenario),
+            "values": newdyn.study.scenario_values(cfg, wildcards.scenario),
             "sampling": _sampling_spec(cfg),
             "channels": cfg["simulation"]["channels"],
             "max_step": cfg["simulation"]["max_step"],
@@ -125,13 +126,13 @@ def grid_models_spec(wildcards):
     """What the coarse grid of one parameter depends on: the healthy rig, sampling, grid, channels."""
     cfg = study(wildcards)
     calibration = cfg["calibration"]
-    return newdyn.config.canonical_json(
+    return newdyn.study.canonical_json(
         {
             "parameter": wildcards.parameter,
             "grid": calibration["parameters"][wildcards.parameter]["grid"],
-            "values": newdyn.config.base_values(cfg),
+            "values": newdyn.study.base_values(cfg),
             "sampling": _sampling_spec(cfg),
-            "channels": newdyn.config.grid_channels(cfg),
+            "channels": newdyn.study.grid_channels(cfg),
             "max_step": cfg["simulation"]["max_step"],
             "effects": EFFECTS,
         }
@@ -142,7 +143,7 @@ def _calibration_settings(cfg):
     """What every calibration of a variant depends on besides its parameters and input files."""
     calibration = cfg["calibration"]
     return {
-        "values": newdyn.config.base_values(cfg),
+        "values": newdyn.study.base_values(cfg),
         "channels": calibration["channels"],
         "refine_points": calibration["refine_points"],
         "chi2_max": calibration["chi2_max"],
@@ -174,7 +175,7 @@ def grid_calibration_spec(wildcards):
     """What the grid calibrations of one measurement depend on besides its input files: each parameter's prior and
     grid (in the order of grid_calibration_files), and the calibration settings."""
     cfg = study(wildcards)
-    return newdyn.config.canonical_json(
+    return newdyn.study.canonical_json(
         {
             "parameters": [
                 {"parameter": name, **{key: cfg["calibration"]["parameters"][name][key] for key in ("prior", "grid")}}
@@ -189,7 +190,7 @@ def mcmc_spec(wildcards):
     """What one parameter's MCMC calibration depends on besides its input files."""
     cfg = study(wildcards)
     spec = cfg["calibration"]["parameters"][wildcards.parameter]
-    return newdyn.config.canonical_json(
+    return newdyn.study.canonical_json(
         {
             "mcmc": cfg["calibration"]["mcmc"],
             "parameter": wildcards.parameter,
@@ -204,7 +205,7 @@ def joint_spec(wildcards):
     """What the joint calibration of a measurement depends on besides its input files."""
     calibration = study(wildcards)["calibration"]
     joint = calibration["joint"]
-    return newdyn.config.canonical_json(
+    return newdyn.study.canonical_json(
         {
             "parameters": {name: calibration["parameters"][name] for name in joint["parameters"]},
             "infer_sigma": joint["infer_sigma"],
@@ -393,7 +394,7 @@ def figure_files(stage):
 
 def figure_plan(stage):
     """The figures of ``stage`` as ``newdyn plot --figures`` takes them: each its PNG, input files and drawing's settings."""
-    return newdyn.config.canonical_json(
+    return newdyn.study.canonical_json(
         [
             {key: value for key, value in figure.items() if key not in ("pdf", "chi2_pdf")}
             for figure in STUDY_FIGURES[stage]
@@ -492,12 +493,12 @@ def _diagnosis_settings():
 
 
 def diagnosis_spec(wildcards):
-    return newdyn.config.canonical_json(_diagnosis_settings())
+    return newdyn.study.canonical_json(_diagnosis_settings())
 
 
 def machine_spec(wildcards):
     """A diagnosis's settings and the rig's operating range, where the machine's verdict looks for the next condition."""
-    return newdyn.config.canonical_json({**_diagnosis_settings(), "operating_range": config.get("operating_range", {})})
+    return newdyn.study.canonical_json({**_diagnosis_settings(), "operating_range": config.get("operating_range", {})})
 
 
 def hidden_cases(set_name):
@@ -515,11 +516,11 @@ def hidden_spec(wildcards):
     ranges, the rig and the record; for a set seen through instruments, their datasheets and the compared
     channels."""
     instruments = HIDDEN_SETS[wildcards.set].get("instruments", False)
-    return newdyn.config.canonical_json(
+    return newdyn.study.canonical_json(
         {
             "set": wildcards.set,
             "hidden": {**config["hidden"], "sets": {wildcards.set: HIDDEN_SETS[wildcards.set]}},
-            "values": newdyn.config.base_values(config),
+            "values": newdyn.study.base_values(config),
             "sampling": _sampling_spec(config),
             "max_step": config["simulation"]["max_step"],
             "effects": EFFECTS,
