@@ -26,6 +26,7 @@ from newdyn import (
     signatures,
     simulation,
     slots,
+    statement,
 )
 from newdyn.effects.library import stick_slip
 from newdyn.settings import Settings
@@ -304,7 +305,7 @@ def test_an_unexplained_verdict_says_where_the_residual_remains():
     ]
     verdict = {"verdict": "unexplained", "effect": None, "equivalent": [], "parameters": {}, "chi2_before": 40.0,
                "chi2_after": 3.2, "models": {"after": "stick_slip"}, "remaining": remaining}
-    text = diagnosis.statement(verdict, 1.1)
+    text = statement.statement(verdict, 1.1)
     assert text.startswith("unexplained: no hypothesis of the library brings reduced chi2 to 1.1 or below")
     assert "stick_slip, leaves 3.2" in text and "w1 0-10 Hz (x12" in text and "b1_x at load-cycle phase 0.25-0.5" in text
 
@@ -363,7 +364,7 @@ def test_a_speed_sensor_out_of_its_spec_is_a_sensor_problem_not_a_machine_fault(
     assert problem["hdi"][0] < 1.024 < problem["hdi"][1] and report["sensors"]["w1"]["gain"]["out_of_spec"]
     assert report["instruments_took"]["chi2_exact"] > 100 and report["instruments_took"]["chi2"] == checked.chi2_red
     verdict = {"verdict": diagnosis.SENSOR_PROBLEM, "chi2_before": checked.chi2_red, **report}
-    assert diagnosis.statement(verdict, 1.1).startswith("sensor problem: w1 reads 2.4 % high, outside the datasheet's spread; "
+    assert statement.statement(verdict, 1.1).startswith("sensor problem: w1 reads 2.4 % high, outside the datasheet's spread; "
                                                         "seen through that, the nominal model explains the data")
     # A drift that took the same misfit through in-spec instruments: the sensor problem is its equal but for the
     # prior odds against a bad instrument, and is named beside it; a drift far ahead leaves none.
@@ -380,7 +381,7 @@ def test_a_speed_sensor_out_of_its_spec_is_a_sensor_problem_not_a_machine_fault(
                      values={"kT1": 3.0e6}, log_evidence=checked.log_evidence - 1.0)
     assert diagnosis._sensor_alternatives({"healthy": checked, "parameter_change:kT1": nested}, "healthy", data, sigma,
                                           instruments, ("b1_x", "w1"), settings) == []
-    assert found == [] and "explains the data as well through an instrument out of its spec (w1 reads 2.4 % high)" in diagnosis.statement(
+    assert found == [] and "explains the data as well through an instrument out of its spec (w1 reads 2.4 % high)" in statement.statement(
         {"verdict": "parameter_change", "effect": "kT1", "equivalent": ["kT1"], "parameters": {}, "chi2_before": 3.0, "chi2_after": 1.0,
          **report, "sensor_problems": [], "sensor_alternatives": [{"hypothesis": "healthy", "sensor_problems": report["sensor_problems"]}]}, 1.1)
 
@@ -389,7 +390,7 @@ def test_a_speed_sensor_out_of_its_spec_is_a_sensor_problem_not_a_machine_fault(
 def test_the_statement_names_what_the_instruments_took_only_where_it_is_something(exact, through, said):
     verdict = {"verdict": "healthy", "effect": None, "equivalent": [], "parameters": {}, "chi2_before": through,
                "chi2_after": through, "sensor_problems": [], "instruments_took": {"chi2_exact": exact, "chi2": through}}
-    sentence = diagnosis.statement(verdict, 1.1)
+    sentence = statement.statement(verdict, 1.1)
     assert sentence.startswith("healthy: the nominal model explains the data")
     assert ("took the final model's reduced chi2 from 3.2 (exact instruments) to 1.01" in sentence) == said
     assert said or "instruments" not in sentence
