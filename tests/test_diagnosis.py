@@ -17,6 +17,7 @@ from newdyn import (
     effects,
     faults,
     hypotheses,
+    instrument_checks,
     io,
     likelihood,
     measurement_checks,
@@ -354,11 +355,11 @@ def test_a_speed_sensor_out_of_its_spec_is_a_sensor_problem_not_a_machine_fault(
                                          ("b1_x", "w1"), SAMPLING.fs)
     healthy = hypotheses.fit(hypotheses.Hypothesis("healthy", "healthy"), data, sigma, model.DEFAULTS, SAMPLING, ("b1_x", "w1"),
                              instruments=instruments)
-    checked = diagnosis._instruments_checked(healthy, data, sigma, 6.9)
+    checked = instrument_checks.checked(healthy, data, sigma, 6.9)
     assert healthy.chi2_red > 1.5 and checked.chi2_red < 1.1
     gain = checked.log_likelihood - healthy.log_likelihood
     assert gain > 6.9 and checked.log_evidence == pytest.approx(healthy.log_evidence + gain - 6.9)
-    report = diagnosis._instrument_report(checked, data, sigma, instruments, ("b1_x", "w1"), 6.9)
+    report = instrument_checks.report(checked, data, sigma, instruments, ("b1_x", "w1"), 6.9)
     (problem,) = report["sensor_problems"]
     assert (problem["channel"], problem["quantity"], problem["statement"]) == ("w1", "gain", "w1 reads 2.4 % high")
     assert problem["hdi"][0] < 1.024 < problem["hdi"][1] and report["sensors"]["w1"]["gain"]["out_of_spec"]
@@ -373,13 +374,13 @@ def test_a_speed_sensor_out_of_its_spec_is_a_sensor_problem_not_a_machine_fault(
         drift = replace(healthy, hypothesis=hypotheses.Hypothesis("parameter_change:kT1", "parameter_change", "kT1"),
                         values={"kT1": 3.0e6}, log_evidence=checked.log_evidence + ahead, chi2_red=checked.chi2_red)
         fits = {"healthy": checked, "parameter_change:kT1": drift}
-        found = diagnosis._sensor_alternatives(fits, "parameter_change:kT1", data, sigma, instruments, ("b1_x", "w1"), settings)
+        found = instrument_checks.alternatives(fits, "parameter_change:kT1", data, sigma, instruments, ("b1_x", "w1"), settings)
         assert [row["hypothesis"] for row in found] == named
     # When the verdict itself reads through the bad sensor, a drift through the same sensor only adds a parameter to
     # its account: no alternative.
     nested = replace(checked, hypothesis=hypotheses.Hypothesis("parameter_change:kT1", "parameter_change", "kT1"),
                      values={"kT1": 3.0e6}, log_evidence=checked.log_evidence - 1.0)
-    assert diagnosis._sensor_alternatives({"healthy": checked, "parameter_change:kT1": nested}, "healthy", data, sigma,
+    assert instrument_checks.alternatives({"healthy": checked, "parameter_change:kT1": nested}, "healthy", data, sigma,
                                           instruments, ("b1_x", "w1"), settings) == []
     assert found == [] and "explains the data as well through an instrument out of its spec (w1 reads 2.4 % high)" in statement.statement(
         {"verdict": "parameter_change", "effect": "kT1", "equivalent": ["kT1"], "parameters": {}, "chi2_before": 3.0, "chi2_after": 1.0,

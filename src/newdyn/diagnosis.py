@@ -49,6 +49,7 @@ from . import (
     concurrency,
     effects,
     hypotheses,
+    instrument_checks,
     io,
     likelihood,
     mcmc_calibration,
@@ -175,7 +176,7 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
                            for kind in sorted(settings.fault_ranges, key=lambda kind: -len(hyps[kind].priors))})
     fits.update({kind: fitted[kind] for kind in settings.fault_ranges})
     stage(f"fits of {', '.join(settings.fault_ranges)}")
-    fits = {name: _instruments_checked(fit, data, sigma, settings.evidence_margin) for name, fit in fits.items()}
+    fits = {name: instrument_checks.checked(fit, data, sigma, settings.evidence_margin) for name, fit in fits.items()}
     if colour is None and settings.noise_colour_order:
         best = max(fits.values(), key=lambda fit: fit.log_evidence)
         found, level = noise.colour(data - _shown(best, data, sigma), settings.noise_colour_order, settings.evidence_margin)
@@ -197,10 +198,10 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
 
     verdict = _verdict(fits, calibrations, signatures, settings, values, sampling, data, sigma)
     if instruments is not None and np.any(instruments.scale > 0):
-        verdict.update(_instrument_report(fits[verdict["models"]["after"]], data, sigma, instruments, channels, settings.evidence_margin))
+        verdict.update(instrument_checks.report(fits[verdict["models"]["after"]], data, sigma, instruments, channels, settings.evidence_margin))
         if verdict["verdict"] == "healthy" and verdict["sensor_problems"]:
             verdict["verdict"] = SENSOR_PROBLEM
-        verdict["sensor_alternatives"] = _sensor_alternatives(fits, verdict["models"]["after"], data, sigma, instruments, channels, settings)
+        verdict["sensor_alternatives"] = instrument_checks.alternatives(fits, verdict["models"]["after"], data, sigma, instruments, channels, settings)
     verdict["effect_fit"] = {
         "hypothesis": best_fault, "parameters": _posterior_parameters(effect_posterior, hyps[best_fault].parameters),
         **{key: effect_posterior.attrs[key] for key in ("method", "converged", "rhat", "ess_bulk", "pareto_k", "step", "reason")
@@ -337,67 +338,10 @@ def _polished(fit: hypotheses.Fit, posterior, data, sigma, values, sampling, cha
         return fit
     hypothesis = fit.hypothesis
     best = _best_draw(posterior, hypothesis.parameters)
-    polished = _instruments_checked(hypotheses.fit(hypothesis, data, sigma, values, sampling, channels,
+    polished = instrument_checks.checked(hypotheses.fit(hypothesis, data, sigma, values, sampling, channels,
                                                    [dict(zip(hypothesis.parameters, best))], settings.max_step, search=False,
                                                    instruments=instruments), data, sigma, settings.evidence_margin)
     return polished if polished.log_likelihood > fit.log_likelihood else fit
-
-
-def _instruments_checked(fit: hypotheses.Fit, data, sigma, margin: float) -> hypotheses.Fit:
-    """``fit`` seen through the instruments the data most probably went through: each instrument error that
-    :func:`newdyn.sensors.check` finds out of its spec gets the wide prior, and the likelihood, χ² and evidence
-    follow — the evidence less ``margin`` per such instrument, the prior odds that one is out of its spec."""
-    if fit.instruments is None:
-        return fit
-    found = sensors_module.check(data, fit.model, sigma, fit.instruments, margin)
-    if not found.out_of_spec:
-        return fit
-    return replace(fit, instruments=found.instruments, log_likelihood=fit.log_likelihood + found.gain,
-                   log_evidence=fit.log_evidence + found.log_evidence_change,
-                   chi2_red=float(likelihood.reduced_chi2(data, fit.model, sigma, n_fitted=len(fit.values), instruments=found.instruments)))
-
-
-def _instrument_report(fit: hypotheses.Fit, data, sigma, instruments: sensors_module.Instruments, channels, margin: float) -> dict:
-    """verdict.json's ``sensors`` (each instrument error under the final model ``fit``), ``sensor_problems`` (those
-    out of their datasheet's spec, in words) and ``instruments_took`` (the final model's χ² with exact
-    instruments and through the ones it was seen through)."""
-    found = sensors_module.check(data, fit.model, sigma, instruments, margin)
-    summary = sensors_module.summary(data, fit.model, sigma, found.instruments, channels, likelihood.HDI_PROB)
-    problems = []
-    for c, q, log_bayes_factor in found.out_of_spec:
-        channel, quantity = channels[c], sensors_module.QUANTITIES[q]
-        entry = summary[channel][quantity]
-        entry.update(out_of_spec=True, log_bayes_factor=log_bayes_factor)
-        problems.append({"channel": channel, "quantity": quantity, "value": entry["mean"], "hdi": entry["hdi"],
-                         "datasheet_sd": float(instruments.sd[c, q]), "log_bayes_factor": log_bayes_factor,
-                         "statement": sensors_module.in_words(channel, quantity, entry["mean"], model.CHANNEL_UNITS[channel])})
-    took = {"chi2_exact": float(likelihood.reduced_chi2(data, fit.model, sigma, len(fit.values), instruments=instruments.exact)),
-            "chi2": fit.chi2_red}
-    return {"sensors": summary, "sensor_problems": problems, "instruments_took": took}
-
-
-def _sensor_alternatives(fits, after: str, data, sigma, instruments: sensors_module.Instruments, channels, settings: Settings) -> list[dict]:
-    """The fits through an instrument out of its spec that explain the data (χ² ≤ ``chi2_max``) as well as the
-    verdict's fit ``after`` but for the prior odds against a bad instrument: within ``evidence_margin`` of its
-    evidence once those odds are given back.  A probe's gain and a bearing's stiffness, say, can scale a
-    displacement alike; the data cannot choose, only the odds did.  None when ``after`` itself reads through an
-    instrument out of its spec: a fit through that instrument then only adds parameters to the verdict's account."""
-    if _widened(fits[after], instruments):
-        return []
-    best, rows = fits[after].log_evidence, []
-    for name, fit in fits.items():
-        widened = _widened(fit, instruments)
-        if name == after or not widened or fit.chi2_red > settings.chi2_max:
-            continue
-        if fit.log_evidence + settings.evidence_margin * widened >= best - settings.evidence_margin:
-            problems = _instrument_report(fit, data, sigma, instruments, channels, settings.evidence_margin)["sensor_problems"]
-            rows.append({"hypothesis": name, "log_evidence": fit.log_evidence, "chi2": fit.chi2_red, "sensor_problems": problems})
-    return sorted(rows, key=lambda row: -row["log_evidence"])
-
-
-def _widened(fit: hypotheses.Fit, instruments: sensors_module.Instruments) -> int:
-    """How many of a fit's instrument priors were widened beyond the datasheets ``instruments``."""
-    return 0 if fit.instruments is None else int(np.sum(fit.instruments.scale != instruments.scale))
 
 
 def _explains(fit: hypotheses.Fit, calibrations, chi2_max: float) -> bool:

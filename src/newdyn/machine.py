@@ -23,7 +23,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from . import comparison, concurrency, effects, hypotheses, io, likelihood, model, next_condition, noise, sensors, slots
+from . import comparison, concurrency, effects, hypotheses, instrument_checks, io, model, next_condition, noise, sensors, slots
 from .hypotheses import HEALTHY, PARAMETER_CHANGE
 from .settings import Settings
 
@@ -56,7 +56,8 @@ def diagnose(name: str, recordings: Sequence[Diagnosed], settings: Settings) -> 
 
     def joint(hypothesis):
         starts = [{p: rows[hypothesis.name]["parameters"][p]["map"] for p in hypothesis.parameters} for rows in own]
-        return _instruments_checked(hypotheses.fit_joint(hypothesis, seen, starts, settings.max_step), seen, settings.evidence_margin)
+        return instrument_checks.joint_checked(hypotheses.fit_joint(hypothesis, seen, starts, settings.max_step), seen,
+                                              settings.evidence_margin)
 
     fits = concurrency.in_parallel({n: lambda h=h: joint(h) for n, h in hyps.items()})
     ranking = sorted((_row(fits[n], [rows[n] for rows in own], settings) for n in hyps), key=lambda row: -row["log_evidence"])
@@ -97,26 +98,6 @@ def _record_next(ranking: Sequence[Mapping], fits, recordings: Sequence[Diagnose
                                settings.operating_range, settings.rig, seen[0].sampling, settings.channels, snr_db,
                                settings.max_step, settings.evidence_margin,
                                np.random.default_rng(int(settings.mcmc.get("seed", 0))))
-
-
-def _instruments_checked(fit: hypotheses.JointFit, seen: Sequence[hypotheses.Recording], margin: float) -> hypotheses.JointFit:
-    """``fit`` with each recording seen through the instruments it most probably went through, as a recording's own
-    diagnosis sees each of its fits (:func:`newdyn.sensors.check`): an instrument error far out of its datasheet's spec
-    gets the wide prior, the evidence less ``margin`` for each.  The joint evidence and the sum of the recordings' own
-    then count alike, and a hypothesis without parameters has a log Bayes factor of exactly 0 between them."""
-    checks = [None if r.instruments is None else sensors.check(r.data, m, r.sigma, r.instruments, margin)
-              for r, m in zip(seen, fit.models)]
-    if not any(c is not None and c.out_of_spec for c in checks):
-        return fit
-    k = len(fit.hypothesis.priors)
-    instruments = tuple(r.instruments if c is None else c.instruments for r, c in zip(seen, checks))
-    return replace(
-        fit, instruments=instruments,
-        log_likelihood=fit.log_likelihood + sum(c.gain for c in checks if c is not None),
-        log_evidence=fit.log_evidence + sum(c.log_evidence_change for c in checks if c is not None),
-        chi2_red=tuple(float(likelihood.reduced_chi2(r.data, m, r.sigma, n_fitted=k, instruments=i))
-                       for r, m, i in zip(seen, fit.models, instruments)),
-    )
 
 
 def _row(fit: hypotheses.JointFit, alone: Sequence[Mapping], settings: Settings) -> dict:
