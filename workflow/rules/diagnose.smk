@@ -127,9 +127,14 @@ rule verdict_page:
         ),
     log:
         "{root}/logs/verdict_page/{name}.log",
+    benchmark:
+        "{root}/benchmarks/verdict_page/{name}.tsv"
     localrule: True
     conda:
         "../envs/newdyn.yaml"
+    resources:
+        mem_mb=per_attempt(1024),
+        runtime=per_attempt(10),
     params:
         code=code_hash("verdict-page"),
     shell:
