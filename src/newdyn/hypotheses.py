@@ -394,7 +394,7 @@ class JointFit:
     n_simulations: int
     at_bound: tuple[str, ...] = ()
     covariance: np.ndarray | None = None
-    instruments: tuple[sensors.Instruments | None, ...] = ()  # each recording's, where they differ from its own datasheets'
+    instruments: tuple[sensors.Instruments | None, ...] = ()  # each recording's, once one was widened beyond its datasheets
 
     @property
     def theta(self) -> np.ndarray:

@@ -1,5 +1,5 @@
-"""The verdicts a diagnosis gives, as ``verdict.json`` names them: shared by the diagnosis and the blind test's
-scoring, which must not import the diagnosis to read them."""
+"""The verdicts a diagnosis gives, as ``verdict.json`` names them, and how a reader meets them (a run's closing lines,
+the report's page): shared by the diagnosis and the blind test's scoring, which must not import the diagnosis."""
 
 import html
 import json
