@@ -338,9 +338,9 @@ def _polished(fit: hypotheses.Fit, posterior, data, sigma, values, sampling, cha
         return fit
     hypothesis = fit.hypothesis
     best = _best_draw(posterior, hypothesis.parameters)
-    polished = instrument_checks.checked(hypotheses.fit(hypothesis, data, sigma, values, sampling, channels,
-                                                   [dict(zip(hypothesis.parameters, best))], settings.max_step, search=False,
-                                                   instruments=instruments), data, sigma, settings.evidence_margin)
+    refit = hypotheses.fit(hypothesis, data, sigma, values, sampling, channels, [dict(zip(hypothesis.parameters, best))],
+                           settings.max_step, search=False, instruments=instruments)
+    polished = instrument_checks.checked(refit, data, sigma, settings.evidence_margin)
     return polished if polished.log_likelihood > fit.log_likelihood else fit
 
 

@@ -65,6 +65,11 @@ def alternatives(fits, after: str, data, sigma, instruments: sensors.Instruments
     return sorted(rows, key=lambda row: -row["log_evidence"])
 
 
+def out_of_spec(used: sensors.Instruments, datasheets: sensors.Instruments, channels: Sequence[str]) -> list[str]:
+    """The instrument errors whose priors ``used`` widened beyond the ``datasheets``, as "b1_x gain"."""
+    return [f"{channels[c]} {sensors.QUANTITIES[q]}" for c, q in np.argwhere(used.scale != datasheets.scale)]
+
+
 def widened(fit: hypotheses.Fit, instruments: sensors.Instruments) -> int:
     """How many of a fit's instrument priors were widened beyond the datasheets ``instruments``."""
     return 0 if fit.instruments is None else int(np.sum(fit.instruments.scale != instruments.scale))

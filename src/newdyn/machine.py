@@ -23,7 +23,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from . import comparison, concurrency, effects, hypotheses, instrument_checks, io, model, next_condition, noise, sensors, slots
+from . import comparison, concurrency, effects, hypotheses, instrument_checks, io, model, next_condition, noise, slots
 from .hypotheses import HEALTHY, PARAMETER_CHANGE
 from .settings import Settings
 
@@ -136,8 +136,7 @@ def _recording_lines(recordings: Sequence[Diagnosed], seen: Sequence[hypotheses.
             "own_verdict": r.verdict["verdict"], "own_effect": r.verdict["effect"],
             "chi2_before": fits[HEALTHY].chi2_red[i], "chi2_after": found.chi2_red[i],
             "finding_log_bayes_factor": contribution, "finding_visible": contribution > settings.evidence_margin,
-            "instruments_out_of_spec": [f"{s.channels[c]} {sensors.QUANTITIES[q]}"
-                                        for c, q in np.argwhere(found.instruments[i].scale != s.instruments.scale)]
+            "instruments_out_of_spec": instrument_checks.out_of_spec(found.instruments[i], s.instruments, s.channels)
             if found.instruments else [],
         })
     return lines
