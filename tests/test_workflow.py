@@ -463,6 +463,7 @@ def test_a_machines_folder_gets_one_verdict_from_its_recordings_each_at_its_own_
     assert f"results/diagnosis/rig7/verdict.json: {verdict['statement']}" in run.stdout
     assert "results/diagnosis/plain/verdict.json: healthy" in run.stdout
     assert re.search(r"INFO plain: fits of .+ in [\d.]+ s", run.stdout)  # each stage as it ends, in the terminal too
+    assert "Exception" not in run.stderr  # Snakemake never tries the machine's name as a file's
     assert next(iter(verdict)) == "statement" and verdict["machine"] == "rig7"
     assert verdict["verdict"] == "healthy" and verdict["statement"].startswith("healthy: the nominal model explains all 2 recordings")
     lines = {line["name"]: line for line in verdict["recordings"]}

@@ -1,13 +1,13 @@
 # Diagnosis of one measurement (a user's file, or a hidden set's): verdict, model versions, figures.
 # The same rules serve both; {root} is "results" for measurements/<name>, "results/<set>" for hidden sets.
+# A regex of every machine's name, the user's and the hidden sets' (one that matches nothing when there is none).
+MACHINE_NAMES = "|".join(map(re.escape, [*MACHINES, *(m for s in HIDDEN_MACHINES.values() for m in s)])) or "(?!)"
+
+
 wildcard_constraints:
     root="|".join(["results"] + [f"results/{name}" for name in HIDDEN_SETS]),
     name=r"[A-Za-z0-9_.-]+(/[A-Za-z0-9_.-]+)?",  # a file, or a machine's recording <machine>/<recording>
-    machine="|".join(map(re.escape, [*MACHINES, *(m for s in HIDDEN_MACHINES.values() for m in s)])) or "(?!)",
-
-
-# results/diagnosis/<machine>/verdict.json is the machine's, not a file's of that name (the catalog refuses such a file).
-ruleorder: diagnose_machine > diagnose
+    machine=MACHINE_NAMES,
 
 
 rule bank:
@@ -58,6 +58,10 @@ rule diagnose:
         "{root}/logs/diagnose/{name}.log",
     benchmark:
         "{root}/benchmarks/diagnose/{name}.tsv"
+    # results/diagnosis/<machine>/verdict.json is the machine's, not a file's of that name (the catalog refuses such a
+    # file): a machine's name is no file's, so Snakemake never asks this rule's input for one.
+    wildcard_constraints:
+        name=rf"(?!(?:{MACHINE_NAMES})/[^/]+$)[A-Za-z0-9_.-]+(/[A-Za-z0-9_.-]+)?",
     # Two threads: its hypotheses' fits, and each fit's starts, run side by side.  Its log's lines (each stage and fit
     # as it ends) go to the terminal too, so that a long diagnosis can be watched.
     priority: 1
