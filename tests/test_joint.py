@@ -208,8 +208,8 @@ def test_too_few_walkers_or_a_missing_sigma_are_refused(kT1_up):
 
 
 def test_cli_round_trip(tmp_path, capsys):
-    """grid-models per parameter → calibrate-grid of them all → calibrate-joint, on tiny files; with σ inferred the
-    measurement needs no sigma coordinate."""
+    """grid-models per parameter → calibrate-grid of them all → calibrate-mcmc of one parameter, and of both jointly,
+    on tiny files; with σ inferred the measurement needs no sigma coordinate.  (The workflow runs both in one job.)"""
     window = {"fs": SAMPLING.fs, "t_first": SAMPLING.t_first, "n_samples": float(SAMPLING.n_samples)}
     values = {name: model.DEFAULTS[name] for name in model.OPERATING_PARAMETERS}
     data, sigma = noise.add_noise(simulate(TRUTH, SAMPLING, CHANNELS), CHANNELS, 40.0, 1)
@@ -244,10 +244,19 @@ def test_cli_round_trip(tmp_path, capsys):
         **common, "parameters": parameters, "infer_sigma": True, "chi2_max": 1.1,
         "mcmc": {"walkers": 12, "steps": 30, "burn": 5, "seed": 1, "rhat_max": 1.01, "ess_min": 400, "move": "kde", "max_rounds": 1},
     }
-    output = tmp_path / "joint.nc"
-    argv = ["calibrate-joint", "--measurement", str(without_sigma), "--grid-results", *results,
-            "--spec", json.dumps(spec), "--code-hash", "abc123", "--output", str(output)]
+    one = {**common, "parameter": "kT1", **parameters["kT1"], "chi2_max": 1.1, "refine_points": 21,
+           "mcmc": {**spec["mcmc"], "walkers": 8, "steps": 20, "proposal": "grid"}}
+    output, single = tmp_path / "joint.nc", tmp_path / "kT1_mcmc.nc"
+    runs = {"runs": [{"name": "kT1", "spec": one}, {"name": "joint", "spec": spec}]}
+    argv = ["calibrate-mcmc", "--measurement", str(with_sigma), "--grid-results", *results[::-1],  # matched by parameter
+            "--spec", json.dumps({"runs": runs["runs"][:1]}), "--code-hash", "abc123", "--outputs", str(single)]
     assert cli.main(argv) == 0
+    argv = ["calibrate-mcmc", "--measurement", str(without_sigma), "--grid-results", *results,
+            "--spec", json.dumps({"runs": runs["runs"][1:]}), "--code-hash", "abc123", "--outputs", str(output)]
+    assert cli.main(argv) == 0
+    alone = mcmc.load(single)
+    assert list(alone.posterior.data_vars) == ["kT1"] and alone.attrs["parameter"] == "kT1"
+    assert json.loads(alone.attrs["settings"]) == one and alone.attrs["code_hash"] == "abc123"
     idata = mcmc.load(output)
     assert set(idata.groups()) == {"posterior", "observed_data", "sample_stats", "weighted"}
     assert list(idata.posterior.data_vars) == ["kT1", "kT3", "sigma_b1_x", "sigma_w1"]
@@ -264,11 +273,15 @@ def test_cli_round_trip(tmp_path, capsys):
     np.testing.assert_array_equal(idata.observed_data["y"].values, data)
     assert list(idata.observed_data["channel"].values) == CHANNELS
 
-    known_sigma = ["calibrate-joint", "--measurement", str(without_sigma), "--grid-results", *results,
-                   "--spec", json.dumps({**spec, "infer_sigma": False}), "--output", str(tmp_path / "x.nc")]
+    joint_only = {"runs": [{"name": "joint", "spec": {**spec, "infer_sigma": False}}]}
+    known_sigma = ["calibrate-mcmc", "--measurement", str(without_sigma), "--grid-results", *results,
+                   "--spec", json.dumps(joint_only), "--outputs", str(tmp_path / "x.nc")]
     assert cli.main(known_sigma) == 1  # known σ needs it in the file: one line naming it, no traceback
     line = capsys.readouterr().err.strip().splitlines()[-1]
-    assert line.startswith("newdyn calibrate-joint: ") and "nosigma.nc" in line and "sigma" in line
-    with pytest.raises(ValueError, match="grid calibration of 'kT3', expected 'kT1'"):
-        cli.main(["calibrate-joint", "--measurement", str(with_sigma), "--grid-results", *results[::-1],
-                  "--spec", json.dumps(spec), "--output", str(tmp_path / "y.nc")])
+    assert line.startswith("newdyn calibrate-mcmc: ") and "nosigma.nc" in line and "sigma" in line
+    with pytest.raises(ValueError, match="no grid calibration of kT3"):
+        cli.main(["calibrate-mcmc", "--measurement", str(with_sigma), "--grid-results", results[0],
+                  "--spec", json.dumps(runs), "--outputs", str(tmp_path / "y.nc"), str(tmp_path / "z.nc")])
+    with pytest.raises(ValueError, match="one output per run"):
+        cli.main(["calibrate-mcmc", "--measurement", str(with_sigma), "--grid-results", *results,
+                  "--spec", json.dumps(runs), "--outputs", str(tmp_path / "y.nc")])

@@ -490,7 +490,7 @@ def test_the_measurements_target_diagnoses_exactly_the_users_files_with_their_fi
                         "results/diagnosis/rig7/full_load/verdict.json", "results/diagnosis/rig7/part_load/verdict.json"}
     assert any(f"results/diagnosis/plain/figures/{DIAGNOSIS_FIGURES[0]}.png" in line for line in planned)
     rules = set(re.findall(r"^(?:local)?rule (\w+):", run.stdout, re.MULTILINE))
-    assert not rules & {"simulate", "add_noise", "calibrate_mcmc", "calibrate_joint", "hidden_draw", "plot_summary"}
+    assert not rules & {"simulate", "add_noise", "calibrate_mcmc_default", "hidden_draw", "plot_summary"}
 
 
 def test_a_hidden_set_of_machines_diagnoses_each_recording_then_each_machine_and_scores_both(tmp_path):
@@ -529,14 +529,15 @@ def results(workdir):
 
 
 def test_on_one_core_the_jobs_give_the_two_core_study_bit_for_bit(study, tmp_path):
-    """One core runs the jobs one at a time, in another order than two: a drift's MCMC calibration and all it
-    needs (the scenario's simulations, the coarse grids, the measurement's grid calibrations, made by one job) are
-    the two-core study's bytes."""
+    """One core runs the jobs one at a time, in another order than two: a drift's MCMC calibrations and all they
+    need (the scenario's simulations, the coarse grids, the measurement's grid calibrations, each kind made by one
+    job) are the two-core study's bytes."""
     target = "results/default/calibration/kT1_up/kT1/snr40_seed1_mcmc.nc"
     run = snakemake(tmp_path, target, cores=1)
     assert run.returncode == 0, run.stderr[-3000:]
     made = results(tmp_path)
     assert {p.name for p in made} == {"kT1.nc", "kT3.nc", "clean.nc", "snr40_seed1.nc", "snr40_seed1_grid.nc", "snr40_seed1_mcmc.nc"}
+    assert (tmp_path / "results/default/calibration/kT1_up/joint/snr40_seed1_mcmc.nc").exists()  # the same job's
     differ = [str(p) for p in made if (study / p).read_bytes() != (tmp_path / p).read_bytes()]
     assert not differ, differ
 
@@ -552,7 +553,7 @@ def test_the_slurm_profile_asks_for_each_rules_memory_and_time(tmp_path):
     run = snakemake(tmp_path, "--workflow-profile", str(tmp_path / "profile"), "--dry-run")
     assert run.returncode == 0, run.stderr[-3000:]
     jobs = re.findall(r"^rule (\w+):\n(?:    .*\n)*?    resources: (.*)$", run.stdout, re.MULTILINE)
-    assert {rule for rule, _ in jobs} >= {"simulate", "calibrate_grid_default", "calibrate_joint", "diagnose", "plot_summary"}
+    assert {rule for rule, _ in jobs} >= {"simulate", "calibrate_grid_default", "calibrate_mcmc_default", "diagnose", "plot_summary"}
     for rule, resources in jobs:
         if rule != "all":
             assert re.search(r"\bmem_mb=\d+", resources) and re.search(r"\bruntime=\d+", resources), (rule, resources)

@@ -118,11 +118,12 @@ def simulate_points(
 
 
 def grid_files(paths: Sequence[str]) -> dict[str, str]:
-    """The study's coarse-grid files (``newdyn grid-models``) by the parameter each holds, as its file says."""
+    """Coarse-grid files (``newdyn grid-models``) or a measurement's grid calibrations (``newdyn calibrate-grid``) by
+    the parameter each holds, as its file says."""
     found = {}
     for path in paths:
-        with xr.open_dataset(path, engine="netcdf4") as coarse:
-            found[str(coarse.attrs["parameter"])] = path
+        with xr.open_dataset(path, engine="netcdf4") as grid:
+            found[str(grid.attrs["parameter"])] = path
     return found
 
 

@@ -201,6 +201,27 @@ def calibrate_on_grid(measurement_path: str, grid_path: str, spec: dict, output:
     io.write_netcdf(ds, output)
 
 
+def calibrate_by_mcmc(measurement_path: str, grid_result_paths: list[str], runs: list[dict], outputs: list[str],
+                      code_hash: str) -> None:
+    """Run a measurement's MCMC calibrations one after the other, in one process: each run (``name`` a parameter, or
+    ``joint``, and its ``spec``) writes its posterior to the output of the same place; the grid calibrations that start
+    the walkers are matched by the parameter each file says it holds."""
+    from . import calibration
+
+    if len(outputs) != len(runs):
+        raise ValueError(f"need one output per run ({', '.join(run['name'] for run in runs)}), got {len(outputs)}")
+    grid_results = calibration.grid_files(grid_result_paths)
+    for run, output in zip(runs, outputs):
+        needed = list(run["spec"]["parameters"]) if run["name"] == "joint" else [run["name"]]
+        missing = [name for name in needed if name not in grid_results]
+        if missing:
+            raise ValueError(f"no grid calibration of {', '.join(missing)} among {', '.join(grid_result_paths)}")
+        if run["name"] == "joint":
+            calibrate_jointly(measurement_path, [grid_results[name] for name in needed], run["spec"], output, code_hash)
+        else:
+            calibrate_with_mcmc(measurement_path, grid_results[run["name"]], run["spec"], output, code_hash)
+
+
 def calibrate_with_mcmc(measurement_path: str, grid_result_path: str, spec: dict, output: str, code_hash: str) -> None:
     """Write the MCMC posterior (ArviZ InferenceData) of one parameter for one measurement."""
     import numpy as np
@@ -587,14 +608,15 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--grids", required=True, nargs="+", help="each parameter's coarse grid (from grid-models), in the spec's order")
     p.add_argument("--outputs", required=True, nargs="+", help="each parameter's grid calibration, in the spec's order")
     p.add_argument("--code-hash", default="")
-    p = command("calibrate-mcmc", "MCMC posterior of a parameter for a measurement", "calibration spec")
-    p.add_argument("--measurement", required=True)
-    p.add_argument("--grid-result", required=True, help="the same calibration on the grid (starts the walkers)")
-    p = command("calibrate-joint", "joint MCMC posterior of several parameters (and optionally σ) for a measurement",
-                "joint calibration spec")
+    p = commands.add_parser("calibrate-mcmc", help="MCMC posteriors of a measurement: of single parameters, and of "
+                            "several at once (and optionally σ)")
     p.add_argument("--measurement", required=True)
     p.add_argument("--grid-results", required=True, nargs="+",
-                   help="each parameter's grid calibration, in the spec's parameter order (they start the walkers)")
+                   help="the parameters' grid calibrations, in any order (each says which parameter it holds; they start the walkers)")
+    p.add_argument("--spec", required=True, help="the runs as JSON (built by the workflow): {runs: [{name, spec}]}, name a "
+                   "parameter or 'joint'")
+    p.add_argument("--outputs", required=True, nargs="+", help="each run's posterior, in the spec's order")
+    p.add_argument("--code-hash", default="")
     p = command("compare", "Hellinger distances between all scenarios' grid posteriors")
     p.add_argument("inputs", nargs="+", help="grid calibration files of one study variant")
     p = commands.add_parser("plot", help="draw figures of one kind (each a PNG, and a PDF beside it)")
@@ -676,9 +698,7 @@ def main(argv: list[str] | None = None) -> int:
         elif args.command == "calibrate-grid":
             calibrate_on_grids(args.measurement, args.grids, json.loads(args.spec), args.outputs, args.code_hash)
         elif args.command == "calibrate-mcmc":
-            calibrate_with_mcmc(args.measurement, args.grid_result, json.loads(args.spec), args.output, args.code_hash)
-        elif args.command == "calibrate-joint":
-            calibrate_jointly(args.measurement, args.grid_results, json.loads(args.spec), args.output, args.code_hash)
+            calibrate_by_mcmc(args.measurement, args.grid_results, json.loads(args.spec)["runs"], args.outputs, args.code_hash)
         elif args.command == "compare":
             compare(args.inputs, args.output, args.code_hash)
         elif args.command == "plot":

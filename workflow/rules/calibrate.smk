@@ -55,54 +55,37 @@ for variant, variant_config in VARIANTS.items():
             "--grids {input.grids} --spec {params.spec:q} --code-hash {params.code} --outputs {output} > {log} 2>&1"
 
 
-rule calibrate_mcmc:
-    input:
-        measurement="results/{variant}/simulations/{scenario}/snr{snr}_seed{seed}.nc",
-        grid_result="results/{variant}/calibration/{scenario}/{parameter}/snr{snr}_seed{seed}_grid.nc",
-    output:
-        "results/{variant}/calibration/{scenario}/{parameter}/snr{snr}_seed{seed}_mcmc.nc",
-    log:
-        "results/logs/calibrate_mcmc/{variant}/{scenario}/{parameter}/snr{snr}_seed{seed}.log",
-    benchmark:
-        "results/benchmarks/calibrate_mcmc/{variant}/{scenario}/{parameter}/snr{snr}_seed{seed}.tsv"
-    conda:
-        "../envs/newdyn.yaml"
-    threads: 1
-    resources:
-        mem_mb=per_attempt(1024),
-        runtime=per_attempt(15),
-    params:
-        spec=mcmc_spec,
-        code=code_hash("calibrate-mcmc"),
-    shell:
-        "NUMBA_NUM_THREADS={threads} OPENBLAS_NUM_THREADS={threads} newdyn calibrate-mcmc --measurement {input.measurement} "
-        "--grid-result {input.grid_result} --spec {params.spec:q} --code-hash {params.code} "
-        "--output {output} > {log} 2>&1"
+# One job per measurement runs its variant's MCMC calibrations one after the other (each parameter's, then the joint
+# one), as a job's start and imports cost about as much as one run; as for the grid calibrations, each variant has its
+# rule.
+for variant, variant_config in VARIANTS.items():
+    if not mcmc_runs(variant_config):
+        continue
 
-
-rule calibrate_joint:
-    input:
-        measurement="results/{variant}/simulations/{scenario}/snr{snr}_seed{seed}.nc",
-        grid_results=lambda wildcards: expand(
-            "results/{{variant}}/calibration/{{scenario}}/{parameter}/snr{{snr}}_seed{{seed}}_grid.nc",
-            parameter=study(wildcards)["calibration"]["joint"]["parameters"],
-        ),
-    output:
-        "results/{variant}/calibration/{scenario}/joint/snr{snr}_seed{seed}_mcmc.nc",
-    log:
-        "results/logs/calibrate_joint/{variant}/{scenario}/snr{snr}_seed{seed}.log",
-    benchmark:
-        "results/benchmarks/calibrate_joint/{variant}/{scenario}/snr{snr}_seed{seed}.tsv"
-    conda:
-        "../envs/newdyn.yaml"
-    threads: 1
-    resources:
-        mem_mb=per_attempt(1024),
-        runtime=per_attempt(20),
-    params:
-        spec=joint_spec,
-        code=code_hash("calibrate-joint"),
-    shell:
-        "NUMBA_NUM_THREADS={threads} OPENBLAS_NUM_THREADS={threads} newdyn calibrate-joint --measurement {input.measurement} "
-        "--grid-results {input.grid_results} --spec {params.spec:q} --code-hash {params.code} "
-        "--output {output} > {log} 2>&1"
+    rule:
+        name:
+            f"calibrate_mcmc_{variant}"
+        input:
+            measurement="results/{variant}/simulations/{scenario}/snr{snr}_seed{seed}.nc",
+            grid_results=mcmc_grid_results(variant_config),
+        output:
+            mcmc_calibration_files(variant_config),
+        log:
+            "results/logs/calibrate_mcmc/{variant}/{scenario}/snr{snr}_seed{seed}.log",
+        benchmark:
+            "results/benchmarks/calibrate_mcmc/{variant}/{scenario}/snr{snr}_seed{seed}.tsv"
+        wildcard_constraints:
+            variant=re.escape(variant),
+        conda:
+            "../envs/newdyn.yaml"
+        threads: 1
+        resources:
+            mem_mb=per_attempt(1024),
+            runtime=per_attempt(30),
+        params:
+            spec=mcmc_spec,
+            code=code_hash("calibrate-mcmc"),
+        shell:
+            "NUMBA_NUM_THREADS={threads} OPENBLAS_NUM_THREADS={threads} newdyn calibrate-mcmc --measurement {input.measurement} "
+            "--grid-results {input.grid_results} --spec {params.spec:q} --code-hash {params.code} "
+            "--outputs {output} > {log} 2>&1"

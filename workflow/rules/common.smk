@@ -187,26 +187,23 @@ def grid_calibration_spec(wildcards):
 
 
 def mcmc_spec(wildcards):
-    """What one parameter's MCMC calibration depends on besides its input files."""
+    """What the MCMC calibrations of one measurement depend on besides its input files: per run of mcmc_runs (in that
+    order), a parameter's own or the joint one's settings."""
     cfg = study(wildcards)
-    spec = cfg["calibration"]["parameters"][wildcards.parameter]
-    return newdyn.study.canonical_json(
-        {
-            "mcmc": cfg["calibration"]["mcmc"],
-            "parameter": wildcards.parameter,
-            "prior": spec["prior"],
-            "grid": spec["grid"],
+    calibration = cfg["calibration"]
+    joint = calibration["joint"]
+    runs = {
+        name: {
+            "mcmc": calibration["mcmc"],
+            "parameter": name,
+            "prior": calibration["parameters"][name]["prior"],
+            "grid": calibration["parameters"][name]["grid"],
             **_calibration_settings(cfg),
         }
-    )
-
-
-def joint_spec(wildcards):
-    """What the joint calibration of a measurement depends on besides its input files."""
-    calibration = study(wildcards)["calibration"]
-    joint = calibration["joint"]
-    return newdyn.study.canonical_json(
-        {
+        for name in calibration["mcmc"]["parameters"]
+    }
+    if joint["parameters"]:
+        runs["joint"] = {
             "parameters": {name: calibration["parameters"][name] for name in joint["parameters"]},
             "infer_sigma": joint["infer_sigma"],
             # the joint runs take emcee's move (the grid proposal is one parameter's) and their own burn-in, if set
@@ -216,15 +213,33 @@ def joint_spec(wildcards):
                 "steps": joint["steps"],
                 "burn": joint.get("burn", calibration["mcmc"]["burn"]),
             },
-            **_calibration_settings(study(wildcards)),
+            **_calibration_settings(cfg),
         }
-    )
+    return newdyn.study.canonical_json({"runs": [{"name": name, "spec": spec} for name, spec in runs.items()]})
 
 
 def mcmc_runs(cfg):
     """The MCMC calibrations of each measurement: one per MCMC parameter, and "joint" if configured."""
     calibration = cfg["calibration"]
     return calibration["mcmc"]["parameters"] + (["joint"] if calibration["joint"]["parameters"] else [])
+
+
+def mcmc_calibration_files(cfg):
+    """The MCMC calibrations of the variant ``cfg`` on one measurement, in the order of mcmc_runs."""
+    return expand(
+        "results/{{variant}}/calibration/{{scenario}}/{parameter}/snr{{snr}}_seed{{seed}}_mcmc.nc",
+        parameter=mcmc_runs(cfg),
+    )
+
+
+def mcmc_grid_results(cfg):
+    """The grid calibrations that start the MCMC calibrations of the variant ``cfg`` on one measurement."""
+    calibration = cfg["calibration"]
+    parameters = dict.fromkeys(calibration["mcmc"]["parameters"] + calibration["joint"]["parameters"])
+    return expand(
+        "results/{{variant}}/calibration/{{scenario}}/{parameter}/snr{{snr}}_seed{{seed}}_grid.nc",
+        parameter=list(parameters),
+    )
 
 
 def calibration_targets(variant, methods=("grid", "mcmc")):
