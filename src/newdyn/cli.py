@@ -613,8 +613,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--measurement", required=True)
     p.add_argument("--grid-results", required=True, nargs="+",
                    help="the parameters' grid calibrations, in any order (each says which parameter it holds; they start the walkers)")
-    p.add_argument("--spec", required=True, help="the runs as JSON (built by the workflow): {runs: [{name, spec}]}, name a "
-                   "parameter or 'joint'")
+    p.add_argument("--spec", required=True, help="the runs as JSON (built by the workflow): {effects, runs: [{name, spec}]}, "
+                   "name a parameter or 'joint'")
     p.add_argument("--outputs", required=True, nargs="+", help="each run's posterior, in the spec's order")
     p.add_argument("--code-hash", default="")
     p = command("compare", "Hellinger distances between all scenarios' grid posteriors")

@@ -215,7 +215,10 @@ def mcmc_spec(wildcards):
             },
             **_calibration_settings(cfg),
         }
-    return newdyn.study.canonical_json({"runs": [{"name": name, "spec": spec} for name, spec in runs.items()]})
+    # the effects at the top too: the job loads them (newdyn.cli.main) before it reads the runs
+    return newdyn.study.canonical_json(
+        {"effects": EFFECTS, "runs": [{"name": name, "spec": spec} for name, spec in runs.items()]}
+    )
 
 
 def mcmc_runs(cfg):
