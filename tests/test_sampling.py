@@ -137,12 +137,16 @@ def test_a_run_that_misses_its_thresholds_goes_on_in_rounds_and_keeps_its_first_
     assert shorter.attrs["rounds"] == rounds - 1 and shorter.attrs["converged"] == 0  # and runs no further than allowed
 
 
-def test_rounds_stop_at_max_rounds_and_the_run_is_marked_unconverged():
+def test_rounds_stop_at_max_rounds_and_the_run_is_marked_unconverged_and_each_round_going_on_is_logged(caplog):
     settings = sampling.MCMCSettings(n_walkers=8, n_steps=20, n_burn=10, seed=1, ess_min=1e9, max_rounds=3)
-    idata = sampling.run(conjugate_loglik, conjugate_logprior, ["theta"], np.zeros((8, 1)) + 0.1 * np.arange(8)[:, None], settings)
+    with caplog.at_level("INFO", logger="newdyn"):
+        idata = sampling.run(conjugate_loglik, conjugate_logprior, ["theta"], np.zeros((8, 1)) + 0.1 * np.arange(8)[:, None], settings)
     assert idata.attrs["rounds"] == 3 and idata.attrs["converged"] == 0
     assert idata.attrs["n_draws"] == 8 * 60
     assert "ess_bulk" in idata.attrs["reason"]
+    going_on = [r.getMessage() for r in caplog.records if "not converged" in r.getMessage()]
+    assert [line.split(":")[1].split(" not")[0] for line in going_on] == [" round 1 of at most 3", " round 2 of at most 3"]
+    assert all(line.startswith("MCMC of theta:") and "ess_bulk" in line and "20 more steps" in line for line in going_on)
 
 
 class GuardedLikelihood:

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 import os
 from collections.abc import Callable, Mapping, Sequence
 
@@ -28,6 +29,8 @@ import numpy as np
 import xarray as xr
 
 from .io import atomic_write, netcdf_attribute
+
+log = logging.getLogger("newdyn")
 
 __all__ = ["MCMCSettings", "diagnostics", "load", "run", "save"]
 
@@ -178,8 +181,12 @@ def run(
             "arviz_version": az.__version__,
             "rounds": rounds,
         }
-        if diagnostics(idata, settings)["converged"] or rounds == settings.max_rounds:
+        checked = diagnostics(idata, settings)
+        if checked["converged"] or rounds == settings.max_rounds:
             return idata
+        # A run that goes on can take minutes: say how far it is, in the job's log and (a diagnosis's) terminal.
+        log.info("MCMC of %s: round %d of at most %d not converged (%s); %d more steps", ", ".join(names), rounds,
+                 settings.max_rounds, checked["reason"], settings.n_steps)
         sampler.run_mcmc(None, settings.n_steps, progress=False)  # continues from the last state and random state
         rounds += 1
 
