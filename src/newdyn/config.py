@@ -183,6 +183,7 @@ _KIND_LISTS = {
     "effects": lambda: list(effects.active()),
     "hidden_classes": lambda: [study.HEALTHY, faults.PARAMETER_CHANGE, *effects.active()],
     "operating": lambda: list(model.OPERATING_PARAMETERS),
+    "channels": lambda: list(model.CHANNELS),
 }
 
 

@@ -31,11 +31,11 @@ from . import cache, effects, model, slots
 
 TEMPLATE = Path(__file__).with_name("kernel_template.py")
 
-# Output codes: 0 .. OUT_TORQUE_C are model.CHANNELS in order; then the slip joint's locked torque
-# (the T_f of Eq. 3b); then per switching effect j its mode (OUT_MODES + j) and its number of onsets
-# (switches out of mode 0, OUT_MODES + N_SWITCHING + j); OUT_STATE + i is state component i.
+# Output codes: 0 .. len(model.CHANNELS) - 1 are model.CHANNELS in order (the template's _record computes each);
+# then the slip joint's locked torque (the T_f of Eq. 3b); then per switching effect j its mode (OUT_MODES + j) and
+# its number of onsets (switches out of mode 0, OUT_MODES + N_SWITCHING + j); OUT_STATE + i is state component i.
 OUT_TORQUE_C = model.CHANNELS.index("torque_c")
-OUT_JOINT_TORQUE = OUT_TORQUE_C + 1
+OUT_JOINT_TORQUE = len(model.CHANNELS)
 OUT_MODES = OUT_JOINT_TORQUE + 1
 OUT_STATE = 100
 
