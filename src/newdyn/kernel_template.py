@@ -101,12 +101,10 @@ R_K23 = R_K1V + NQ  # k2 + k3
 R_DENSE = R_K23 + NY  # the state inside a step, interpolated from its stages (rows DENSE_ROWS and their velocities)
 N_ROWS = R_DENSE + NY
 
-@njit(**_JIT)
+@njit(**_JIT, inline="always")
 def _at(row, lane):
     """Flat index of (row, lane).  Unsigned, so numba emits no negative-index wraparound select,
-    which would hide the unit lane stride from LLVM's vectorizer.  Inlined by LLVM, not by numba: numba's
-    inlining copies its IR into every one of its call sites before typing them, which cost a seventh of the
-    kernel's compile, for the same machine code (bench/bench_compile.py)."""
+    which would hide the unit lane stride from LLVM's vectorizer."""
     return np.uint64(row * LANES + lane)
 
 
