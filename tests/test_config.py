@@ -728,7 +728,7 @@ def _lists(node):
 
 def test_schema_holds_no_kinds_and_gets_the_registry_injected():
     schema = _schema()
-    classes = {study.HEALTHY, *faults.kinds()}
+    classes = {faults.HEALTHY, *faults.kinds()}
     for path, node in _subschemas(schema):  # no enum of the YAML names a kind or class
         assert not classes & {str(item) for item in node.get("enum", [])}, path
     for listed in _lists(schema):  # nor does any other list name an effect (hidden.parameter_change is a key)
@@ -738,7 +738,7 @@ def test_schema_holds_no_kinds_and_gets_the_registry_injected():
     injected = cfg.load_schema(SCHEMA)
     assert injected["$defs"]["fault"]["properties"]["kind"]["enum"] == list(faults.kinds())
     assert list(faults.kinds()) == [faults.PARAMETER_CHANGE, *effects.active()]
-    assert injected["$defs"]["hidden_classes"]["items"]["enum"] == [study.HEALTHY, faults.PARAMETER_CHANGE, *effects.active()]
+    assert injected["$defs"]["hidden_classes"]["items"]["enum"] == [faults.HEALTHY, faults.PARAMETER_CHANGE, *effects.active()]
     for section in ("diagnosis", "hidden"):
         assert injected["properties"][section]["properties"]["faults"]["propertyNames"]["enum"] == list(effects.active())
     assert injected["properties"]["diagnosis"]["properties"]["effects"]["items"]["enum"] == list(effects.active())
@@ -872,7 +872,7 @@ def test_a_diagnosis_offers_the_effects_it_names(default_config):
 
 def test_hidden_classes(default_config):
     assert "classes" not in default_config["hidden"]
-    assert study.hidden_classes(default_config) == [study.HEALTHY, *faults.kinds()]
+    assert study.hidden_classes(default_config) == [faults.HEALTHY, *faults.kinds()]
     config = copy.deepcopy(default_config)
     config["hidden"]["classes"] = ["healthy", "loose_bearing"]
     cfg.check(config, SOURCE, SCHEMA)

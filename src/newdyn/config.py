@@ -166,7 +166,7 @@ def _use_effects(config: Any, source: str) -> None:
     """:func:`use_effects`, with a bad effect reported as ``<file>: effects[i]: <effect file>: <problem>``."""
     names = effect_names(config) if isinstance(config, Mapping) else []
     for i, name in enumerate(names):
-        if name in (study.HEALTHY, faults.PARAMETER_CHANGE):
+        if name in (faults.HEALTHY, faults.PARAMETER_CHANGE):
             raise ConfigError(source, f"effects[{i}]", f"'{name}' is a class of its own (healthy, parameter_change); "
                                                        "give your effect another name")
     try:
@@ -181,7 +181,7 @@ def _use_effects(config: Any, source: str) -> None:
 _KIND_LISTS = {
     "faults": lambda: list(faults.kinds()),
     "effects": lambda: list(effects.active()),
-    "hidden_classes": lambda: [study.HEALTHY, faults.PARAMETER_CHANGE, *effects.active()],
+    "hidden_classes": lambda: list(faults.classes()),
     "operating": lambda: list(model.OPERATING_PARAMETERS),
     "channels": lambda: list(model.CHANNELS),
 }

@@ -13,12 +13,18 @@ from collections.abc import Mapping
 
 from . import effects, model, slots
 
+HEALTHY = "healthy"  # the class of a rig without any change: a hypothesis, a hidden case and a verdict of that name
 PARAMETER_CHANGE = "parameter_change"
 
 
 def kinds() -> tuple[str, ...]:
     """Every fault kind: ``parameter_change``, then the active effects."""
     return (PARAMETER_CHANGE, *effects.active())
+
+
+def classes() -> tuple[str, ...]:
+    """Every class a rig can be in: healthy, then every fault kind (:func:`kinds`)."""
+    return (HEALTHY, *kinds())
 
 
 def effect_values(kind: str, parameters: Mapping[str, float], base: Mapping[str, float]) -> dict[str, float]:

@@ -49,14 +49,9 @@ def fault_classes() -> tuple[str, ...]:
     return tuple(effects.active())
 
 
-def all_classes() -> tuple[str, ...]:
-    """Every class a hidden case can have: healthy, parameter_change, then each active effect."""
-    return (HEALTHY, PARAMETER_CHANGE, *fault_classes())
-
-
 def predicted_labels() -> tuple[str, ...]:
     """Every label a verdict can give a case: its classes, and unexplained."""
-    return (*all_classes(), UNEXPLAINED)
+    return (*faults.classes(), UNEXPLAINED)
 
 
 def default_ranges() -> dict[str, dict[str, tuple[float, float]]]:
@@ -67,7 +62,7 @@ def default_ranges() -> dict[str, dict[str, tuple[float, float]]]:
 def __getattr__(name: str):
     """``FAULT_CLASSES``, ``CLASSES`` and ``PREDICTED_LABELS`` of the effects active now (a user's effect
     may be added after import, :func:`newdyn.effects.use`)."""
-    derived = {"FAULT_CLASSES": fault_classes, "CLASSES": all_classes, "PREDICTED_LABELS": predicted_labels}
+    derived = {"FAULT_CLASSES": fault_classes, "CLASSES": faults.classes, "PREDICTED_LABELS": predicted_labels}
     if name in derived:
         return derived[name]()
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
@@ -90,7 +85,7 @@ def draw_cases(
     ``hidden`` is the config's ``hidden`` section (its ``sets`` and ``parameter_change`` are read);
     ``ranges`` (kind -> parameter -> [low, high]) the effects' draw ranges, :func:`newdyn.study.hidden_ranges`
     (default: :func:`default_ranges`); ``classes`` the classes of a set that names none of its own,
-    :func:`newdyn.study.hidden_classes` (default: every class, :func:`all_classes`).
+    :func:`newdyn.study.hidden_classes` (default: every class, :func:`newdyn.faults.classes`).
 
     With the set's ``instruments``, ``datasheets`` (channel -> ``offset_sd``, ``gain_sd``, ``delay_sd``: the
     config's ``diagnosis.sensors``) give each case's ``instruments`` and ``compared`` (the diagnosis channels) the
@@ -108,7 +103,7 @@ def draw_cases(
     spec = hidden["sets"][set_name]
     n, seed = int(spec["cases"]), int(spec["seed"])
     ranges = default_ranges() if ranges is None else ranges
-    chosen = list(spec.get("classes", all_classes() if classes is None else classes))
+    chosen = list(spec.get("classes", faults.classes() if classes is None else classes))
     base = slots.complete(base_values)
     # One stream shuffles the classes, one per case draws it: a case's draw does not depend on how
     # often another case had to be redrawn.
@@ -324,7 +319,7 @@ def score(cases: Sequence[Mapping], verdicts: Mapping[str, Mapping], chi2_max: f
     if missing:
         raise ValueError(f"no verdict for hidden case(s) {', '.join(missing)}: not diagnosed")
     labels = predicted_labels()
-    truth_classes = [c for c in all_classes() if any(case["class"] == c for case in cases)]
+    truth_classes = [c for c in faults.classes() if any(case["class"] == c for case in cases)]
     counts = np.zeros((len(truth_classes), len(labels)), dtype=int)
     rows, errors = [], []
     for case in cases:

@@ -21,7 +21,7 @@ from scipy.special import erfinv
 
 from . import concurrency, effects, faults, likelihood, model, sensors, simulation, slots
 
-HEALTHY = "healthy"
+HEALTHY = faults.HEALTHY
 PARAMETER_CHANGE = faults.PARAMETER_CHANGE
 UNIFORM_UNIT_VARIANCE = 1.0 / 12.0  # variance of a uniform prior in unit coordinates
 FIT_MAX_EVALUATIONS = 60
@@ -87,7 +87,7 @@ class Hypothesis:
     @property
     def verdict_class(self) -> str:
         """The verdict this hypothesis stands for: "healthy", "parameter_change" or "new_dynamics"."""
-        return {HEALTHY: "healthy", PARAMETER_CHANGE: "parameter_change"}.get(self.kind, "new_dynamics")
+        return self.kind if self.kind in (HEALTHY, PARAMETER_CHANGE) else "new_dynamics"
 
     @property
     def effect(self) -> str | None:

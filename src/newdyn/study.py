@@ -21,10 +21,6 @@ from . import effects, faults, model
 #: ``calibration.joint`` of a config that has none.
 NO_JOINT = {"parameters": [], "infer_sigma": False, "walkers": 0, "steps": 0}
 
-#: The hidden-set class of a rig without any fault.
-HEALTHY = "healthy"
-
-
 def variant_names(config: Mapping) -> list[str]:
     """The study's variants in config order; a config without ``variants`` has one, ``default``."""
     return list(config.get("variants") or {"default": {}})
@@ -120,7 +116,7 @@ def hidden_classes(config: Mapping) -> list[str]:
     """The classes a hidden set draws from unless the set names its own: ``hidden.classes``, or when
     omitted healthy, parameter_change and every active effect."""
     classes = config["hidden"].get("classes")
-    return list(classes) if classes else [HEALTHY, faults.PARAMETER_CHANGE, *effects.active()]
+    return list(classes) if classes else list(faults.classes())
 
 
 def _effect_ranges(given: Mapping[str, Mapping[str, Sequence[float]]], where: str, default) -> dict[str, dict[str, tuple[float, float]]]:

@@ -6,9 +6,9 @@ import json
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 
-from .faults import PARAMETER_CHANGE
+from .faults import HEALTHY, PARAMETER_CHANGE
 
-HEALTHY, NEW_DYNAMICS, UNEXPLAINED, SENSOR_PROBLEM = "healthy", "new_dynamics", "unexplained", "sensor_problem"
+NEW_DYNAMICS, UNEXPLAINED, SENSOR_PROBLEM = "new_dynamics", "unexplained", "sensor_problem"
 VERDICTS = (HEALTHY, PARAMETER_CHANGE, NEW_DYNAMICS, UNEXPLAINED, SENSOR_PROBLEM)
 
 
