@@ -162,13 +162,20 @@ def grid_files(cfg):
     return expand("results/{{variant}}/calibration/grids/{parameter}.nc", parameter=_grid_parameters(cfg))
 
 
+def _measurement_calibrations(parameters, method):
+    """One measurement's calibration files of ``parameters`` (names, or "joint") by ``method`` (grid or mcmc), a
+    pattern of {variant}, {scenario}, {snr} and {seed}."""
+    return expand(
+        "results/{{variant}}/calibration/{{scenario}}/{parameter}/snr{{snr}}_seed{{seed}}_{method}.nc",
+        parameter=parameters,
+        method=method,
+    )
+
+
 def grid_calibration_files(cfg):
     """The grid calibration of each parameter of the variant ``cfg`` on one measurement, in the order of
     grid_calibration_spec's parameters."""
-    return expand(
-        "results/{{variant}}/calibration/{{scenario}}/{parameter}/snr{{snr}}_seed{{seed}}_grid.nc",
-        parameter=_grid_parameters(cfg),
-    )
+    return _measurement_calibrations(_grid_parameters(cfg), "grid")
 
 
 def grid_calibration_spec(wildcards):
@@ -192,33 +199,30 @@ def mcmc_spec(wildcards):
     cfg = study(wildcards)
     calibration = cfg["calibration"]
     joint = calibration["joint"]
-    runs = {
-        name: {
-            "mcmc": calibration["mcmc"],
-            "parameter": name,
-            "prior": calibration["parameters"][name]["prior"],
-            "grid": calibration["parameters"][name]["grid"],
-            **_calibration_settings(cfg),
-        }
-        for name in calibration["mcmc"]["parameters"]
-    }
-    if joint["parameters"]:
-        runs["joint"] = {
-            "parameters": {name: calibration["parameters"][name] for name in joint["parameters"]},
-            "infer_sigma": joint["infer_sigma"],
-            # the joint runs take emcee's move (the grid proposal is one parameter's) and their own burn-in, if set
-            "mcmc": {
-                **{key: value for key, value in calibration["mcmc"].items() if key != "proposal"},
-                "walkers": joint["walkers"],
-                "steps": joint["steps"],
-                "burn": joint.get("burn", calibration["mcmc"]["burn"]),
-            },
-            **_calibration_settings(cfg),
-        }
+    runs = []
+    for run in mcmc_runs(cfg):
+        if run == "joint":
+            spec = {
+                "parameters": {name: calibration["parameters"][name] for name in joint["parameters"]},
+                "infer_sigma": joint["infer_sigma"],
+                # the joint runs take emcee's move (the grid proposal is one parameter's) and their own burn-in, if set
+                "mcmc": {
+                    **{key: value for key, value in calibration["mcmc"].items() if key != "proposal"},
+                    "walkers": joint["walkers"],
+                    "steps": joint["steps"],
+                    "burn": joint.get("burn", calibration["mcmc"]["burn"]),
+                },
+            }
+        else:
+            spec = {
+                "mcmc": calibration["mcmc"],
+                "parameter": run,
+                "prior": calibration["parameters"][run]["prior"],
+                "grid": calibration["parameters"][run]["grid"],
+            }
+        runs.append({"name": run, "spec": {**spec, **_calibration_settings(cfg)}})
     # the effects at the top too: the job loads them (newdyn.cli.main) before it reads the runs
-    return newdyn.study.canonical_json(
-        {"effects": EFFECTS, "runs": [{"name": name, "spec": spec} for name, spec in runs.items()]}
-    )
+    return newdyn.study.canonical_json({"effects": EFFECTS, "runs": runs})
 
 
 def mcmc_runs(cfg):
@@ -229,20 +233,14 @@ def mcmc_runs(cfg):
 
 def mcmc_calibration_files(cfg):
     """The MCMC calibrations of the variant ``cfg`` on one measurement, in the order of mcmc_runs."""
-    return expand(
-        "results/{{variant}}/calibration/{{scenario}}/{parameter}/snr{{snr}}_seed{{seed}}_mcmc.nc",
-        parameter=mcmc_runs(cfg),
-    )
+    return _measurement_calibrations(mcmc_runs(cfg), "mcmc")
 
 
 def mcmc_grid_results(cfg):
     """The grid calibrations that start the MCMC calibrations of the variant ``cfg`` on one measurement."""
     calibration = cfg["calibration"]
     parameters = dict.fromkeys(calibration["mcmc"]["parameters"] + calibration["joint"]["parameters"])
-    return expand(
-        "results/{{variant}}/calibration/{{scenario}}/{parameter}/snr{{snr}}_seed{{seed}}_grid.nc",
-        parameter=list(parameters),
-    )
+    return _measurement_calibrations(list(parameters), "grid")
 
 
 def calibration_targets(variant, methods=("grid", "mcmc")):

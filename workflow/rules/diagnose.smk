@@ -2,11 +2,13 @@
 # The same rules serve both; {root} is "results" for measurements/<name>, "results/<set>" for hidden sets.
 # A regex of every machine's name, the user's and the hidden sets' (one that matches nothing when there is none).
 MACHINE_NAMES = "|".join(map(re.escape, [*MACHINES, *(m for s in HIDDEN_MACHINES.values() for m in s)])) or "(?!)"
+# A file's name, or a machine's recording's <machine>/<recording>.
+MEASUREMENT_NAME = r"[A-Za-z0-9_.-]+(/[A-Za-z0-9_.-]+)?"
 
 
 wildcard_constraints:
     root="|".join(["results"] + [f"results/{name}" for name in HIDDEN_SETS]),
-    name=r"[A-Za-z0-9_.-]+(/[A-Za-z0-9_.-]+)?",  # a file, or a machine's recording <machine>/<recording>
+    name=MEASUREMENT_NAME,
     machine=MACHINE_NAMES,
 
 
@@ -61,7 +63,7 @@ rule diagnose:
     # results/diagnosis/<machine>/verdict.json is the machine's, not a file's of that name (the catalog refuses such a
     # file): a machine's name is no file's, so Snakemake never asks this rule's input for one.
     wildcard_constraints:
-        name=rf"(?!(?:{MACHINE_NAMES})/[^/]+$)[A-Za-z0-9_.-]+(/[A-Za-z0-9_.-]+)?",
+        name=rf"(?!(?:{MACHINE_NAMES})/[^/]+$){MEASUREMENT_NAME}",
     # Two threads: its hypotheses' fits, and each fit's starts, run side by side.  Its log's lines (each stage and fit
     # as it ends) go to the terminal too, so that a long diagnosis can be watched.
     priority: 1
