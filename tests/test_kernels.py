@@ -6,7 +6,7 @@ import numba
 import numpy as np
 from numba import njit
 
-from newdyn import effects, faults, kernels, model
+from newdyn import effects, faults, kernels, model, slots
 from newdyn.simulation import simulate, simulate_batch
 
 SINCOS = effects.sincos.compiled()  # what a kernel calls
@@ -51,6 +51,29 @@ def test_results_do_not_depend_on_how_simulations_are_grouped():
                 np.testing.assert_array_equal(simulate_batch(sets[-k:], sampling, outputs), alone[-k:])
     finally:
         numba.set_num_threads(threads)
+
+
+def test_slipping_rigs_get_the_same_bits_in_a_block_of_their_own_as_alone():
+    """A block of rigs whose joints slip together (every lane stepping finely, so none takes the plain step) and the
+    same rigs in another order, which fills the blocks' lanes differently, give each rig's own result."""
+    sampling = model.Sampling(fs=5000.0, t_first=0.1, n_samples=300)
+    sets = [faults.scenario_values({"fault": {"kind": "stick_slip", "parameters": {"T_max": t_max, "r_k": r_k, "J2a_share": 0.3}}},
+                                   model.DEFAULTS) for t_max in (1680.0, 1720.0, 1760.0, 1800.0) for r_k in (0.97, 0.98, 0.99, 1.0)]
+    outputs = [*model.CHANNELS, "stick_slip.onsets"]
+    alone = np.stack([simulate(v, sampling, outputs) for v in sets])
+    assert alone[:, -1, -1].min() >= 2  # every one slips
+    np.testing.assert_array_equal(simulate_batch(sets, sampling, outputs), alone)
+    np.testing.assert_array_equal(simulate_batch(sets[::-1], sampling, outputs), alone[::-1])
+
+
+def test_lanes_are_filled_by_fine_step_count_then_by_the_slip_joint_parameters():
+    rows = [faults.scenario_values({"fault": {"kind": "stick_slip", "parameters": {"T_max": t_max, "J2a_share": share}}}, model.DEFAULTS)
+            for t_max, share in ((2000.0, 0.1), (1700.0, 0.9), (1900.0, 0.1), (1800.0, 0.9))]
+    params = np.array([slots.parameter_vector(v) for v in [{}, *rows, {"kT1": 2.9e6}]])
+    steps, _ = kernels.fine_steps(params)
+    order = kernels.lane_order(params, steps)
+    assert steps[0] == steps[-1] == 1 and steps[2] < steps[1]  # a larger J2a has a slower open mode
+    assert order.tolist() == [0, 5, 2, 4, 3, 1]  # rigs without a slip joint first, as given; then by count, then T_max
 
 
 def test_an_effect_file_is_compiled_once_wherever_it_lies_and_anew_when_edited(tmp_path):

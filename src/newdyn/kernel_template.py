@@ -512,8 +512,9 @@ def _step(w, alone, fine, picked, group, t, h, n_lanes, events_possible):
     """Advance all lanes of block ``w`` from t by h.  A lane whose slip joint is open or settling, or whose step
     crosses an event while it may step finely, takes R_FINE_STEPS steps instead, side by side with the other such
     lanes of its step count in the block ``fine`` (``picked`` and ``group`` are scratch for their lane numbers); any
-    other lane whose step crosses an event is redone on the event path.  Each lane's steps depend on its own state
-    only, so results do not depend on how simulations are grouped.  Returns the new time."""
+    other lane whose step crosses an event is redone on the event path; when every lane steps finely, none takes the
+    plain step.  Each lane's steps depend on its own state only, so results do not depend on how simulations are
+    grouped.  Returns the new time."""
     t_end = t + h
     step = t_end - t
     if step <= 0.0:
@@ -521,9 +522,13 @@ def _step(w, alone, fine, picked, group, t, h, n_lanes, events_possible):
     if not events_possible:
         _rk4(w, t, step, n_lanes, True)
         return t_end
-    _rk4(w, t, step, n_lanes, False)
-    _events(w, R_TRIAL, n_lanes, t_end)
-    _interior_events(w, n_lanes, t, step)
+    if _any_plain(w, n_lanes, t):  # else every lane steps finely whatever its plain step finds
+        _rk4(w, t, step, n_lanes, False)
+        _events(w, R_TRIAL, n_lanes, t_end)
+        _interior_events(w, n_lanes, t, step)
+    else:
+        for lane in range(n_lanes):
+            w[_at(R_G, lane)] = -math.inf
     n_fine = 0
     for lane in range(n_lanes):
         event = not w[_at(R_G, lane)] <= 0.0
@@ -558,6 +563,15 @@ def _step(w, alone, fine, picked, group, t, h, n_lanes, events_possible):
     for j in range(NY * LANES):
         w[_at(R_Y, j)] = w[_at(R_TRIAL, j)]
     return t_end
+
+
+@njit(**_JIT)
+def _any_plain(w, n_lanes, t):
+    """Whether a lane of the block may take the plain step from t: one that does not step finely there."""
+    for lane in range(n_lanes):
+        if not (w[_at(R_FINE_STEPS, lane)] > 1.0 and t < w[_at(R_FINE_UNTIL, lane)]):
+            return True
+    return False
 
 
 @njit(**_JIT)
@@ -677,11 +691,12 @@ def _simulate_block(params, fine_steps, settle, sims, t_first, fs, n_samples, su
 
 
 @njit(cache=True, error_model="numpy", parallel=True, nogil=True)
-def _simulate_batch(params, fine_steps, settle, starts, counts, substeps, t_first, fs, n_samples, codes):
-    """Simulate the blocks of rows starts[b] : starts[b] + counts[b] of ``params`` in parallel, with ``substeps``
-    RK4 steps per sample interval (each row's ``fine_steps`` times as many while its joint is open or settling)."""
+def _simulate_batch(params, fine_steps, settle, order, starts, counts, substeps, t_first, fs, n_samples, codes):
+    """Simulate the blocks of rows order[starts[b] : starts[b] + counts[b]] of ``params`` in parallel, with
+    ``substeps`` RK4 steps per sample interval (each row's ``fine_steps`` times as many while its joint is open or
+    settling)."""
     out = np.empty((params.shape[0], codes.shape[0], n_samples))
     for b in prange(starts.shape[0]):
-        rows = np.arange(starts[b], starts[b] + counts[b])
+        rows = order[starts[b] : starts[b] + counts[b]]
         _simulate_block(params, fine_steps, settle, rows, t_first, fs, n_samples, substeps, codes, out)
     return out

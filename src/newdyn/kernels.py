@@ -448,12 +448,25 @@ def blocks(n: int, n_threads: int, lanes: int, vector: int) -> tuple[np.ndarray,
     return starts, np.minimum(width, n - starts).astype(np.int64)
 
 
+def lane_order(params: np.ndarray, steps: np.ndarray, active: dict[str, type[effects.Effect]] | None = None) -> np.ndarray:
+    """The order in which the rows of ``params`` fill the blocks' lanes: by their :func:`fine_steps` count, then by
+    the parameters of the effects on the slip joint, the given order kept among equals.  A block steps its finely
+    stepping lanes side by side, one step count at a time, so lanes of one count whose joints open at the same times
+    (alike parameters) share blocks; a lane's result does not depend on its block."""
+    active = dict(active if active is not None else effects.active())
+    index = slots.slot_index()
+    joint = [params[:, index[slots.effect_slot(kind, p.name)]] for kind, effect in active.items() if effect.acts_on == "slip_joint"
+             for p in effect.kernel_parameters()]
+    return np.lexsort((*reversed(joint), steps)).astype(np.int64)  # lexsort's last key is its first
+
+
 def _run(kernel: ModuleType, params: np.ndarray, t_first, fs, n_samples, substeps, codes, active=None,
          search: bool = False) -> np.ndarray:
     # The thread count is read here: inside a compiled function it would make it uncacheable.
     starts, counts = blocks(params.shape[0], get_num_threads(), kernel.LANES, kernel.VECTOR)
     steps, settle = fine_steps(params, active, search)
-    return kernel._simulate_batch(params, steps, settle, starts, counts, substeps, t_first, fs, n_samples, codes)
+    order = lane_order(params, steps, active)
+    return kernel._simulate_batch(params, steps, settle, order, starts, counts, substeps, t_first, fs, n_samples, codes)
 
 
 def simulate_batch(params: np.ndarray, t_first, fs, n_samples, substeps, codes, search: bool = False) -> np.ndarray:
