@@ -296,10 +296,6 @@ def fit(
     def residuals(u, n_samples, for_search=False):  # on the record's first n_samples
         return residuals_of(u, simulate(low + u * span, replace(sampling, n_samples=n_samples), for_search), n_samples)
 
-    def jacobian(u, n_samples, step):  # one-sided differences pointing into the box, all in one batch
-        h = np.where(u + step <= 1.0, step, -step)
-        rows = residuals(np.vstack([u[None], u + np.diag(h)]), n_samples)
-        return ((rows[1:] - rows[0]) / h[:, None]).T
 
     windows = fit_windows(sampling)
     given = [[start.get(p.name, p.mean if p.sd is not None else p.low + 0.5 * (p.high - p.low)) for p in hypothesis.priors]
@@ -320,10 +316,7 @@ def fit(
     def follow(u0, from_window):  # least squares through the windows from the from_window-th to the whole record
         for n_samples in windows[from_window:]:
             for step in JACOBIAN_STEPS:
-                result = optimize.least_squares(
-                    lambda u, n, _: residuals(u[None], n)[0], np.clip(u0, 1e-6, 1 - 1e-6), jac=jacobian,
-                    args=(n_samples, step), bounds=(0.0, 1.0), method="trf", x_scale="jac", max_nfev=FIT_MAX_EVALUATIONS,
-                )
+                result = _least_squares(lambda rows, n=n_samples: residuals(rows, n), u0, step)
                 u0 = result.x
         return result
 
@@ -350,6 +343,28 @@ def fit(
         float(likelihood.reduced_chi2(data, model_star, sigma, n_fitted=k, instruments=instruments)), log_evidence, sum(runs), at_bound,
         covariance, instruments,
     )
+
+
+def _least_squares(residuals, u0: np.ndarray, step: float) -> optimize.OptimizeResult:
+    """Bounded least squares (scipy's TRF) of ``residuals`` (rows (m, k) of unit coordinates -> (m, n)) from ``u0``
+    in the unit box, with one-sided difference Jacobians of ``step`` pointing into the box.  The residual at a point is
+    computed in one batch with its Jacobian's differences: k + 1 simulations side by side in the kernel's lanes cost
+    little more than one alone, and the Jacobian the optimizer asks for after accepting the point is then at hand."""
+    last = {}
+
+    def residual(u):
+        h = np.where(u + step <= 1.0, step, -step)
+        rows = residuals(np.vstack([u[None], u + np.diag(h)]))
+        last.update(u=u.copy(), jacobian=((rows[1:] - rows[0]) / h[:, None]).T)
+        return rows[0]
+
+    def jacobian(u):
+        if "u" not in last or not np.array_equal(u, last["u"]):
+            residual(u)
+        return last["jacobian"]
+
+    return optimize.least_squares(residual, np.clip(u0, 1e-6, 1 - 1e-6), jac=jacobian, bounds=(0.0, 1.0), method="trf",
+                                  x_scale="jac", max_nfev=FIT_MAX_EVALUATIONS)
 
 
 def _laplace(hypothesis: Hypothesis, best: optimize.OptimizeResult, theta_star: np.ndarray, ll: float):
@@ -443,15 +458,9 @@ def fit_joint(hypothesis: Hypothesis, recordings: Sequence[Recording], starts: S
                    for r, found in zip(recordings, outputs(theta))]
         return np.concatenate([*misfits, ((theta - mean) / sd)[:, normal]], axis=1)
 
-    def jacobian(u, step):
-        h = np.where(u + step <= 1.0, step, -step)
-        rows = residuals(np.vstack([u[None], u + np.diag(h)]))
-        return ((rows[1:] - rows[0]) / h[:, None]).T
-
     def follow(u0):
         for step in JACOBIAN_STEPS:
-            result = optimize.least_squares(lambda u, _: residuals(u[None])[0], np.clip(u0, 1e-6, 1 - 1e-6), jac=jacobian, args=(step,),
-                                            bounds=(0.0, 1.0), method="trf", x_scale="jac", max_nfev=FIT_MAX_EVALUATIONS)
+            result = _least_squares(residuals, u0, step)
             u0 = result.x
         return result
 
