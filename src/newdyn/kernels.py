@@ -466,7 +466,10 @@ def _run(kernel: ModuleType, params: np.ndarray, t_first, fs, n_samples, substep
     starts, counts = blocks(params.shape[0], get_num_threads(), kernel.LANES, kernel.VECTOR)
     steps, settle = fine_steps(params, active, search)
     order = lane_order(params, steps, active)
-    return kernel._simulate_batch(params, steps, settle, order, starts, counts, substeps, t_first, fs, n_samples, codes)
+    # Blocks are handed to the threads one at a time as they come free: a block of slipping lanes costs several
+    # others, and the lane order puts such blocks last, where an even split would leave them to one thread.
+    with numba.parallel_chunksize(1):
+        return kernel._simulate_batch(params, steps, settle, order, starts, counts, substeps, t_first, fs, n_samples, codes)
 
 
 def simulate_batch(params: np.ndarray, t_first, fs, n_samples, substeps, codes, search: bool = False) -> np.ndarray:
