@@ -39,25 +39,24 @@ OUT_JOINT_TORQUE = len(model.CHANNELS)
 OUT_MODES = OUT_JOINT_TORQUE + 1
 OUT_STATE = 100
 
-# Where each torsional place's coordinate is in the state (position offsets a, b: x = q[a] − q[b];
-# b None: x = q[a]) and which element torque its force is added to, with which sign.
+# The element torque of the kernel that a torsional place's force is added to, with which sign.
 _TORSIONAL = {
-    "motor": ((0, None), "torque1", "+"),
-    "motor_shaft": ((0, 1), "t_s1", "-"),
-    "slip_joint": ((1, 2), "f_joint", "+"),
-    "coupling": ((2, 3), "t_c", "+"),
-    "load_shaft": ((3, 4), "t_s3", "+"),
-    "load": ((4, None), "torque4", "+"),
+    "motor": ("torque1", "+"),
+    "motor_shaft": ("t_s1", "-"),
+    "slip_joint": ("f_joint", "+"),
+    "coupling": ("t_c", "+"),
+    "load_shaft": ("t_s3", "+"),
+    "load": ("torque4", "+"),
 }
 
 
 def _coordinate(place: str, src: str) -> tuple[str, str, str]:
-    """(x, v, accumulator) expressions of a place at state rows ``src``."""
+    """(x, v, accumulator) expressions of a place at state rows ``src`` (the angles lead the state)."""
     if place in _TORSIONAL:
-        (a, b), target, _ = _TORSIONAL[place]
+        a, b = (None if body is None else model.ANGLES.index(body) for body in effects.TORSIONAL_BODIES[place])
         x = f"w[_at({src} + {a}, lane)]" + (f" - w[_at({src} + {b}, lane)]" if b is not None else "")
         v = f"w[_at({src} + NQ + {a}, lane)]" + (f" - w[_at({src} + NQ + {b}, lane)]" if b is not None else "")
-        return x, v, target
+        return x, v, _TORSIONAL[place][0]
     node, _, axis = place.partition("_")
     row = (5 if axis == "x" else 13) + model.NODES.index(node)
     return f"w[_at({src} + {row}, lane)]", f"w[_at({src} + NQ + {row}, lane)]", f"f{axis}{model.NODES.index(node)}"
@@ -160,7 +159,7 @@ def _kinematics(place: str, src: str, joint_torque: str) -> str:
 def _effect_lines(i: int, kind: str, effect, index, switching, src: str) -> list[str]:
     """Code that adds effect i's force at its place (to the local accumulator of that place)."""
     _, _, target = _coordinate(effect.acts_on, src)
-    sign = _TORSIONAL[effect.acts_on][2] if effect.acts_on in _TORSIONAL else "+"
+    sign = _TORSIONAL[effect.acts_on][1] if effect.acts_on in _TORSIONAL else "+"
     present = f"w[_at({index[slots.effect_slot(kind)]}, lane)] != 0.0"
     lines = [
         f"    # {kind} on {effect.acts_on}",

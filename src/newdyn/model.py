@@ -106,6 +106,9 @@ DEFAULTS: Mapping[str, float] = MappingProxyType({p.name: p.default for p in PAR
 RIG_PARAMETERS = tuple(p.name for p in PARAMETERS if p.group == "rig")
 OPERATING_PARAMETERS = tuple(p.name for p in PARAMETERS if p.group == "operating")
 
+# The torsional bodies' angles in shaft order, as the state holds them: motor rotor, motor shaft end, motor-side
+# coupling hub, load-side hub, load.
+ANGLES = ("theta1", "theta2a", "theta2b", "theta3", "theta4")
 # Lateral nodes in shaft order and the springs between them (same in x and y).
 NODES = ("b1", "m1", "b2", "m2", "m3", "b3", "m4", "b4")
 BEARING_NODES = (0, 2, 5, 7)

@@ -18,9 +18,7 @@ from . import kernels, model, slots
 DEFAULT_MAX_STEP = 1.0e-4
 DEFAULT_SAMPLING = model.Sampling()  # rig.md's record
 
-_POSITIONS = ("theta1", "theta2a", "theta2b", "theta3", "theta4") + tuple(
-    f"{d}_{node}" for d in "xy" for node in model.NODES
-)
+_POSITIONS = model.ANGLES + tuple(f"{d}_{node}" for d in "xy" for node in model.NODES)
 STATE_NAMES = _POSITIONS + tuple("d" + name for name in _POSITIONS)
 
 

@@ -21,17 +21,14 @@ import numpy as np
 from scipy import signal
 
 from .. import model
-from ..effects import PLACES
+from ..effects import PLACES, TORSIONAL_BODIES
 
-#: Torsional places -> (DOF, sign) pairs of the linear model's θ1 θ2 θ3 θ4 (an element's force acts like
-#: its own spring torque: −τ on the motor-side body, +τ on the other; see newdyn.effects.PLACES).
+#: The linear model's torsional degree of freedom of each body: θ1 θ2 θ3 θ4, the locked joint's halves 2a and 2b one.
+_DOF = {"theta1": 0, "theta2a": 1, "theta2b": 1, "theta3": 2, "theta4": 3}
+#: Torsional places -> (DOF, sign) pairs: an element's force acts like its own spring torque, −τ on the motor-side
+#: body, +τ on the other (see newdyn.effects.PLACES); the slip joint's two cancel, as it is internal to the locked joint.
 TORSIONAL_INPUTS: Mapping[str, tuple[tuple[int, float], ...]] = {
-    "motor": ((0, 1.0),),
-    "motor_shaft": ((0, -1.0), (1, 1.0)),
-    "slip_joint": (),  # internal to the locked joint: no response
-    "coupling": ((1, -1.0), (2, 1.0)),
-    "load_shaft": ((2, -1.0), (3, 1.0)),
-    "load": ((3, 1.0),),
+    place: ((_DOF[a], 1.0),) if b is None else ((_DOF[a], -1.0), (_DOF[b], 1.0)) for place, (a, b) in TORSIONAL_BODIES.items()
 }
 N_TORSIONAL = 4
 N_DOF = N_TORSIONAL + 2 * len(model.NODES)
@@ -41,7 +38,7 @@ def _input_vector(place: str) -> np.ndarray:
     b = np.zeros(N_DOF)
     if place in TORSIONAL_INPUTS:
         for dof, sign in TORSIONAL_INPUTS[place]:
-            b[dof] = sign
+            b[dof] += sign
         return b
     node, _, axis = place.rpartition("_")
     b[N_TORSIONAL + (0 if axis == "x" else len(model.NODES)) + model.NODES.index(node)] = 1.0

@@ -19,10 +19,10 @@ from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 
-from .base import PLACES, Effect, Kinematics, Parameter, RigValues, kernel_function, sincos
+from .base import PLACES, TORSIONAL_BODIES, Effect, Kinematics, Parameter, RigValues, kernel_function, sincos
 from .check import problems
 
-__all__ = ["PLACES", "USER_FOLDER", "Effect", "EffectError", "Kinematics", "Parameter", "RigValues", "active", "builtin",
+__all__ = ["PLACES", "TORSIONAL_BODIES", "USER_FOLDER", "Effect", "EffectError", "Kinematics", "Parameter", "RigValues", "active", "builtin",
            "including", "kernel_function", "load_file", "loaded", "sincos", "use"]
 
 LIBRARY = Path(__file__).resolve().parent / "library"

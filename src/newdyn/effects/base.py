@@ -63,6 +63,16 @@ TORSIONAL_PLACES: Mapping[str, str] = {
     "load_shaft": "across the load shaft kT3 (3 – 4): s.x = θ3 − θ4",
     "load": "disk 4 (load): a torque on it; s.x = θ4",
 }
+#: The bodies each torsional place lies across, (a, b) with s.x = θa − θb, or (a, None) on disk a with s.x = θa,
+#: named by their angles in :data:`newdyn.model.ANGLES`.
+TORSIONAL_BODIES: Mapping[str, tuple[str, str | None]] = {
+    "motor": ("theta1", None),
+    "motor_shaft": ("theta1", "theta2a"),
+    "slip_joint": ("theta2a", "theta2b"),
+    "coupling": ("theta2b", "theta3"),
+    "load_shaft": ("theta3", "theta4"),
+    "load": ("theta4", None),
+}
 LATERAL_PLACES: Mapping[str, str] = {
     f"{node}_{axis}": f"node {node} in {axis}: a force on it; s.x = its displacement" for node in model.NODES for axis in "xy"
 }

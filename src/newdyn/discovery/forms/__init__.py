@@ -24,17 +24,11 @@ import numpy as np
 
 from ... import model, simulation
 from ...effects import PLACES
-from ...effects.base import TORSIONAL_PLACES
+from ...effects.base import TORSIONAL_BODIES, TORSIONAL_PLACES
 
 #: Where a place's coordinate is in the simulator's state: (a, b) with x = a − b (b None: x = a).
 _COORDINATES: Mapping[str, tuple[str, str | None]] = {
-    "motor": ("theta1", None),
-    "motor_shaft": ("theta1", "theta2a"),
-    "slip_joint": ("theta2a", "theta2b"),
-    "coupling": ("theta2b", "theta3"),
-    "load_shaft": ("theta3", "theta4"),
-    "load": ("theta4", None),
-    **{f"{node}_{axis}": (f"{axis}_{node}", None) for node in model.NODES for axis in "xy"},
+    **TORSIONAL_BODIES, **{f"{node}_{axis}": (f"{axis}_{node}", None) for node in model.NODES for axis in "xy"},
 }
 #: The stiffness of the element at an across-element place, or of a bearing node's ground spring.
 ELEMENT_STIFFNESS: Mapping[str, str] = {
