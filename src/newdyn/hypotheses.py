@@ -296,7 +296,6 @@ def fit(
     def residuals(u, n_samples, for_search=False):  # on the record's first n_samples
         return residuals_of(u, simulate(low + u * span, replace(sampling, n_samples=n_samples), for_search), n_samples)
 
-
     windows = fit_windows(sampling)
     given = [[start.get(p.name, p.mean if p.sd is not None else p.low + 0.5 * (p.high - p.low)) for p in hypothesis.priors]
              for start in starts]
@@ -313,6 +312,7 @@ def fit(
                 polish=False, tol=0.0,
             )
             u_starts.append((evolved.x, first))
+
     def follow(u0, from_window):  # least squares through the windows from the from_window-th to the whole record
         for n_samples in windows[from_window:]:
             for step in JACOBIAN_STEPS:
