@@ -22,8 +22,8 @@ from pathlib import Path
 from .base import PLACES, TORSIONAL_BODIES, Effect, Kinematics, Parameter, RigValues, kernel_function, sincos
 from .check import problems
 
-__all__ = ["PLACES", "TORSIONAL_BODIES", "USER_FOLDER", "Effect", "EffectError", "Kinematics", "Parameter", "RigValues", "active", "builtin",
-           "including", "kernel_function", "load_file", "loaded", "sincos", "use"]
+__all__ = ["PLACES", "TORSIONAL_BODIES", "USER_FOLDER", "Effect", "EffectError", "Kinematics", "Parameter", "RigValues",
+           "active", "builtin", "including", "kernel_function", "load_file", "loaded", "sincos", "use"]
 
 LIBRARY = Path(__file__).resolve().parent / "library"
 #: Where a study's own effects live, relative to the directory Snakemake runs in.
