@@ -3,9 +3,9 @@
 Run: python bench/bench_effects.py [--before 4e27334] [--batch 64] [--repeat 5]
 
 Prints, for the healthy rig and each built-in effect (stick-slip at several points, and 64 stick-slip rigs spread over
-its prior in one batch, as a fit's search simulates them), the time per simulation batched on one core and alone, now and at ``--before`` (run from a temporary git worktree), and each over the healthy rig's;
-then what a user's effect costs against the built-in of
-the same arithmetic (a copy of cubic_coupling's force in a file of its own), and how long compiling
+its prior in one batch, as a fit's search simulates them), the time per simulation batched on one core and alone, now
+and at ``--before`` (run from a temporary git worktree), and each over the healthy rig's; then what a user's effect
+costs against the built-in of the same arithmetic (a copy of cubic_coupling's force in a file of its own), and how long compiling
 the kernel takes for a new effect and loading it from the cache afterwards.  docs/benchmarks.md quotes them.
 """
 
@@ -21,6 +21,8 @@ import textwrap
 from pathlib import Path
 
 from scipy.stats import qmc
+
+from newdyn import effects, model
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -89,11 +91,14 @@ USER = textwrap.dedent("""
 """)
 
 def prior_spread(n: int = 64, seed: int = 1) -> list[dict]:
-    """Stick-slip rigs spread over its prior box (quasi-random), as a fit's search simulates them in one batch; r_k
-    raised where the stall rule needs it."""
+    """Stick-slip rigs spread over its prior box (quasi-random), as a fit's search simulates them in one batch, each
+    made admissible by the effect itself (r_k raised where the stall rule needs it)."""
+    stick_slip = effects.active()["stick_slip"]
+    low, high = zip(*(p.prior for p in stick_slip.parameters))
     spread = []
-    for t_max, r_k, share in qmc.scale(qmc.Sobol(3, seed=seed).random(n), [1650.0, 0.6, 0.1], [2500.0, 1.0, 0.9]):
-        parameters = {"T_max": float(t_max), "r_k": float(max(r_k, 1.002 * 1613.0 / t_max)), "J2a_share": float(share)}
+    for point in qmc.scale(qmc.Sobol(len(low), seed=seed).random(n), low, high):
+        drawn = dict(zip(stick_slip.parameter_names(), map(float, point)))
+        parameters = {name: float(value) for name, value in stick_slip.admissible(drawn, model.DEFAULTS).items()}
         spread.append({"fault": {"kind": "stick_slip", "parameters": parameters}})
     return spread
 
