@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy import integrate, stats
 
-from newdyn import effects, faults, model, simulation, slots
+from newdyn import effects, faults, model, reference, simulation, slots
 from newdyn import noise as measurement_noise
 from newdyn.discovery import effect_file, force, search, verify
 from newdyn.discovery.forms import FORMS, Peaks, Trajectory
@@ -222,6 +222,44 @@ def test_a_small_breathing_crack_is_found_as_a_stiffness_turning_with_the_load(m
     assert [row["channel"] for row in separating] == ["torque_c", "b2_x"]
     assert separating[0]["expected_log_bayes_factor"] > 10 and separating[1]["expected_log_bayes_factor"] == 0.0
     assert found.forces["load_shaft"].log_bayes_factor > 0 > found.forces["b1_x"].log_bayes_factor
+
+
+TEST_EFFECTS = Path(__file__).parent / "effects"
+SHORT = model.Sampling(5000.0, 0.2, 1000)  # 0.2 s warm-up, 0.2 s recorded: lines known to 5 Hz
+
+
+def recorded_at_two_speeds(effect, parameters, channels=("b1_x", "w1")):
+    """The rig with the test ``effect`` (a file the catalogue's forms do not know) at 1480 and 1200 rpm, simulated by
+    newdyn.reference (SciPy, not the kernel) at 40 dB: each recording's residual against the nominal model at its speed,
+    as discover_across takes them."""
+    runs = []
+    with effects.including(TEST_EFFECTS / f"{effect}.py"):
+        for seed, speed in enumerate((1480.0, 1200.0)):
+            condition = {**model.DEFAULTS, "speed_rpm": speed}
+            truth = faults.scenario_values({"fault": {"kind": effect, "parameters": parameters}}, condition)
+            runs.append((condition, *measurement_noise.add_noise(reference.simulate_reference(truth, SHORT, channels), channels, 40.0, seed)))
+    # the nominal model after the block: the kernel compiled for the built-in effects serves it
+    return [(y - simulation.simulate(slots.complete(condition), SHORT, channels), sigma, slots.complete(condition), SHORT, channels)
+            for condition, y, sigma in runs]
+
+
+@pytest.mark.parametrize("effect, parameters, term, lines_hz", [
+    ("torque_ripple", {"amplitude": 15.0, "order": 6.0}, "order", (148.0, 120.0)),  # 6 per revolution: moves with the speed
+    ("motor_hum", {"amplitude": 15.0, "frequency": 148.0}, "periodic", (148.0, 148.0)),  # stays where it is
+])
+def test_two_speeds_tell_an_order_of_the_shaft_from_a_fixed_frequency_where_one_cannot(effect, parameters, term, lines_hz):
+    across = search.discover_across(recorded_at_two_speeds(effect, parameters), simulation.DEFAULT_MAX_STEP)
+    best = across.scores[0]
+    assert best["term"] == term and best["log_bayes_factor"] > 100
+    assert best["frequency_hz"] == pytest.approx(lines_hz, abs=SHORT.fs / SHORT.n_samples)
+    rival = next(row for row in across.scores if row["term"] == {"order": "periodic", "periodic": "order"}[term])
+    assert best["log_evidence"] - rival["log_evidence"] > 100  # one shape for both recordings: only the right form has one
+    # At 1480 rpm the line lies at 6 orders of the shaft either way: that recording alone ranks the order a few nats
+    # ahead whichever is true (its one shape against a frequency's many), so only the second speed decides.
+    alone = {}
+    for found_term, _, log_evidence in across.alone[0].scores:
+        alone.setdefault(found_term, log_evidence)
+    assert 0 < alone["order"] - alone["periodic"] < 15
 
 
 def test_including_an_effect_file_adds_it_for_the_block_only(tmp_path):

@@ -1,13 +1,14 @@
 """A machine diagnosed from several recordings at different operating conditions, on the CI config's short record."""
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
 
-from newdyn import diagnosis, faults, io, machine, model, noise, simulation, slots
+from newdyn import diagnosis, effects, faults, io, machine, model, noise, reference, simulation, slots
 from newdyn.settings import Settings
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -109,3 +110,28 @@ def test_a_recording_through_a_probe_out_of_its_spec_keeps_its_own_instruments_a
     lines = {line["name"]: line for line in v["recordings"]}
     assert lines["high"]["instruments_out_of_spec"] == ["b1_x gain"] and lines["exact"]["instruments_out_of_spec"] == []
     assert all(line["chi2_after"] <= settings.chi2_max for line in lines.values())
+
+
+def test_a_line_no_effect_explains_is_found_across_two_speeds_as_an_order_of_the_shaft():
+    """A torque ripple, 6 per revolution of the motor (a test effect the library and the catalogue do not hold),
+    simulated by newdyn.reference at 1480 and 1200 rpm: nothing of the library explains the machine, and the search
+    across its recordings names an order of the shaft, its line at 148 Hz in one recording and 120 Hz in the other."""
+    recordings = []
+    with effects.including(ROOT / "tests" / "effects" / "torque_ripple.py"):
+        for seed, speed in enumerate((1480.0, 1200.0)):
+            operating = {k: model.DEFAULTS[k] for k in model.OPERATING_PARAMETERS} | {"speed_rpm": speed}
+            truth = faults.scenario_values({"fault": {"kind": "torque_ripple", "parameters": {"amplitude": 15.0}}}, operating)
+            y, sigma = noise.add_noise(reference.simulate_reference(truth, SAMPLING, CHANNELS), CHANNELS, 40.0, seed)
+            recordings.append(io.Measurement(f"rpm{speed:g}", CHANNELS, y, SAMPLING, operating, sigma))
+    diagnosed_alone = []
+    for m in recordings:  # after the block: the kernel compiled for the built-in effects serves the diagnoses
+        d = diagnosis.diagnose(m, replace(SETTINGS, discovery="never"))  # each alone: the library's verdict is all it needs
+        diagnosed_alone.append(machine.Diagnosed(m, json.loads(json.dumps({**d.verdict, "channels": list(d.channels)}, default=float))))
+    assert all(r.verdict["verdict"] == "unexplained" and "discovery" not in r.verdict for r in diagnosed_alone)
+    v = machine.diagnose("rig", diagnosed_alone, SETTINGS)
+    assert v["verdict"] == "unexplained"
+    best = v["discovery"]["candidates"][0]
+    assert best["term"] == "order" and best["shape"].startswith("6x")
+    assert best["frequency_hz"] == pytest.approx([148.0, 120.0], abs=SAMPLING.fs / SAMPLING.n_samples)
+    assert v["discovery"]["candidates"][1]["log_evidence"] < best["log_evidence"] - 30
+    assert "searched across the recordings: an order term" in v["statement"]

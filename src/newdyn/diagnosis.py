@@ -187,7 +187,7 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
 
     best_fault = max(settings.fault_ranges, key=lambda kind: fits[kind].log_evidence)
     discovery = None
-    if settings.discovery == "always" or not any(_explains(fit, calibrations, settings.chi2_max) for fit in fits.values()):
+    if settings.searches(any(_explains(fit, calibrations, settings.chi2_max) for fit in fits.values())):
         discovery = verify.discover(measurement.name, fits[_best_of(fits, "parameter_change")], data, sigma, values, sampling, settings)
         stage(f"discovery ({len(discovery[0]['candidates'])} candidates)")
     ahead = _explaining_ahead(fits, calibrations, best_fault, settings.chi2_max, discovery and discovery[2])
@@ -220,7 +220,7 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
                         "colour": colour.summary(channels)}
     effect_file = discovered = forces = None
     # Discovery ran before the MCMC; a library fault whose polish explained the data after all drops it.
-    if discovery is not None and (verdict["verdict"] == "unexplained" or settings.discovery == "always"):
+    if discovery is not None and settings.searches(verdict["verdict"] != "unexplained"):
         verdict["discovery"], effect_file, discovered, forces = discovery
         if discovered is not None:
             versions["discovered"] = _shown(discovered, data, sigma)

@@ -23,7 +23,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from . import comparison, concurrency, effects, hypotheses, instrument_checks, io, model, next_condition, noise, slots
+from . import comparison, concurrency, effects, hypotheses, instrument_checks, io, model, next_condition, noise, sensors, slots
+from .discovery import search
 from .hypotheses import HEALTHY, PARAMETER_CHANGE
 from .settings import Settings
 
@@ -71,6 +72,7 @@ def diagnose(name: str, recordings: Sequence[Diagnosed], settings: Settings) -> 
         verdict, effect, equivalent = "unexplained", None, []
         after = min(ranking, key=lambda row: max(row["chi2"]))["hypothesis"]
     lines = _recording_lines(recordings, seen, fits, hyps, after, settings)
+    searched = settings.searches(verdict != "unexplained")
     result = {
         "machine": name, "verdict": verdict, "effect": effect, "equivalent": [e for e in equivalent if e is not None],
         "parameters": fits[after].laplace_parameters(), "model": after,
@@ -78,6 +80,7 @@ def diagnose(name: str, recordings: Sequence[Diagnosed], settings: Settings) -> 
         "consistency": {row["hypothesis"]: row["consistency"] for row in ranking},
         "recordings": lines, "ranking": ranking,
         "record_next": _record_next(ranking, fits, recordings, seen, settings),
+        **({"discovery": _discovery(ranking, fits, seen, settings)} if searched else {}),
     }
     return {"statement": statement(result, settings.chi2_max), **result}
 
@@ -98,6 +101,35 @@ def _record_next(ranking: Sequence[Mapping], fits, recordings: Sequence[Diagnose
                                settings.operating_range, settings.rig, seen[0].sampling, settings.channels, snr_db,
                                settings.max_step, settings.evidence_margin,
                                np.random.default_rng(int(settings.mcmc.get("seed", 0))))
+
+
+def _discovery(ranking: Sequence[Mapping], fits, seen: Sequence[hypotheses.Recording], settings: Settings) -> dict:
+    """One term of the catalogue behind every recording's residual (:func:`newdyn.discovery.search.discover_across`),
+    from the drift that the recordings' evidence favours, fitted to all of them: each form with one shape for all
+    recordings, so that a line that moves with the speed is an order of a disk and one that stays a fixed frequency.
+    Each term's best place, best first, and what each recording alone would have said."""
+    drift = next(row["hypothesis"] for row in ranking if row["class"] in (HEALTHY, PARAMETER_CHANGE))
+    fit = fits[drift]
+    records = []
+    for i, s in enumerate(seen):
+        instruments = fit.instruments[i] if fit.instruments else s.instruments
+        residual = s.data - sensors.reading(s.data, fit.models[i], s.sigma, instruments)
+        records.append((residual, s.sigma, {**s.base, **fit.values}, s.sampling, s.channels))
+    across = search.discover_across(records, settings.max_step)
+    best = {}
+    for row in across.scores:  # each term's best place, best first
+        best.setdefault(row["term"], row)
+    top = across.scores[0]["log_evidence"] if across.scores else 0.0
+    return {"from": drift, "candidates": list(best.values()),
+            "equivalent": [f"{row['term']} on {row['acts_on']}" for row in across.scores
+                           if top - row["log_evidence"] <= settings.evidence_margin],
+            "alone": [{"peaks_hz": list(found.peaks.frequencies), "equivalent_terms": _equal_terms(found, settings.evidence_margin)}
+                      for found in across.alone]}
+
+
+def _equal_terms(found: search.Discovery, margin: float) -> list[str]:
+    """The terms that explain one recording alone as well as its best one (within ``margin``), best first."""
+    return list(dict.fromkeys(term for term, _ in search.equivalent(found, margin)))
 
 
 def _row(fit: hypotheses.JointFit, alone: Sequence[Mapping], settings: Settings) -> dict:
@@ -182,6 +214,26 @@ def statement(verdict: Mapping, chi2_max: float) -> str:
         head += ("; each recording alone is explained by, but together they contradict, " + ", ".join(
             f"{h} (log Bayes factor {verdict['consistency'][h]['log_bayes_factor']:.3g} for one set against one per recording)"
             for h in contradicted))
+    if verdict.get("discovery", {}).get("candidates"):
+        head += "; " + _discovered(verdict["discovery"], [f"{line['name']} ({condition(line)})" for line in lines])
     if verdict.get("record_next"):
         head += "; " + next_condition.sentence(verdict["record_next"])
     return head
+
+
+def _discovered(section: Mapping, recordings: Sequence[str]) -> str:
+    """What the search across the recordings found, in words: the best term with its line in each recording, how far
+    ahead of the next term it is, and whether a recording alone could have told them apart."""
+    best, *others = section["candidates"]
+    lines = ", ".join(f"{f:.4g} Hz in {name}" for f, name in zip(best["frequency_hz"], recordings) if f is not None)
+    article = "an" if best["term"][0] in "aeiou" else "a"
+    words = (f"searched across the recordings: {article} {best['term']} term on {best['acts_on']} ({best['shape']}"
+             f"{': ' + lines if lines else ''}) explains them all with one shape (log Bayes factor "
+             f"{best['log_bayes_factor']:.4g} against none)")
+    if others:
+        words += f", ahead of {others[0]['term']} by {best['log_evidence'] - others[0]['log_evidence']:.4g}"
+        alone = [name for name, row in zip(recordings, section["alone"])
+                 if {best["term"], others[0]["term"]} <= set(row["equivalent_terms"])]
+        if alone:
+            words += f", which {' and '.join(alone)} alone could not tell apart"
+    return words

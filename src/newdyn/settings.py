@@ -31,7 +31,7 @@ class Settings:
     max_step: float
     posterior: posterior_module.PosteriorSettings
     mcmc: Mapping[str, float | int | str] = field(default_factory=dict)
-    discovery: str = "unexplained"  # or "always"
+    discovery: str = "unexplained"  # or "always", "never"
     sensors: Mapping[str, sensors_module.Sensor] = field(default_factory=dict)  # instrument errors per channel
     noise_colour_order: int = 0  # highest AR order of the noise's colour; 0: white
     operating_range: Mapping[str, tuple[float, float]] = field(default_factory=dict)  # where a next recording may be made
@@ -64,6 +64,10 @@ class Settings:
             noise_colour_order=int(d.get("noise_colour_order", 0)),
             operating_range={p: (float(low), float(high)) for p, (low, high) in config.get("operating_range", {}).items()},
         )
+
+    def searches(self, explained: bool) -> bool:
+        """Whether to look for a missing term outside the library, given whether something of it ``explained`` the data."""
+        return self.discovery == "always" or (self.discovery == "unexplained" and not explained)
 
     def instruments(self, fs: float, colour: noise.Colour | None = None) -> sensors_module.Instruments | None:
         """The diagnosis channels' instrument errors at sampling rate ``fs`` and their noise's ``colour``; None

@@ -15,6 +15,7 @@ The noise is white here; where it is not, whiten r and G first.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, fields
 
 import numpy as np
@@ -59,7 +60,16 @@ class Regression:
 def regress(residual: np.ndarray, sigma: np.ndarray, sensitivity: np.ndarray, scale_range: tuple[float, float]) -> Regression:
     """Bayesian linear regression of ``residual`` (channel, time), noise σ per channel, on the columns of
     ``sensitivity`` (channel, time, column), the prior scale's log-uniform range ``scale_range``."""
-    r, g = _whitened(residual, sigma, sensitivity)
+    return regress_records([residual], [sigma], [sensitivity], scale_range)
+
+
+def regress_records(residuals: Sequence[np.ndarray], sigmas: Sequence[np.ndarray], sensitivities: Sequence[np.ndarray],
+                    scale_range: tuple[float, float]) -> Regression:
+    """:func:`regress` on several records at once (recordings of one machine, each its own channels, noise and length):
+    one coefficient vector for all, each record's ``sensitivity`` giving every column (zero where a column is
+    another record's own)."""
+    whitened = [_whitened(*record) for record in zip(residuals, sigmas, sensitivities)]
+    r, g = np.concatenate([w[0] for w in whitened]), np.concatenate([w[1] for w in whitened])
     s_low, s_high = (float(x) for x in scale_range)
     if not 0.0 < s_low < s_high:
         raise ValueError(f"scale_range must be 0 < low < high, got {scale_range!r}")
@@ -73,7 +83,8 @@ def regress(residual: np.ndarray, sigma: np.ndarray, sensitivity: np.ndarray, sc
     variance = np.exp(2.0 * log_scales)[:, None]  # s² (scale, 1)
     spread = 1.0 + variance * squared  # eigenvalues of the whitened residual's covariance along U
     log_z = -0.5 * (np.sum(np.log(spread) - variance * w**2 / spread, axis=1) + r @ r + r.size * LOG_2PI)
-    log_z -= residual.shape[1] * float(np.sum(np.log(sigma)))  # back to the residual's units
+    # back to the residuals' units
+    log_z -= sum(residual.shape[1] * float(np.sum(np.log(sigma))) for residual, sigma in zip(residuals, sigmas))
     # Log-uniform prior on s: density 1/(log s_high − log s_low) in log s, integrated by the trapezoidal rule.
     log_weights = np.log(trapezoid(np.eye(SCALE_POINTS), log_scales, axis=1) / (log_scales[-1] - log_scales[0]))
     log_evidence = float(logsumexp(log_z + log_weights))
@@ -85,7 +96,7 @@ def regress(residual: np.ndarray, sigma: np.ndarray, sensitivity: np.ndarray, sc
     remaining = r - g @ mean
     return Regression(
         mean=mean, sd=sd, scale=float(np.exp(log_scales[np.argmax(posterior_weights)])), log_evidence=log_evidence,
-        log_bayes_factor=log_evidence - log_evidence_without_force(residual, sigma),
+        log_bayes_factor=log_evidence - sum(log_evidence_without_force(*record) for record in zip(residuals, sigmas)),
         chi2_before=float(r @ r / r.size), chi2_after=float(remaining @ remaining / r.size),
     )
 

@@ -127,11 +127,8 @@ def discover(residual: np.ndarray, sigma: np.ndarray, values: Mapping[str, float
         columns, centres = linear.pulse_sensitivity(place, first, sampling.n_samples, spacing)
         forces[place] = force.estimate(place, residual, sigma, columns, centres / sampling.fs, scale_range(place, values))
 
-    best_place = max(f.log_bayes_factor for f in forces.values())
-    places = [p for p, f in forces.items() if f.log_bayes_factor > 0 and f.log_bayes_factor >= PLACE_SHARE * best_place]
-    scored = sorted((scored for form in FORMS.values() for place in form.places() if place in places
-                     if (scored := _score(form, place, residual, sigma, trajectory, linear, first, peaks)) is not None),
-                    key=lambda s: -s[0])
+    places = _places({place: f.log_bayes_factor for place, f in forces.items()})
+    scored = _scored(places, [Record(residual, sigma, trajectory, linear, first, peaks)])
     seen = Counter()
     candidates = []
     for entry in scored:  # best first: each form's best places
@@ -144,30 +141,98 @@ def discover(residual: np.ndarray, sigma: np.ndarray, values: Mapping[str, float
                      trajectory, linear, first)
 
 
-def _score(form: type[Form], place: str, residual, sigma, trajectory: Trajectory, linear: LinearRig, first: int,
-           peaks: Peaks):
-    """(log-evidence with the shapes marginalized, form, place, the shapes, their posterior weights, the
-    best shape's regression and its basis' RMS), or None when the form proposes no shape at ``place``."""
-    shapes = form.shapes(trajectory, place, peaks)
+@dataclass(frozen=True)
+class Across:
+    """The search over several records of one machine (each at its own operating condition): each record's own
+    discovery, and every form scored on all of them with one shape, best first (:func:`discover_across`)."""
+
+    alone: list[Discovery]
+    scores: list[dict]  # term, acts_on, shape, log_evidence, log_bayes_factor, chi2_after, frequency_hz (one per record)
+    log_evidence_without: float
+
+
+def discover_across(records: Sequence[tuple], max_step: float) -> Across:
+    """Search the catalogue for one term behind every record's residual: ``records`` of (residual, sigma, values,
+    sampling, channels) as :func:`discover` takes them.  Each form is scored with one shape for all records (one order
+    of a disk, one frequency, one clearance), so that a line that moves with the speed is told from one that stays; the
+    places tried are those whose free forces explain, summed over the records, at least :data:`PLACE_SHARE` of the
+    best's."""
+    alone = [discover(*record, max_step) for record in records]
+    seen = [Record(np.asarray(residual, dtype=float), np.asarray(sigma, dtype=float), found.trajectory, found.linear,
+                   found.first, found.peaks) for (residual, sigma, *_), found in zip(records, alone)]
+    places = _places({place: sum(found.forces[place].log_bayes_factor for found in alone) for place in ESTIMABLE_PLACES})
+    without = sum(found.log_evidence_without for found in alone)
+    scores = []
+    for log_evidence, form, place, shapes, weights, fit, _ in _scored(places, seen):
+        shape = shapes[int(np.argmax(weights))]
+        scores.append({"term": form.term, "acts_on": place, "shape": shape.label, "order": form.order(shape),
+                       "frequency_hz": [form.frequency_hz(shape, record.trajectory) for record in seen],
+                       "log_evidence": log_evidence, "log_bayes_factor": log_evidence - without, "chi2_after": fit.chi2_after})
+    return Across(alone, scores, without)
+
+
+@dataclass(frozen=True)
+class Record:
+    """One record as the forms are scored on it: the calibrated model's residual (channel, time) and noise, the model's
+    motion and linearized response on the grid from t = 0, the record's first sample there, and the residual's lines."""
+
+    residual: np.ndarray
+    sigma: np.ndarray
+    trajectory: Trajectory
+    linear: LinearRig
+    first: int
+    peaks: Peaks
+
+
+def _places(log_bayes_factors: Mapping[str, float]) -> list[str]:
+    """The places a force acts on: those whose free force explains at least :data:`PLACE_SHARE` of the best's."""
+    best = max(log_bayes_factors.values())
+    return [p for p, value in log_bayes_factors.items() if value > 0 and value >= PLACE_SHARE * best]
+
+
+def _scored(places: Sequence[str], records: Sequence[Record]) -> list[tuple]:
+    """:func:`_score` of every form at each of ``places`` it can act on, best first."""
+    return sorted((scored for form in FORMS.values() for place in form.places() if place in places
+                   if (scored := _score(form, place, records)) is not None), key=lambda s: -s[0])
+
+
+def _score(form: type[Form], place: str, records: Sequence[Record]):
+    """(log-evidence with the shapes marginalized, form, place, the shapes, their posterior weights, the best shape's
+    regression and each record's basis RMS for it), or None when the form proposes no shape at ``place``.  Over several
+    records one shape holds for all (those any record proposes); a phased form's coefficients are each record's own."""
+    shapes = form.shapes(records[0].trajectory, place, records[0].peaks)
+    for record in records[1:]:
+        shapes += [shape for shape in form.shapes(record.trajectory, place, record.peaks) if shape not in shapes]
     if not shapes:
         return None
-    record = slice(first, first + residual.shape[1])
+    ranges = [scale_range(place, record.trajectory.values) for record in records]
+    prior_range = (min(low for low, _ in ranges), max(high for _, high in ranges))
     fits, scales = [], []
     for shape in shapes:
-        basis = form.basis(trajectory, place, shape)
-        rms = np.sqrt(np.mean(basis[:, record] ** 2, axis=1))
-        rms = np.where(rms > 0, rms, 1.0)
-        columns = np.moveaxis(linear.response(place, basis / rms[:, None])[:, :, record], 1, 2)  # (channel, time, coefficient)
-        fits.append(force.regress(residual, sigma, columns, scale_range(place, trajectory.values)))
+        columns, rms = zip(*(_columns(form, place, shape, record) for record in records))
+        if form.phased and len(records) > 1:  # block-diagonal: record i's coefficients move record i alone
+            columns = [np.concatenate([c if j == i else np.zeros_like(c) for j in range(len(records))], axis=2)
+                       for i, c in enumerate(columns)]
+        fits.append(force.regress_records([r.residual for r in records], [r.sigma for r in records], columns, prior_range))
         scales.append(rms)
-    log_z = np.array([f.log_evidence for f in fits]) + form.log_prior(trajectory, peaks, len(shapes))
+    log_z = np.array([f.log_evidence for f in fits]) + form.log_prior(records[0].trajectory, records[0].peaks, len(shapes))
     log_evidence = float(logsumexp(log_z))
     best = int(np.argmax(log_z))
     return log_evidence, form, place, shapes, np.exp(log_z - log_evidence), fits[best], scales[best]
 
 
-def _candidate(log_evidence, form, place, shapes, shape_weights, fit, scale, trajectory) -> Candidate:
-    best = int(np.argmax(shape_weights))
+def _columns(form: type[Form], place: str, shape: Shape, record: Record) -> tuple[np.ndarray, np.ndarray]:
+    """The channels' responses over the record (channel, time, coefficient) to the form's basis at ``shape``, each basis
+    force normalized to unit RMS over the record, and those RMS."""
+    window = slice(record.first, record.first + record.residual.shape[1])
+    basis = form.basis(record.trajectory, place, shape)
+    rms = np.sqrt(np.mean(basis[:, window] ** 2, axis=1))
+    rms = np.where(rms > 0, rms, 1.0)
+    return np.moveaxis(record.linear.response(place, basis / rms[:, None])[:, :, window], 1, 2), rms
+
+
+def _candidate(log_evidence, form, place, shapes, shape_weights, fit, scales, trajectory) -> Candidate:
+    best, scale = int(np.argmax(shape_weights)), scales[0]
     parameters = _posterior(form, fit, scale, shapes, best, shape_weights, place)
     return Candidate(form.term, place, log_evidence, shapes[best], form.frequency_hz(shapes[best], trajectory),
                      form.order(shapes[best]), parameters, fit.chi2_after,

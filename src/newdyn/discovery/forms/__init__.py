@@ -99,6 +99,9 @@ class Form:
     term: ClassVar[str]  # a short name, e.g. "periodic"
     description: ClassVar[str]  # what it is, in one line
     coefficients: ClassVar[tuple[str, ...]]  # names of c_i, e.g. ("cosine", "sine")
+    # Coefficients that are a phasor of time or of a disk's angle, whose origin is each record's own (separate records
+    # share no clock nor angle mark): scored over several records, each record gets its own.
+    phased: ClassVar[bool] = False
 
     @classmethod
     def places(cls) -> Sequence[str]:

@@ -14,6 +14,7 @@ class AngleStiffness(Form):
     term = "angle_stiffness"
     description = "an element's stiffness modulated by disk d's angle: k (1 + depth·sin(n θ_d + phase))"
     coefficients = ("cosine", "sine")
+    phased = True
 
     @classmethod
     def places(cls):

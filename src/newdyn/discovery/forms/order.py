@@ -16,6 +16,7 @@ class Order(Form):
     term = "order"
     description = "a force at a whole order n of disk d's rotation: amplitude·sin(n θ_d + phase)"
     coefficients = ("cosine", "sine")
+    phased = True
 
     @classmethod
     def shapes(cls, trajectory, place, peaks):

@@ -15,6 +15,7 @@ class Periodic(Form):
     term = "periodic"
     description = "a periodic force at a free frequency f: amplitude·sin(2π f t + phase)"
     coefficients = ("cosine", "sine")
+    phased = True
 
     @classmethod
     def shapes(cls, trajectory, place, peaks):
