@@ -10,6 +10,14 @@ measurement file with nothing of its truth.
     (cd <study> && snakemake --cores 2 results/diagnosis/open_01/verdict.json ...)
     python bench/open_world/run.py score <truth.json> <study>/results/diagnosis
 
+Machines: each drawn line (a periodic or an order generator) recorded twice, at the default speed and at a drawn lower
+one, as ``<study>/measurements/<machine>/{a,b}.nc``; a machine counts as found when its verdict's search across the
+recordings names the generator's family with its whole order, or its frequency in both recordings (within 1 %).
+
+    python bench/open_world/run.py draw-machines <study>/measurements <truth.json> [--cases 8] [--seed 2027]
+    (cd <study> && snakemake --cores 2 results/diagnosis/owm_01/verdict.json ...)
+    python bench/open_world/run.py score-machines <truth.json> <study>/results/diagnosis
+
 A case counts as found when its verdict is ``unexplained`` and discovery's top candidate has the
 generator's family and its frequency (within 1 %) or whole order; placement is right when the top
 candidate acts where the generator does, or that place is among those that explain the data equally;
@@ -23,6 +31,8 @@ import json
 import math
 import sys
 from pathlib import Path
+
+import numpy as np
 
 from newdyn import effects, hidden, model, slots
 
@@ -92,6 +102,71 @@ def score(truth_path: Path, diagnoses: Path) -> dict:
     return {"cases": len(rows), "share": share, "rows": rows}
 
 
+LINE_FAMILIES = ("order", "periodic")
+SECOND_SPEED_RPM = (1000.0, 1350.0)  # the second recording's speed, drawn; the first at the default 1480 rpm
+RECORDINGS = ("a", "b")
+
+
+def draw_machines(measurements: Path, truth_path: Path, cases: int, seed: int) -> None:
+    found = {name: effect for name, effect in generators().items() if effect.family in LINE_FAMILIES}
+    section = {"sets": {"open_machines": {"cases": cases, "seed": seed, "classes": list(found)}}}
+    drawn = hidden.draw_cases(section, "open_machines", model.DEFAULTS)
+    base = slots.complete()
+    rng = np.random.default_rng([seed, 1])
+    machines = []
+    for number, case in enumerate(drawn, start=1):
+        name = f"owm_{number:02d}"
+        speeds = (base["speed_rpm"], model.PARAMETER_BY_NAME["speed_rpm"].rounded(rng.uniform(*SECOND_SPEED_RPM)))
+        case = {**case, "name": name, "recordings": [
+            {"name": recording, "condition": {"speed_rpm": speed}, "channels": list(model.CHANNELS),
+             "noise_seed": int(rng.integers(0, 2**31 - 1))} for recording, speed in zip(RECORDINGS, speeds)]}
+        truth = case["truth"]
+        order = math.floor(truth["order"] + 0.5) if "order" in truth else None
+        case["expected"] = {"term": found[case["class"]].family, "acts_on": found[case["class"]].acts_on, "order": order,
+                            "frequency_hz": [truth["frequency"] if order is None else order * speed / 60.0 for speed in speeds]}
+        (measurements / name).mkdir(parents=True, exist_ok=True)
+        for recording in RECORDINGS:
+            hidden.write_recording_measurement(case, recording, base, model.Sampling(), SNR_DB, measurements / name / f"{recording}.nc")
+        print(name, case["class"], json.dumps(truth), speeds)
+        machines.append(case)
+    truth_path.write_text(json.dumps(machines, indent=1) + "\n")
+
+
+def _names_the_line(candidate, expected) -> bool:
+    """Whether a candidate of a search has the expected family with its whole order or its frequency (within 1 %)."""
+    if candidate is None or candidate["term"] != expected["term"]:
+        return False
+    if expected["order"] is not None:
+        return candidate["order"] == expected["order"]
+    frequencies = candidate["frequency_hz"] if isinstance(candidate["frequency_hz"], list) else [candidate["frequency_hz"]]
+    return all(abs(f - e) <= FREQUENCY_TOLERANCE * e for f, e in zip(frequencies, expected["frequency_hz"]))
+
+
+def score_machines(truth_path: Path, diagnoses: Path) -> dict:
+    rows = []
+    for case in json.loads(truth_path.read_text()):
+        path = diagnoses / case["name"] / "verdict.json"
+        if not path.is_file():
+            continue
+        verdict, expected = json.loads(path.read_text()), case["expected"]
+        top = ((verdict.get("discovery") or {}).get("candidates") or [None])[0]
+        alone = []
+        for i, recording in enumerate(RECORDINGS):
+            own = json.loads((diagnoses / case["name"] / recording / "verdict.json").read_text())
+            own_top = ((own.get("discovery") or {}).get("candidates") or [None])[0]
+            alone.append(_names_the_line(own_top, {**expected, "frequency_hz": expected["frequency_hz"][i:i + 1]}))
+        rows.append({"machine": case["name"], "generator": case["class"], "expected": expected, "verdict": verdict["verdict"],
+                     "top": None if top is None else {k: top[k] for k in ("term", "acts_on", "shape", "frequency_hz", "log_bayes_factor")},
+                     "runner_up": [(c["term"], round(top["log_evidence"] - c["log_evidence"], 1))
+                                   for c in (verdict.get("discovery") or {}).get("candidates", [])[1:2]],
+                     "found": verdict["verdict"] == "unexplained" and _names_the_line(top, expected),
+                     "found_alone": alone})
+    share = {"machines": sum(r["found"] for r in rows) / len(rows) if rows else math.nan,
+             "recordings_alone": (sum(sum(r["found_alone"]) for r in rows) / sum(len(r["found_alone"]) for r in rows)
+                                  if rows else math.nan)}
+    return {"cases": len(rows), "share": share, "rows": rows}
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     commands = parser.add_subparsers(dest="command", required=True)
@@ -103,10 +178,25 @@ def main(argv=None) -> int:
     p = commands.add_parser("score")
     p.add_argument("truth", type=Path)
     p.add_argument("diagnoses", type=Path)
+    p = commands.add_parser("draw-machines")
+    p.add_argument("measurements", type=Path)
+    p.add_argument("truth", type=Path)
+    p.add_argument("--cases", type=int, default=8)
+    p.add_argument("--seed", type=int, default=2027)
+    p = commands.add_parser("score-machines")
+    p.add_argument("truth", type=Path)
+    p.add_argument("diagnoses", type=Path)
     args = parser.parse_args(argv)
     if args.command == "draw":
         args.measurements.mkdir(parents=True, exist_ok=True)
         draw(args.measurements, args.truth, args.cases, args.seed)
+    elif args.command == "draw-machines":
+        draw_machines(args.measurements, args.truth, args.cases, args.seed)
+    elif args.command == "score-machines":
+        result = score_machines(args.truth, args.diagnoses)
+        for row in result["rows"]:
+            print(json.dumps(row))
+        print(json.dumps({"cases": result["cases"], "share": result["share"]}))
     else:
         result = score(args.truth, args.diagnoses)
         for row in result["rows"]:
