@@ -113,7 +113,7 @@ def test_a_recording_through_a_probe_out_of_its_spec_keeps_its_own_instruments_a
 
 
 def test_a_line_no_effect_explains_is_found_across_two_speeds_as_an_order_of_the_shaft():
-    """A torque ripple, 6 per revolution of the motor (a test effect the library and the catalogue do not hold),
+    """A torque ripple, 6 per revolution of the motor (a test effect that the library does not hold),
     simulated by newdyn.reference at 1480 and 1200 rpm: nothing of the library explains the machine, and the search
     across its recordings names an order of the shaft, its line at 148 Hz in one recording and 120 Hz in the other."""
     recordings = []
