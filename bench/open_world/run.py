@@ -67,6 +67,24 @@ def draw(measurements: Path, truth_path: Path, cases: int, seed: int) -> None:
     truth_path.write_text(json.dumps(drawn, indent=1) + "\n")
 
 
+def _top(verdict: dict) -> dict | None:
+    """The best candidate of a verdict's discovery, None when it has none."""
+    return ((verdict.get("discovery") or {}).get("candidates") or [None])[0]
+
+
+def _names_the_line(candidate, expected) -> bool:
+    """Whether a candidate of a search has the expected family with its whole order or its frequency (within 1 %): one
+    frequency for a single file, one per recording for a machine's search."""
+    if candidate is None or candidate["term"] != expected["term"]:
+        return False
+    if expected["order"] is not None:
+        return candidate["order"] == expected["order"]
+    if expected["frequency_hz"] is None:
+        return True
+    return all(abs(f - e) <= FREQUENCY_TOLERANCE * e
+               for f, e in zip(np.atleast_1d(candidate["frequency_hz"]), np.atleast_1d(expected["frequency_hz"])))
+
+
 def score(truth_path: Path, diagnoses: Path) -> dict:
     rows = []
     for case in json.loads(truth_path.read_text()):
@@ -76,23 +94,14 @@ def score(truth_path: Path, diagnoses: Path) -> dict:
         verdict = json.loads(verdict_path.read_text())
         expected = case["expected"]
         discovery = verdict.get("discovery") or {}
-        top = (discovery.get("candidates") or [None])[0]
-        family = top is not None and top["term"] == expected["term"]
-        if top is None or not family:
-            located = False
-        elif expected["order"] is not None:
-            located = top["order"] == expected["order"]
-        elif expected["frequency_hz"] is not None:
-            located = abs(top["frequency_hz"] - expected["frequency_hz"]) <= FREQUENCY_TOLERANCE * expected["frequency_hz"]
-        else:
-            located = True
+        top = _top(verdict)
         equivalent_places = {entry.rpartition(" on ")[2] for entry in discovery.get("equivalent", [])}
         fit = discovery.get("fit") or {}
         rows.append({
             "case": case["name"], "generator": case["class"], "truth": case["truth"], "expected": expected,
             "verdict": verdict["verdict"], "chi2_before": verdict["chi2_before"],
             "top": None if top is None else {k: top[k] for k in ("term", "acts_on", "frequency_hz", "order", "shape")},
-            "right_family_and_frequency": bool(family and located and verdict["verdict"] == "unexplained"),
+            "right_family_and_frequency": verdict["verdict"] == "unexplained" and _names_the_line(top, expected),
             "right_place": top is not None and top["acts_on"] == expected["acts_on"],
             "place_among_equivalent": expected["acts_on"] in equivalent_places,
             "chi2_after": fit.get("chi2_after"), "chi2_after_ok": fit.get("chi2_after") is not None and fit["chi2_after"] <= CHI2_MAX,
@@ -132,16 +141,6 @@ def draw_machines(measurements: Path, truth_path: Path, cases: int, seed: int) -
     truth_path.write_text(json.dumps(machines, indent=1) + "\n")
 
 
-def _names_the_line(candidate, expected) -> bool:
-    """Whether a candidate of a search has the expected family with its whole order or its frequency (within 1 %)."""
-    if candidate is None or candidate["term"] != expected["term"]:
-        return False
-    if expected["order"] is not None:
-        return candidate["order"] == expected["order"]
-    frequencies = candidate["frequency_hz"] if isinstance(candidate["frequency_hz"], list) else [candidate["frequency_hz"]]
-    return all(abs(f - e) <= FREQUENCY_TOLERANCE * e for f, e in zip(frequencies, expected["frequency_hz"]))
-
-
 def score_machines(truth_path: Path, diagnoses: Path) -> dict:
     rows = []
     for case in json.loads(truth_path.read_text()):
@@ -149,12 +148,11 @@ def score_machines(truth_path: Path, diagnoses: Path) -> dict:
         if not path.is_file():
             continue
         verdict, expected = json.loads(path.read_text()), case["expected"]
-        top = ((verdict.get("discovery") or {}).get("candidates") or [None])[0]
+        top = _top(verdict)
         alone = []
         for i, recording in enumerate(RECORDINGS):
             own = json.loads((diagnoses / case["name"] / recording / "verdict.json").read_text())
-            own_top = ((own.get("discovery") or {}).get("candidates") or [None])[0]
-            alone.append(_names_the_line(own_top, {**expected, "frequency_hz": expected["frequency_hz"][i:i + 1]}))
+            alone.append(_names_the_line(_top(own), {**expected, "frequency_hz": expected["frequency_hz"][i]}))
         rows.append({"machine": case["name"], "generator": case["class"], "expected": expected, "verdict": verdict["verdict"],
                      "top": None if top is None else {k: top[k] for k in ("term", "acts_on", "shape", "frequency_hz", "log_bayes_factor")},
                      "runner_up": [(c["term"], round(top["log_evidence"] - c["log_evidence"], 1))
