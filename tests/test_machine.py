@@ -24,7 +24,11 @@ def diagnosed(name, truth, T0, seed, settings=SETTINGS, gains=None):
     operating = {k: model.DEFAULTS[k] for k in model.OPERATING_PARAMETERS} | {"T0": T0}
     exact = simulation.simulate(slots.complete({**truth, **operating}), SAMPLING, CHANNELS)
     y, sigma = noise.add_noise(exact * np.array([(gains or {}).get(c, 1.0) for c in CHANNELS])[:, None], CHANNELS, 40.0, seed)
-    m = io.Measurement(name, CHANNELS, y, SAMPLING, operating, sigma)
+    return diagnosed_alone(io.Measurement(name, CHANNELS, y, SAMPLING, operating, sigma), settings)
+
+
+def diagnosed_alone(m, settings=SETTINGS):
+    """The recording ``m`` diagnosed alone as the workflow does, its verdict as the JSON the machine's job reads."""
     d = diagnosis.diagnose(m, settings)
     return machine.Diagnosed(m, json.loads(json.dumps({**d.verdict, "channels": list(d.channels)}, default=float)))
 
@@ -123,12 +127,11 @@ def test_a_line_no_effect_explains_is_found_across_two_speeds_as_an_order_of_the
             truth = faults.scenario_values({"fault": {"kind": "torque_ripple", "parameters": {"amplitude": 15.0}}}, operating)
             y, sigma = noise.add_noise(reference.simulate_reference(truth, SAMPLING, CHANNELS), CHANNELS, 40.0, seed)
             recordings.append(io.Measurement(f"rpm{speed:g}", CHANNELS, y, SAMPLING, operating, sigma))
-    diagnosed_alone = []
-    for m in recordings:  # after the block: the kernel compiled for the built-in effects serves the diagnoses
-        d = diagnosis.diagnose(m, replace(SETTINGS, discovery="never"))  # each alone: the library's verdict is all it needs
-        diagnosed_alone.append(machine.Diagnosed(m, json.loads(json.dumps({**d.verdict, "channels": list(d.channels)}, default=float))))
-    assert all(r.verdict["verdict"] == "unexplained" and "discovery" not in r.verdict for r in diagnosed_alone)
-    v = machine.diagnose("rig", diagnosed_alone, SETTINGS)
+    # after the block: the kernel compiled for the built-in effects serves the diagnoses; each alone needs only the
+    # library's verdict
+    alone = [diagnosed_alone(m, replace(SETTINGS, discovery="never")) for m in recordings]
+    assert all(r.verdict["verdict"] == "unexplained" and "discovery" not in r.verdict for r in alone)
+    v = machine.diagnose("rig", alone, SETTINGS)
     assert v["verdict"] == "unexplained"
     best = v["discovery"]["candidates"][0]
     assert best["term"] == "order" and best["shape"].startswith("6x")
