@@ -228,14 +228,17 @@ TEST_EFFECTS = Path(__file__).parent / "effects"
 SHORT = model.Sampling(5000.0, 0.2, 1000)  # 0.2 s warm-up, 0.2 s recorded: lines known to 5 Hz
 
 
-def recorded_at_two_speeds(effect, parameters, channels=("b1_x", "w1")):
-    """The rig with the test ``effect`` (a file the catalogue's forms do not know) at 1480 and 1200 rpm, simulated by
-    newdyn.reference (SciPy, not the kernel) at 40 dB: each recording's residual against the nominal model at its speed,
-    as discover_across takes them."""
+TWO_SPEEDS = ({"speed_rpm": 1480.0}, {"speed_rpm": 1200.0})
+
+
+def recorded_at(effect, parameters, conditions=TWO_SPEEDS, channels=("b1_x", "w1")):
+    """The rig with the test ``effect`` (a file of tests/effects) at each of ``conditions``, simulated by newdyn.reference
+    (SciPy, not the kernel) at 40 dB: each recording's residual against the nominal model at its condition, as
+    discover_across takes them."""
     runs = []
     with effects.including(TEST_EFFECTS / f"{effect}.py"):
-        for seed, speed in enumerate((1480.0, 1200.0)):
-            condition = {**model.DEFAULTS, "speed_rpm": speed}
+        for seed, changed in enumerate(conditions):
+            condition = {**model.DEFAULTS, **changed}
             truth = faults.scenario_values({"fault": {"kind": effect, "parameters": parameters}}, condition)
             runs.append((condition, *measurement_noise.add_noise(reference.simulate_reference(truth, SHORT, channels), channels, 40.0, seed)))
     # the nominal model after the block: the kernel compiled for the built-in effects serves it
@@ -248,7 +251,7 @@ def recorded_at_two_speeds(effect, parameters, channels=("b1_x", "w1")):
     ("motor_hum", {"amplitude": 15.0, "frequency": 148.0}, "periodic", (148.0, 148.0)),  # stays where it is
 ])
 def test_two_speeds_tell_an_order_of_the_shaft_from_a_fixed_frequency_where_one_cannot(effect, parameters, term, lines_hz):
-    across = search.discover_across(recorded_at_two_speeds(effect, parameters), simulation.DEFAULT_MAX_STEP)
+    across = search.discover_across(recorded_at(effect, parameters), simulation.DEFAULT_MAX_STEP)
     best = across.scores[0]
     assert best["term"] == term and best["log_bayes_factor"] > 100
     assert best["frequency_hz"] == pytest.approx(lines_hz, abs=SHORT.fs / SHORT.n_samples)
@@ -260,6 +263,21 @@ def test_two_speeds_tell_an_order_of_the_shaft_from_a_fixed_frequency_where_one_
     for found_term, _, log_evidence in across.alone[0].scores:
         alone.setdefault(found_term, log_evidence)
     assert 0 < alone["order"] - alone["periodic"] < 15
+
+
+def test_a_form_without_a_phase_is_one_physical_term_for_recordings_at_two_loads():
+    """A cubic stiffening of fixed k3 (tests/effects/coupling_cubic.py) recorded at T0 1613 and 1100 N·m, where its basis
+    δ³ has RMS about three times apart: scored across both, the cubic's one coefficient is one k3 for both recordings,
+    and it explains them as well as each recording's own k3 does, with one coefficient fewer (a coefficient per unit
+    of each recording's own basis RMS would be three different k3s, and nats worse).  Which torsional element holds it is
+    not told, as every element's twist follows the transmitted torque; the place compared is the one found."""
+    loads = ({"T0": 1613.0}, {"T0": 1100.0})
+    across = search.discover_across(recorded_at("coupling_cubic", {"k3": 5e8}, loads, ("b1_x", "w1", "torque_c")), simulation.DEFAULT_MAX_STEP)
+    best = across.scores[0]
+    assert best["term"] == "cubic" and best["chi2_after"] < 1.0
+    assert best["parameters"][0]["k3"] == best["parameters"][1]["k3"]
+    alone = [next(log_z for term, place, log_z in found.scores if (term, place) == ("cubic", best["acts_on"])) for found in across.alone]
+    assert 0 < best["log_evidence"] - sum(alone) < 10
 
 
 def test_including_an_effect_file_adds_it_for_the_block_only(tmp_path):

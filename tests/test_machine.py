@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import yaml
 
-from newdyn import diagnosis, effects, faults, io, machine, model, noise, reference, simulation, slots
+from newdyn import diagnosis, effects, faults, hypotheses, io, machine, model, noise, reference, simulation, slots
 from newdyn.settings import Settings
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -96,6 +96,22 @@ def test_a_drift_that_needs_different_values_under_two_conditions_is_named_as_co
     assert "together they contradict" in v["statement"] and "parameter_change:kT1" in v["statement"]
 
 
+def test_a_parameter_each_recording_has_its_own_of_is_fitted_as_each_recording_alone_would_be(drifted):
+    """kT1 3.25e6 in one recording and 2.75e6 in the other, fitted to both with kT1 each recording's own: the values and
+    their sds are each recording's alone, and the Laplace evidence is the sum of theirs (its Hessian is block-diagonal)."""
+    seen = [machine.recording(drifted[name], SETTINGS) for name in ("stiff_full", "soft_part")]
+    drift = next(h for h in SETTINGS.hypotheses() if h.name == "parameter_change:kT1")
+    both = hypotheses.fit_joint(drift, seen, [{"kT1": 3.0e6}], SETTINGS.max_step, own=["kT1"])
+    alone = [hypotheses.fit_joint(drift, [s], [{"kT1": 3.0e6}], SETTINGS.max_step) for s in seen]
+    assert both.values == {} and [v["kT1"] for v in both.own_values] == pytest.approx([a.values["kT1"] for a in alone], rel=1e-4)
+    assert [v["kT1"] for v in both.own_values] == pytest.approx([3.25e6, 2.75e6], rel=0.02)
+    assert [own["kT1"]["sd"] for own in both.own_parameters()] == pytest.approx([a.laplace_parameters()["kT1"]["sd"] for a in alone],
+                                                                                rel=1e-3)
+    assert both.log_evidence == pytest.approx(sum(a.log_evidence for a in alone), abs=0.05)
+    shared = hypotheses.fit_joint(drift, seen, [{"kT1": 3.0e6}], SETTINGS.max_step)
+    assert shared.log_evidence < both.log_evidence - SETTINGS.evidence_margin
+
+
 def test_a_recording_through_a_probe_out_of_its_spec_keeps_its_own_instruments_and_costs_no_consistency():
     """One healthy rig recorded twice, once through a displacement probe reading 8 % high (8 datasheet sds): each
     recording's own diagnosis reads the healthy model through the instruments it most probably went through, and so
@@ -116,10 +132,12 @@ def test_a_recording_through_a_probe_out_of_its_spec_keeps_its_own_instruments_a
     assert all(line["chi2_after"] <= settings.chi2_max for line in lines.values())
 
 
-def test_a_line_no_effect_explains_is_found_across_two_speeds_as_an_order_of_the_shaft():
-    """A torque ripple, 6 per revolution of the motor (a test effect that the library does not hold),
-    simulated by newdyn.reference at 1480 and 1200 rpm: nothing of the library explains the machine, and the search
-    across its recordings names an order of the shaft, its line at 148 Hz in one recording and 120 Hz in the other."""
+def test_a_line_no_effect_explains_is_found_across_two_speeds_as_an_order_of_the_shaft_and_added_explains_both():
+    """A torque ripple of 15 N·m, 6 per revolution of the motor (a test effect that the library does not hold),
+    simulated by newdyn.reference at 1480 and 1200 rpm: nothing of the library explains the machine; the search
+    across its recordings names an order of the shaft, its line at 148 Hz in one recording and 120 Hz in the other; and
+    that order, added to the model and fitted to both on the full simulator (one order, each recording's own amplitude
+    and phase), brings both to the noise with the ripple's amplitude inside each recording's 94 % interval."""
     recordings = []
     with effects.including(ROOT / "tests" / "effects" / "torque_ripple.py"):
         for seed, speed in enumerate((1480.0, 1200.0)):
@@ -138,3 +156,10 @@ def test_a_line_no_effect_explains_is_found_across_two_speeds_as_an_order_of_the
     assert best["frequency_hz"] == pytest.approx([148.0, 120.0], abs=SAMPLING.fs / SAMPLING.n_samples)
     assert v["discovery"]["candidates"][1]["log_evidence"] < best["log_evidence"] - 30
     assert "searched across the recordings: an order term" in v["statement"]
+    fit = v["discovery"]["fit"]
+    assert fit["effect"].startswith("discovered_order_motor_disk") and fit["explains"]
+    assert all(after < before and after <= SETTINGS.chi2_max for before, after in zip(fit["chi2_before"], fit["chi2_after"]))
+    assert fit["parameters"]["order"]["mean"] == pytest.approx(6.0, abs=0.02)  # its prior: 0.5 % about the order found
+    assert len(fit["own_parameters"]) == 2
+    assert all(own["amplitude"]["hdi_low"] <= 15.0 <= own["amplitude"]["hdi_high"] for own in fit["own_parameters"])
+    assert "added to the model, it explains them" in v["statement"]

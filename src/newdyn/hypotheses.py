@@ -146,7 +146,12 @@ class Hypothesis:
         return dict(zip(self.parameters, self.admissible_rows(theta, base)[0].tolist()))
 
     def log_prior(self, theta: np.ndarray) -> np.ndarray:
-        return np.sum([p.log_pdf(theta[:, i]) for i, p in enumerate(self.priors)], axis=0) if self.priors else np.zeros(len(theta))
+        return log_prior(self.priors, theta)
+
+
+def log_prior(priors: Sequence[Prior], theta: np.ndarray) -> np.ndarray:
+    """The log prior density of rows of values (n, k), one column per prior."""
+    return np.sum([p.log_pdf(theta[:, i]) for i, p in enumerate(priors)], axis=0) if priors else np.zeros(len(theta))
 
 
 def library(calibration_priors: Mapping[str, Prior], fault_ranges: Mapping[str, Mapping[str, Sequence[float]]],
@@ -337,7 +342,7 @@ def fit(
     theta_star = low + best.x * span
     model_star = simulate(theta_star[None])[0]
     ll = float(likelihood.log_likelihood(data, model_star, sigma, instruments=instruments))
-    log_evidence, at_bound, covariance = _laplace(hypothesis, best, theta_star, ll)
+    log_evidence, at_bound, covariance = _laplace(hypothesis.priors, best, theta_star, ll)
     return Fit(
         hypothesis, hypothesis.effective_values(theta_star, base), model_star, ll,
         float(likelihood.reduced_chi2(data, model_star, sigma, n_fitted=k, instruments=instruments)), log_evidence, sum(runs), at_bound,
@@ -367,16 +372,17 @@ def _least_squares(residuals, u0: np.ndarray, step: float) -> optimize.OptimizeR
                                   x_scale="jac", max_nfev=FIT_MAX_EVALUATIONS)
 
 
-def _laplace(hypothesis: Hypothesis, best: optimize.OptimizeResult, theta_star: np.ndarray, ll: float):
+def _laplace(priors: Sequence[Prior], best: optimize.OptimizeResult, theta_star: np.ndarray, ll: float):
     """(log-evidence, the parameters at a bound, posterior covariance) by the Laplace approximation around the least
-    squares' optimum ``best`` in unit coordinates, whose log-likelihood is ``ll`` (see :func:`fit`)."""
-    k = len(hypothesis.priors)
-    span = np.array([p.high - p.low for p in hypothesis.priors])
-    normal = np.array([p.sd is not None for p in hypothesis.priors])
+    squares' optimum ``best`` in unit coordinates, whose log-likelihood is ``ll`` (see :func:`fit`); one prior per
+    fitted value."""
+    k = len(priors)
+    span = np.array([p.high - p.low for p in priors])
+    normal = np.array([p.sd is not None for p in priors])
     hessian = best.jac.T @ best.jac + np.diag(np.where(normal, 0.0, 1.0 / UNIFORM_UNIT_VARIANCE))
     _, log_det = np.linalg.slogdet(hessian)
-    log_prior_u = float(hypothesis.log_prior(theta_star[None])[0] + np.sum(np.log(span)))
-    at_bound = tuple(p.name for p, a in zip(hypothesis.priors, best.active_mask) if a)
+    log_prior_u = float(log_prior(priors, theta_star[None])[0] + np.sum(np.log(span)))
+    at_bound = tuple(p.name for p, a in zip(priors, best.active_mask) if a)
     log_evidence = ll + log_prior_u + 0.5 * k * math.log(2 * math.pi) - 0.5 * log_det - len(at_bound) * math.log(2)
     covariance_u = np.linalg.inv(hessian)
     covariance_u = 0.5 * (covariance_u + covariance_u.T)  # symmetric as H is, not just to rounding
@@ -398,7 +404,9 @@ class Recording:
 
 @dataclass(frozen=True)
 class JointFit:
-    """A hypothesis fitted to several recordings with one set of parameters: per recording its model and misfit."""
+    """A hypothesis fitted to several recordings with one set of parameters: per recording its model and misfit.  A
+    parameter that each recording has its own value of (``own`` of :func:`fit_joint`) is in ``own_values``, one mapping
+    per recording, and not in ``values``; the covariance is over the shared values, then each recording's own in turn."""
 
     hypothesis: Hypothesis
     values: dict[str, float]
@@ -410,49 +418,71 @@ class JointFit:
     at_bound: tuple[str, ...] = ()
     covariance: np.ndarray | None = None
     instruments: tuple[sensors.Instruments | None, ...] = ()  # each recording's, once one was widened beyond its datasheets
+    own_values: tuple[dict[str, float], ...] = ()
 
     @property
     def theta(self) -> np.ndarray:
         return np.array([self.values[name] for name in self.hypothesis.parameters])
 
     def laplace_parameters(self) -> dict:
-        return laplace_parameters(self.values, self.covariance)
+        """The shared values' Laplace posteriors (see :func:`laplace_parameters`)."""
+        return laplace_parameters(self.values, None if self.covariance is None else self.covariance[:len(self.values), :len(self.values)])
+
+    def own_parameters(self) -> list[dict]:
+        """Each recording's own values' Laplace posteriors, one mapping per recording (empty where none is its own)."""
+        if self.covariance is None:
+            return [{} for _ in self.own_values]
+        rows, at = [], len(self.values)
+        for values in self.own_values:
+            block = slice(at, at + len(values))
+            rows.append(laplace_parameters(values, self.covariance[block, block]))
+            at += len(values)
+        return rows
 
 
-def fit_joint(hypothesis: Hypothesis, recordings: Sequence[Recording], starts: Sequence[Mapping[str, float]],
-              max_step: float = simulation.DEFAULT_MAX_STEP) -> JointFit:
+def fit_joint(hypothesis: Hypothesis, recordings: Sequence[Recording], starts: Sequence[Mapping[str, float | Sequence[float]]],
+              max_step: float = simulation.DEFAULT_MAX_STEP, own: Sequence[str] = ()) -> JointFit:
     """Best fit of ``hypothesis`` to all ``recordings`` at once, one parameter set shared by them (the likelihood the
     product of theirs), by least squares on their whole records from each of ``starts`` (each recording's own optimum,
-    say), the best kept; log-evidence and covariance by the Laplace approximation as in :func:`fit`."""
-    k = len(hypothesis.priors)
-    runs = []
+    say), the best kept; log-evidence and covariance by the Laplace approximation as in :func:`fit`.
 
-    def shared(theta):  # admissible at every recording's condition, so that all of them run with the same values
+    The parameters named in ``own`` are each recording's own instead (a phase: separate recordings share no clock nor
+    angle mark), each copy with the parameter's prior; a start gives them one value for all recordings or one each."""
+    k, n = len(hypothesis.priors), len(recordings)
+    runs = []
+    shared_priors = [p for p in hypothesis.priors if p.name not in own]
+    own_priors = [p for p in hypothesis.priors if p.name in own]
+    priors = shared_priors + own_priors * n  # the fitted vector: the shared values, then each recording's own in turn
+    # Per recording, where each of the hypothesis's parameters sits in the fitted vector.
+    columns = [np.array([shared_priors.index(p) if p.name not in own else len(shared_priors) + r * len(own_priors) + own_priors.index(p)
+                         for p in hypothesis.priors], dtype=int) for r in range(n)]
+
+    def admissible(theta):  # admissible at every recording's condition, so that all of them run with the same values
         for r in recordings:
             theta = hypothesis.admissible_rows(theta, r.base)
         return theta
 
     def outputs(theta):
-        runs.append(len(theta) * len(recordings))
-        return [evaluate(hypothesis, shared(theta), r.base, r.sampling, r.channels, max_step) for r in recordings]
+        runs.append(len(theta) * n)
+        return [evaluate(hypothesis, admissible(theta[:, at]), r.base, r.sampling, r.channels, max_step) for r, at in zip(recordings, columns)]
 
     def summary(theta_star):
         models = tuple(found[0] for found in outputs(theta_star[None]))
         lls = [float(likelihood.log_likelihood(r.data, m, r.sigma, instruments=r.instruments)) for r, m in zip(recordings, models)]
-        chi2 = tuple(float(likelihood.reduced_chi2(r.data, m, r.sigma, n_fitted=k, instruments=r.instruments))
+        chi2 = tuple(float(likelihood.reduced_chi2(r.data, m, r.sigma, n_fitted=len(priors), instruments=r.instruments))
                      for r, m in zip(recordings, models))
         return models, sum(lls), chi2
 
     if k == 0:
         models, ll, chi2 = summary(np.zeros(0))
         return JointFit(hypothesis, {}, models, ll, chi2, ll, sum(runs))
-    low = np.array([p.low for p in hypothesis.priors])
-    span = np.array([p.high for p in hypothesis.priors]) - low
-    normal = np.array([p.sd is not None for p in hypothesis.priors])
-    mean = np.array([p.mean if p.sd is not None else 0.0 for p in hypothesis.priors])
-    sd = np.array([p.sd if p.sd is not None else 1.0 for p in hypothesis.priors])
+    low = np.array([p.low for p in priors])
+    span = np.array([p.high for p in priors]) - low
+    normal = np.array([p.sd is not None for p in priors])
+    mean = np.array([p.mean if p.sd is not None else 0.0 for p in priors])
+    sd = np.array([p.sd if p.sd is not None else 1.0 for p in priors])
 
-    def residuals(u):  # rows (m, k) -> (m, every recording's standardized misfit + normal priors)
+    def residuals(u):  # rows (m, len(priors)) -> (m, every recording's standardized misfit + normal priors)
         theta = low + u * span
         misfits = [likelihood.standardized_residuals(r.data, found, r.sigma, r.instruments).reshape(len(u), -1)
                    for r, found in zip(recordings, outputs(theta))]
@@ -464,11 +494,17 @@ def fit_joint(hypothesis: Hypothesis, recordings: Sequence[Recording], starts: S
             u0 = result.x
         return result
 
-    u_starts = [(np.array([start[p.name] for p in hypothesis.priors]) - low) / span for start in starts]
+    def vector(start):
+        shared = [start[p.name] for p in shared_priors]
+        each = [np.broadcast_to(np.asarray(start[p.name], dtype=float), (n,)) for p in own_priors]
+        return np.array(shared + [values[r] for r in range(n) for values in each], dtype=float)
+
+    u_starts = [(vector(start) - low) / span for start in starts]
     chains = concurrency.in_parallel({number: lambda u0=u0: follow(u0) for number, u0 in enumerate(u_starts)})
     best = min((chains[number] for number in sorted(chains)), key=lambda result: result.cost)
     theta_star = low + best.x * span
     models, ll, chi2 = summary(theta_star)
-    log_evidence, at_bound, covariance = _laplace(hypothesis, best, theta_star, ll)
-    return JointFit(hypothesis, dict(zip(hypothesis.parameters, shared(theta_star[None])[0].tolist())), models, ll, chi2, log_evidence,
-                    sum(runs), at_bound, covariance)
+    log_evidence, at_bound, covariance = _laplace(priors, best, theta_star, ll)
+    effective = [dict(zip(hypothesis.parameters, admissible(theta_star[None, at])[0].tolist())) for at in columns]
+    return JointFit(hypothesis, {p.name: effective[0][p.name] for p in shared_priors}, models, ll, chi2, log_evidence, sum(runs),
+                    at_bound, covariance, own_values=tuple({p.name: e[p.name] for p in own_priors} for e in effective) if own_priors else ())

@@ -24,7 +24,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from . import comparison, concurrency, effects, hypotheses, instrument_checks, io, model, next_condition, noise, sensors, slots
-from .discovery import search
+from .discovery import search, verify
 from .hypotheses import HEALTHY, PARAMETER_CHANGE
 from .settings import Settings
 
@@ -107,7 +107,9 @@ def _discovery(ranking: Sequence[Mapping], fits, seen: Sequence[hypotheses.Recor
     """One term of the catalogue behind every recording's residual (:func:`newdyn.discovery.search.discover_across`),
     from the drift that the recordings' evidence favours, fitted to all of them: each form with one shape for all
     recordings, so that a line that moves with the speed is an order of a disk and one that stays a fixed frequency.
-    Each term's best place, best first, and what each recording alone would have said."""
+    Each term's best place, best first, what each recording alone would have said, and the best term added to the
+    model: fitted to all recordings on the full simulator with that drift (:func:`newdyn.discovery.verify.fit_across`),
+    each recording's reduced χ² before and after."""
     drift = next(row["hypothesis"] for row in ranking if row["class"] in (HEALTHY, PARAMETER_CHANGE))
     fit = fits[drift]
     records = []
@@ -120,11 +122,21 @@ def _discovery(ranking: Sequence[Mapping], fits, seen: Sequence[hypotheses.Recor
     for row in across.scores:  # each term's best place, best first
         best.setdefault(row["term"], row)
     top = across.scores[0]["log_evidence"] if across.scores else 0.0
-    return {"from": drift, "candidates": list(best.values()),
-            "equivalent": [f"{row['term']} on {row['acts_on']}" for row in across.scores
-                           if top - row["log_evidence"] <= settings.evidence_margin],
-            "alone": [{"peaks_hz": list(found.peaks.frequencies), "equivalent_terms": _equal_terms(found, settings.evidence_margin)}
-                      for found in across.alone]}
+    section = {"from": drift, "candidates": list(best.values()),
+               "equivalent": [f"{row['term']} on {row['acts_on']}" for row in across.scores
+                              if top - row["log_evidence"] <= settings.evidence_margin],
+               "alone": [{"peaks_hz": list(found.peaks.frequencies), "equivalent_terms": _equal_terms(found, settings.evidence_margin)}
+                         for found in across.alone]}
+    if across.scores:
+        row = across.scores[0]
+        found = instrument_checks.joint_checked(
+            verify.fit_across(row["term"], row["acts_on"], across.shapes[0], row["parameters"], seen, fit.values, settings), seen,
+            settings.evidence_margin)
+        section["fit"] = {"effect": found.hypothesis.name, "chi2_before": list(fit.chi2_red), "chi2_after": list(found.chi2_red),
+                          "log_evidence": found.log_evidence, "log_bayes_factor": found.log_evidence - fit.log_evidence,
+                          "explains": all(chi2 <= settings.chi2_max for chi2 in found.chi2_red),
+                          "parameters": found.laplace_parameters(), "own_parameters": found.own_parameters()}
+    return section
 
 
 def _equal_terms(found: search.Discovery, margin: float) -> list[str]:
@@ -236,4 +248,8 @@ def _discovered(section: Mapping, recordings: Sequence[str]) -> str:
                  if {best["term"], others[0]["term"]} <= set(row["equivalent_terms"])]
         if alone:
             words += f", which {' and '.join(alone)} alone could not tell apart"
+    if "fit" in section:
+        fit = section["fit"]
+        chi2 = ", ".join(f"{name} {before:.3g} -> {after:.3g}" for name, before, after in zip(recordings, fit["chi2_before"], fit["chi2_after"]))
+        words += f"; added to the model, it {'explains' if fit['explains'] else 'does not explain'} them (reduced chi2 {chi2})"
     return words

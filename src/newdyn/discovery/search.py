@@ -19,7 +19,7 @@ from __future__ import annotations
 import math
 from collections import Counter
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy import signal, stats
@@ -147,8 +147,11 @@ class Across:
     discovery, and every form scored on all of them with one shape, best first (:func:`discover_across`)."""
 
     alone: list[Discovery]
-    scores: list[dict]  # term, acts_on, shape, log_evidence, log_bayes_factor, chi2_after, frequency_hz (one per record)
+    # term, acts_on, shape, log_evidence, log_bayes_factor, chi2_after; frequency_hz and parameters (as a candidate's)
+    # one per record
+    scores: list[dict]
     log_evidence_without: float
+    shapes: list[Shape]  # each score's best shape
 
 
 def discover_across(records: Sequence[tuple], max_step: float) -> Across:
@@ -162,13 +165,25 @@ def discover_across(records: Sequence[tuple], max_step: float) -> Across:
                    found.first, found.peaks) for (residual, sigma, *_), found in zip(records, alone)]
     places = _places({place: sum(found.forces[place].log_bayes_factor for found in alone) for place in ESTIMABLE_PLACES})
     without = sum(found.log_evidence_without for found in alone)
-    scores = []
-    for log_evidence, form, place, shapes, weights, fit, _ in _scored(places, seen):
-        shape = shapes[int(np.argmax(weights))]
+    scores, best_shapes = [], []
+    for log_evidence, form, place, shapes, weights, fit, scales in _scored(places, seen):
+        best = int(np.argmax(weights))
+        shape = shapes[best]
         scores.append({"term": form.term, "acts_on": place, "shape": shape.label, "order": form.order(shape),
                        "frequency_hz": [form.frequency_hz(shape, record.trajectory) for record in seen],
-                       "log_evidence": log_evidence, "log_bayes_factor": log_evidence - without, "chi2_after": fit.chi2_after})
-    return Across(alone, scores, without)
+                       "log_evidence": log_evidence, "log_bayes_factor": log_evidence - without, "chi2_after": fit.chi2_after,
+                       "parameters": [_posterior(form, _record_coefficients(form, fit, i), scale, shapes, best, weights, place)
+                                      for i, scale in enumerate(scales)]})
+        best_shapes.append(shape)
+    return Across(alone, scores, without, best_shapes)
+
+
+def _record_coefficients(form: type[Form], fit: force.Regression, record: int) -> force.Regression:
+    """The regression's coefficients that act in ``record``: a phased form's block of that record, else all of them."""
+    if not form.phased or len(fit.mean) == len(form.coefficients):
+        return fit
+    block = slice(record * len(form.coefficients), (record + 1) * len(form.coefficients))
+    return replace(fit, mean=fit.mean[block], sd=fit.sd[block])
 
 
 @dataclass(frozen=True)
@@ -198,8 +213,9 @@ def _scored(places: Sequence[str], records: Sequence[Record]) -> list[tuple]:
 
 def _score(form: type[Form], place: str, records: Sequence[Record]):
     """(log-evidence with the shapes marginalized, form, place, the shapes, their posterior weights, the best shape's
-    regression and each record's basis RMS for it), or None when the form proposes no shape at ``place``.  Over several
-    records one shape holds for all (those any record proposes); a phased form's coefficients are each record's own."""
+    regression and the force per unit coefficient in each record, its basis RMS), or None when the form proposes no shape
+    at ``place``.  Over several records one shape holds for all (those any record proposes); a phased form's coefficients
+    are each record's own, and any other's one force for all, its basis normalized by its RMS over all records."""
     shapes = form.shapes(records[0].trajectory, place, records[0].peaks)
     for record in records[1:]:
         shapes += [shape for shape in form.shapes(record.trajectory, place, record.peaks) if shape not in shapes]
@@ -213,6 +229,10 @@ def _score(form: type[Form], place: str, records: Sequence[Record]):
         if form.phased and len(records) > 1:  # block-diagonal: record i's coefficients move record i alone
             columns = [np.concatenate([c if j == i else np.zeros_like(c) for j in range(len(records))], axis=2)
                        for i, c in enumerate(columns)]
+        elif len(records) > 1:  # one coefficient, one force for all records: each basis normalized over all of them
+            pooled = np.sqrt(np.average(np.square(rms), axis=0, weights=[r.residual.shape[1] for r in records]))
+            columns = [c * (r / pooled) for c, r in zip(columns, rms)]
+            rms = (pooled,) * len(records)
         fits.append(force.regress_records([r.residual for r in records], [r.sigma for r in records], columns, prior_range))
         scales.append(rms)
     log_z = np.array([f.log_evidence for f in fits]) + form.log_prior(records[0].trajectory, records[0].peaks, len(shapes))

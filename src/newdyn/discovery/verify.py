@@ -10,7 +10,7 @@ parameters, and ranked by that fit's Laplace evidence, as the library's hypothes
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -20,6 +20,7 @@ import xarray as xr
 
 from .. import cache, effects, hypotheses, io, model, noise, sensors, simulation
 from . import effect_file, search
+from .forms import FORMS, Shape
 
 if TYPE_CHECKING:
     from ..settings import Settings
@@ -124,16 +125,40 @@ def _full_fit(candidate: search.Candidate, data, sigma, values, calibrated: hypo
               settings: Settings) -> hypotheses.Fit:
     """``candidate`` (its form's generic effect file) and the drift parameters fitted on the full simulator,
     within :func:`newdyn.discovery.effect_file.prior_range` of its linearized fit."""
-    effect_name, content = effect_file.render_generic(candidate.term, candidate.acts_on, candidate.shape)
-    path = generic_path(effect_name)
-    if not path.is_file() or path.read_text(encoding="utf-8") != content:
-        io.atomic_write(path, lambda tmp: Path(tmp).write_text(content, encoding="utf-8"))
-    with effects.including(path) as effect:
+    with effects.including(_generic_file(candidate.term, candidate.acts_on, candidate.shape)) as effect:
         ranges = {effect.name: {key: effect_file.prior_range(key, row)[:2] for key, row in candidate.parameters.items()}}
         hypothesis = hypotheses.library(settings.calibration_priors(), ranges, settings.drift)[-1]
         start = {**{key: float(row["value"]) for key, row in candidate.parameters.items()}, **calibrated.values}
         return hypotheses.fit(hypothesis, data, sigma, values, sampling, settings.channels, [start], settings.max_step, search=False,
                               instruments=_datasheets(calibrated, settings, sampling))
+
+
+def fit_across(term: str, place: str, shape: Shape, parameters: Sequence[Mapping], recordings: Sequence[hypotheses.Recording],
+               drifted: Mapping[str, float], settings: Settings) -> hypotheses.JointFit:
+    """A term found across a machine's recordings (its form's generic effect file at ``place`` with ``shape``) and the
+    drift parameters fitted to all ``recordings`` at once on the full simulator, from the search's ``parameters`` (one
+    mapping per recording) and the ``drifted`` values.  One shape and drift for all; a phased form's amplitude and phase
+    are each recording's own, as the search fitted them (separate recordings share no clock nor angle mark).  Each
+    parameter's range covers what :func:`newdyn.discovery.effect_file.prior_range` gives around every recording's value."""
+    own = [key for key in parameters[0] if FORMS[term].phased and key not in shape.values]
+    with effects.including(_generic_file(term, place, shape)) as effect:
+        ranges = {effect.name: {key: (min(effect_file.prior_range(key, row[key])[0] for row in parameters),
+                                      max(effect_file.prior_range(key, row[key])[1] for row in parameters)) for key in parameters[0]}}
+        hypothesis = hypotheses.library(settings.calibration_priors(), ranges, settings.drift)[-1]
+        start = {p.name: p.mean if p.sd is not None else 0.5 * (p.low + p.high) for p in hypothesis.priors}  # a drift not fitted
+        start.update(drifted)
+        start.update({key: [float(row[key]["value"]) for row in parameters] if key in own else float(parameters[0][key]["value"])
+                      for key in parameters[0]})
+        return hypotheses.fit_joint(hypothesis, recordings, [start], settings.max_step, own)
+
+
+def _generic_file(term: str, place: str, shape: Shape) -> Path:
+    """The generic effect file of the form ``term`` at ``place`` (with ``shape``'s disk), written where it is not yet."""
+    effect_name, content = effect_file.render_generic(term, place, shape)
+    path = generic_path(effect_name)
+    if not path.is_file() or path.read_text(encoding="utf-8") != content:
+        io.atomic_write(path, lambda tmp: Path(tmp).write_text(content, encoding="utf-8"))
+    return path
 
 
 def _datasheets(calibrated: hypotheses.Fit, settings: Settings, sampling) -> sensors.Instruments | None:
