@@ -79,10 +79,16 @@ def test_the_posterior_of_the_fault_that_explains_the_data_is_verified_or_sample
     assert {p["method"] for p in verdict["parameters"].values()} == {posterior.attrs["method"]}
 
 
+def search_of(verdict, hypothesis):
+    return next(row["search"] for row in verdict["ranking"] if row["hypothesis"] == hypothesis)
+
+
 def test_healthy_rig_is_healthy(diagnosed):
     v = diagnosed["healthy"].verdict
     assert v["verdict"] == "healthy" and v["effect"] is None
     assert v["ranking"][0]["hypothesis"] == "healthy" and v["chi2_before"] == v["chi2_after"] < 1.1
+    # what explains the data leaves stick-slip's fit from the bank's members, without the global search
+    assert search_of(v, "stick_slip") == "members" and search_of(v, "healthy") is None
     assert v["statement"].startswith("healthy: the nominal model explains the data")
     assert v["where_nominal_fails"] == []
 
@@ -108,6 +114,8 @@ def test_stick_slip_is_new_dynamics_and_adding_it_brings_chi2_to_the_noise(diagn
     v = d.verdict
     assert (v["verdict"], v["effect"]) == ("new_dynamics", "stick_slip")
     assert v["chi2_before"] > 10 and v["chi2_after"] <= 1.1
+    assert search_of(v, "stick_slip") == "differential evolution"  # nothing else explains it: its fit decides
+    assert search_of(v, "breathing_crack") == "members"
     assert v["where_it_fails"] and all(f["channel"] in SETTINGS.channels for f in v["where_it_fails"])
     assert v["statement"].startswith("new dynamics: stick_slip added to the model, with T_max = ")
     assert set(v["parameters"]) == {*effects.active()["stick_slip"].parameter_names(), *SETTINGS.drift}
@@ -213,6 +221,19 @@ def test_laplace_evidence_of_a_drift_agrees_with_exact_quadrature():
         float(likelihood.log_likelihood(data, simulation.simulate(values, SAMPLING, channels), sigma)))
 
 
+def test_a_fit_of_one_chain_follows_the_start_that_fits_the_search_window_best():
+    """Two given starts, one near the truth: with one chain the fit is the near start's alone, in fewer simulations."""
+    m = measurement("kT1", {"kT1": 3.1e6}, seed=4)
+    drift = next(h for h in SETTINGS.hypotheses() if h.name == "parameter_change:kT1")
+    args = (drift, m.y[:2], m.sigma[:2], slots.complete({}), SAMPLING, CHANNELS[:2])
+    near, far = {"kT1": 3.12e6}, {"kT1": 2.0e6}
+    one = hypotheses.fit(*args, [far, near], search=False, chains=1)
+    alone = hypotheses.fit(*args, [near], search=False)
+    both = hypotheses.fit(*args, [far, near], search=False)
+    assert one.values == alone.values and one.log_evidence == alone.log_evidence
+    assert alone.n_simulations < one.n_simulations < both.n_simulations
+
+
 def test_a_fault_fit_reports_the_values_the_model_ran_with():
     """From the truth, least squares stays at its misfit; the fitted values map onto the kernel's rows
     (finding the truth from the prior box is the next test's)."""
@@ -260,9 +281,8 @@ def test_a_two_parameter_fit_from_the_banks_members_reaches_the_searchs_optimum_
     crack = next(h for h in SETTINGS.hypotheses() if h.name == "breathing_crack")
     values, channels = slots.complete({}), CHANNELS[:2]
     hyps = {h.name: h for h in SETTINGS.hypotheses()}
-    sets = bank.member_sets(hyps, ["breathing_crack", "stick_slip"], values, SAMPLING, channels, simulation.DEFAULT_MAX_STEP)
-    assert list(sets) == ["breathing_crack"]  # stick-slip fits four parameters: its fits keep their search
-    members = sets["breathing_crack"]
+    assert not bank.needs_search(crack) and bank.needs_search(hyps["stick_slip"])  # stick-slip fits four parameters
+    members = bank.member_sets(hyps, ["breathing_crack"], values, SAMPLING, channels, simulation.DEFAULT_MAX_STEP)["breathing_crack"]
     assert members.unit.shape == (bank.MEMBERS, 2) and members.outputs.shape[1:] == (2, hypotheses.fit_windows(SAMPLING)[1])
     searched = hypotheses.fit(crack, m.y[:2], m.sigma[:2], values, SAMPLING, channels)
     started = hypotheses.fit(crack, m.y[:2], m.sigma[:2], values, SAMPLING, channels, members=members)

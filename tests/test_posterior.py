@@ -47,6 +47,27 @@ def test_quadrature_recovers_a_correlated_gaussian_from_an_approximation_off_cen
     np.testing.assert_allclose(got_sd, sd, rtol=0.06)
 
 
+def test_a_posterior_nothing_rests_on_costs_one_batch_of_importance_sampling_and_never_quadrature():
+    """Unverified (``verify=False``): from an approximation off centre and too narrow, one batch of draws and no
+    lattice; from the exact one, that batch verifies the answer."""
+    mean, sd = STIFFNESS_AND_DEPTH
+    cov = np.array([[1.0, -0.9], [-0.9, 1.0]]) * np.outer(sd, sd)
+    calls = []
+
+    def counted(theta):
+        calls.append(len(theta))
+        return gaussian(mean, cov)(theta)
+
+    off = posterior.sample(counted, box([0, 0], [1e7, 1]), ["k", "a"], mean + np.array([1.0, -1.0]) * sd, 0.5**2 * cov, SETTINGS,
+                           verify=False)
+    assert off.attrs["method"] == "importance sampling" and off.attrs["n_proposals"] == SETTINGS.batch == sum(calls)
+    exact = posterior.sample(gaussian(mean, cov), box([0, 0], [1e7, 1]), ["k", "a"], mean, cov, SETTINGS, verify=False)
+    assert exact.attrs["method"] == "importance sampling" and exact.attrs["converged"] == 1
+    got_mean, got_sd = moments(exact, ["k", "a"])
+    np.testing.assert_array_less(np.abs(got_mean - mean), 4 * sd / np.sqrt(SETTINGS.batch))
+    np.testing.assert_allclose(got_sd, sd, rtol=0.1)
+
+
 def test_quadrature_follows_a_thin_curved_ridge_a_gaussian_proposal_misses():
     """x ~ N(0, 1), y | x ~ N(b (x² − 1), w²): a banana whose ridge bends 8 of its widths away from its tangent at
     two sds.  E[y] = 0 and sd(y) = √(2 b² + w²), against −b and w at the mode, where the approximation sits."""

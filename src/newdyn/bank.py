@@ -1,12 +1,13 @@
 """What every diagnosis at one operating condition and record reuses, computed once per study and condition: the
-signature library (:mod:`newdyn.signatures`) and the members of each hypothesis of few parameters.
+signature library (:mod:`newdyn.signatures`) and the members of each hypothesis with parameters.
 
 Members are quasi-random points (a scrambled Sobol sequence) of a hypothesis's prior box, simulated over the fits'
 first search windows.  A fit of a hypothesis with at most :data:`MAX_PARAMETERS` fitted parameters starts its least
 squares on each of those windows from the member that fits it best, instead of from a differential evolution there:
 :data:`MEMBERS` points put 32 on each axis of a two-parameter box, as dense as the search's own population.  A
-four-parameter box (stick-slip) would get fewer than six an axis; its fits keep the search, whose wide population
-finds the truth's narrow basin where the bank's best members, seeding it, led it astray.
+four-parameter box (stick-slip) gets fewer than six an axis, too few to find the truth's narrow basin (seeding the
+search with its best members led it astray): its fit starts from members only where another hypothesis already
+explains the data, so that its fit cannot decide the verdict (:func:`needs_search`), and searches everywhere else.
 """
 
 from __future__ import annotations
@@ -28,8 +29,14 @@ MEMBER_SEED = 1
 
 
 def banked(hyps: Mapping[str, hypotheses.Hypothesis], kinds: Sequence[str]) -> list[str]:
-    """The hypotheses of ``kinds`` whose fits start from members."""
-    return [kind for kind in kinds if len(hyps[kind].priors) <= MAX_PARAMETERS]
+    """The hypotheses of ``kinds`` with members: those with parameters."""
+    return [kind for kind in kinds if hyps[kind].priors]
+
+
+def needs_search(hypothesis: hypotheses.Hypothesis) -> bool:
+    """Whether a fit of ``hypothesis`` needs the global search wherever its result may decide the verdict: it has more
+    than :data:`MAX_PARAMETERS` parameters, too many for the members to find its best fit's basin."""
+    return len(hypothesis.priors) > MAX_PARAMETERS
 
 
 def spec(hyps: Mapping[str, hypotheses.Hypothesis], signature_entries, kinds: Sequence[str], values: Mapping[str, float],
@@ -55,22 +62,22 @@ def build(hyps: Mapping[str, hypotheses.Hypothesis], signature_entries, kinds: S
           sampling: model.Sampling, channels: Sequence[str], grids: Mapping[str, calibration.GridSpec],
           priors: Mapping[str, calibration.NormalPrior], coarse: Mapping[str, np.ndarray], instruments: sensors.Instruments | None,
           max_step: float) -> xr.Dataset:
-    """The bank: the signature library and, for each hypothesis of ``kinds`` with few parameters, its members."""
+    """The bank: the signature library and, for each hypothesis of ``kinds`` with parameters, its members."""
     bank = signatures.build(hyps, signature_entries, values, sampling, channels, grids, priors, coarse, instruments, max_step)
     for kind, found in member_sets(hyps, kinds, values, sampling, channels, max_step).items():
         bank[f"members_{kind}"] = ((f"member_{kind}", f"parameter_{kind}"), found.unit)
         bank[f"member_outputs_{kind}"] = ((f"member_{kind}", "channel", "search_time"), found.outputs)
         bank = bank.assign_coords({f"parameter_{kind}": hyps[kind].parameters})
     bank_spec = spec(hyps, signature_entries, kinds, values, sampling, channels, grids, priors, instruments, max_step)
-    bank.attrs.update(title="newdyn study bank: the signature library and the members of few-parameter hypotheses",
+    bank.attrs.update(title="newdyn study bank: the signature library and the members of each hypothesis with parameters",
                       key=key(bank_spec), spec=json.dumps(bank_spec, sort_keys=True, default=str))
     return bank
 
 
 def member_sets(hyps: Mapping[str, hypotheses.Hypothesis], kinds: Sequence[str], values: Mapping[str, float],
                 sampling: model.Sampling, channels: Sequence[str], max_step: float) -> dict[str, hypotheses.Members]:
-    """The members of each hypothesis of ``kinds`` with few parameters, their outputs kept in single precision (they
-    only rank the members; a fit's least squares simulates its own)."""
+    """The members of each hypothesis of ``kinds`` with parameters, their outputs kept in single precision (they only
+    rank the members; a fit's least squares simulates its own)."""
     window = replace(sampling, n_samples=_search_samples(sampling))
     found = {}
     for kind in banked(hyps, kinds):
@@ -84,7 +91,7 @@ def member_sets(hyps: Mapping[str, hypotheses.Hypothesis], kinds: Sequence[str],
 
 
 def members(bank: xr.Dataset, kind: str) -> hypotheses.Members | None:
-    """A hypothesis's members in ``bank`` (None when its fits search instead)."""
+    """A hypothesis's members in ``bank`` (None when it has none)."""
     if f"members_{kind}" not in bank:
         return None
     return hypotheses.Members(bank[f"members_{kind}"].values, bank[f"member_outputs_{kind}"].values)

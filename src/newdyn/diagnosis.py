@@ -155,27 +155,40 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
     signatures = signature_module.distances(bank, calibrations, sigma, settings.priors)
     stage(f"{signatures.sizes['signature']} signatures")
 
-    # Fits: healthy as it is, drifts from their grids (exact), faults from their closest signature and a global search.
+    # Fits: healthy as it is, drifts from their grids (exact), faults from their closest signature and from the bank's
+    # members, or a global search where members are too sparse and the fit may decide the verdict.
     fits = {HEALTHY: hypotheses.fit(hyps[HEALTHY], data, sigma, values, sampling, channels, max_step=settings.max_step,
                                     instruments=instruments)}
     fits.update({f"{PARAMETER_CHANGE}:{p}": _drift_fit(hyps[f"{PARAMETER_CHANGE}:{p}"], cal, instruments) for p, cal in calibrations.items()})
     closest = signatures.mean("parameter")
 
-    def fault_fit(kind):
+    def fault_fit(kind, search_globally):
         started = time.perf_counter()
         mine = closest.where(signatures["hypothesis"] == kind, drop=True)
         start = json.loads(str(mine["values"].values[int(np.argmin(mine.values))]))
+        members = None if search_globally else bank_module.members(bank, kind)
+        # Too large for its members, where another hypothesis explains the data: its fit is only a lower bound on its
+        # evidence, from its one best start.
+        chains = 1 if members is not None and bank_module.needs_search(hyps[kind]) else None
         fit = hypotheses.fit(hyps[kind], data, sigma, values, sampling, channels, [start], settings.max_step, instruments=instruments,
-                             members=bank_module.members(bank, kind))
-        log.info("%s: fit of %s (%d simulations, chi2 %.4g) in %.1f s", measurement.name, kind, fit.n_simulations, fit.chi2_red,
-                 time.perf_counter() - started)
+                             members=members, chains=chains)
+        log.info("%s: fit of %s from %s (%d simulations, chi2 %.4g) in %.1f s", measurement.name, kind, fit.search, fit.n_simulations,
+                 fit.chi2_red, time.perf_counter() - started)
         return fit
 
-    # The largest searches first, so that the longest fit does not start last.
-    fitted = concurrency.in_parallel({kind: lambda kind=kind: fault_fit(kind)
-                           for kind in sorted(settings.fault_ranges, key=lambda kind: -len(hyps[kind].priors))})
+    def fault_fits(kinds, search_globally=False):  # the largest first, so that the longest fit does not start last
+        return concurrency.in_parallel({kind: lambda kind=kind: fault_fit(kind, search_globally)
+                                        for kind in sorted(kinds, key=lambda kind: -len(hyps[kind].priors))})
+
+    # A hypothesis too large for its members searches globally only where nothing else explains the data: elsewhere
+    # its best fit cannot take the verdict from what does, and its members' fit stands as a lower bound on it.
+    large = [kind for kind in settings.fault_ranges if bank_module.needs_search(hyps[kind])]
+    fitted = fault_fits([kind for kind in settings.fault_ranges if kind not in large])
+    explained = [name for name, fit in {**fits, **fitted}.items() if _explains(fit, calibrations, settings.chi2_max)]
+    fitted.update(fault_fits(large, search_globally=not explained))
     fits.update({kind: fitted[kind] for kind in settings.fault_ranges})
-    stage(f"fits of {', '.join(settings.fault_ranges)}")
+    stage(f"fits of {', '.join(settings.fault_ranges)}" + (f" ({', '.join(large)} from members: {', '.join(explained)} explains the data)"
+                                                          if large and explained else ""))
     fits = {name: instrument_checks.checked(fit, data, sigma, settings.evidence_margin) for name, fit in fits.items()}
     if colour is None and settings.noise_colour_order:
         best = max(fits.values(), key=lambda fit: fit.log_evidence)
@@ -302,7 +315,8 @@ def _drift_fit(hypothesis: hypotheses.Hypothesis, cal: calibration.Calibration, 
 def _effect_posterior(fit: hypotheses.Fit, data, sigma, values, sampling, channels, settings: Settings, ahead: str | None):
     """The posterior of a fault model's parameters (InferenceData) from its fit's Laplace approximation, by quadrature or
     importance sampling (:mod:`newdyn.posterior`) where that is verified; else, where the verdict may rest on the fault
-    (nothing without it explains the data ``ahead`` of it), emcee to convergence, up to ``max_rounds`` rounds."""
+    (nothing without it explains the data ``ahead`` of it), emcee to convergence, up to ``max_rounds`` rounds.  Where
+    the verdict rests on what is ahead, one batch of importance sampling: how much of the fault the data leave room for."""
     hypothesis = fit.hypothesis
 
     def log_likelihood(rows):
@@ -314,12 +328,12 @@ def _effect_posterior(fit: hypotheses.Fit, data, sigma, values, sampling, channe
     support = {p.name: [p.low, p.high] for p in hypothesis.priors}
     posterior = posterior_module.sample(log_likelihood, hypothesis.log_prior, hypothesis.parameters, fit.theta, fit.covariance,
                                         settings.posterior, observed=observed,
-                                        attrs={"hypothesis": hypothesis.name, "support": support})
+                                        attrs={"hypothesis": hypothesis.name, "support": support}, verify=ahead is None)
     if posterior.attrs["converged"]:
         return posterior
     if ahead is not None:
         # The verdict rests on another hypothesis: the unverified answer shows how much of the fault the data leave
-        # room for, and sampling it to convergence would change nothing.
+        # room for, and sampling it further would change nothing.
         posterior.attrs["reason"] = f"{ahead} explains the data with more evidence; {posterior.attrs['reason']}"
         return posterior
     return _sample_effect(fit, log_likelihood, observed, support, settings,
@@ -378,7 +392,7 @@ def _verdict(fits, calibrations, signatures, settings: Settings, values, samplin
             "hypothesis": name, "class": fits[name].hypothesis.verdict_class, "effect": fits[name].hypothesis.effect,
             "confidence": float(c), "log_evidence": fits[name].log_evidence, "chi2": fits[name].chi2_red,
             "explains": _explains(fits[name], calibrations, settings.chi2_max), "parameters": _fit_parameters(fits[name], calibrations),
-            "at_bound": list(fits[name].at_bound),
+            "at_bound": list(fits[name].at_bound), "search": fits[name].search,
             "hellinger": float(mine.min()), "closest_signature": str(mine["signature"].values[int(np.argmin(mine.values))]),
         })
     top = ranking[0]

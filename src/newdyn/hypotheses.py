@@ -46,6 +46,8 @@ SEARCH_POPULATION = 16  # members per fitted parameter
 # longer window only narrows it around where the shorter one left off (docs/validation.md: Stick-slip fits).
 SEARCH_WINDOW = 0.05  # s
 SEARCHES = 2  # on the first this many windows
+# Where a fit's least squares started besides its given starts: the bank's members, or a differential evolution.
+SEARCHED_FROM = ("members", "differential evolution")
 
 
 @dataclass(frozen=True)
@@ -199,6 +201,7 @@ class Fit:
     at_bound: tuple[str, ...] = ()
     covariance: np.ndarray | None = None  # Laplace posterior covariance of the fitted values
     instruments: sensors.Instruments | None = None  # the instrument errors its likelihood integrates out (None: exact)
+    search: str | None = None  # where its least squares started besides the given starts: SEARCHED_FROM (None: nowhere)
 
     @property
     def theta(self) -> np.ndarray:
@@ -212,6 +215,7 @@ class Fit:
             "hypothesis": self.hypothesis.name, "kind": self.hypothesis.kind, "effect": self.hypothesis.effect,
             "parameters": self.values, "chi2": self.chi2_red, "log_likelihood": self.log_likelihood,
             "log_evidence": self.log_evidence, "at_bound": list(self.at_bound), "n_simulations": self.n_simulations,
+            "search": self.search,
         }
 
 
@@ -256,6 +260,7 @@ def fit(
     search: bool = True,
     instruments: sensors.Instruments | None = None,
     members: Members | None = None,
+    chains: int | None = None,
 ) -> Fit:
     """Best fit of ``hypothesis`` by bounded least squares on the simulator (misfit standardized by
     ``sigma``, plus the Normal priors' terms), the best of several starts kept; with ``instruments`` the
@@ -266,7 +271,8 @@ def fit(
     bank's ``members`` when given, else the best member of a differential evolution (``seed``) over the prior box, simulated
     with a search's longer steps at a slipping joint.  Each start is fitted on its
     window, then on the longer ones up to the whole record, each from the last one's optimum:
-    stick-slip's misfit has many local minima, and only a short window shows the truth's basin wide.
+    stick-slip's misfit has many local minima, and only a short window shows the truth's basin wide.  With ``chains``,
+    only that many starts are followed: those that fit the longest search window best.
 
     Log-evidence by the Laplace approximation in unit coordinates u = (θ − low)/(high − low):
     log Z ≈ log L(u*) + log π(u*) + (k/2) log 2π − ½ log det H − (parameters at a bound)·log 2, with H the
@@ -305,6 +311,7 @@ def fit(
     given = [[start.get(p.name, p.mean if p.sd is not None else p.low + 0.5 * (p.high - p.low)) for p in hypothesis.priors]
              for start in starts]
     u_starts = [((np.array(theta) - low) / span, 0) for theta in given]  # (start, index of its first window)
+    searched_from = None if not search else SEARCHED_FROM[0] if members is not None else SEARCHED_FROM[1]
     if search and members is not None:
         for first, n_samples in enumerate(windows[:SEARCHES]):
             misfit = residuals_of(members.unit, members.outputs[..., :n_samples], n_samples)
@@ -325,6 +332,12 @@ def fit(
                 u0 = result.x
         return result
 
+    starts = [(u0, first, number < len(given)) for number, (u0, first) in enumerate(u_starts)]
+    if chains is not None and len(starts) > chains:
+        rows = np.array([np.clip(u0, 1e-6, 1 - 1e-6) for u0, _, _ in starts])
+        costs = np.sum(residuals(rows, windows[min(SEARCHES, len(windows)) - 1]) ** 2, axis=1)
+        starts = [starts[i] for i in sorted(np.argsort(costs, kind="stable")[:chains])]
+
     def chain(u0, first, given_start):
         result = follow(u0, first)
         # A given start that is already good over the whole record (the truth, a posterior's best
@@ -336,9 +349,8 @@ def fit(
         return result
 
     # Each start's chain of least squares runs few simulations at a time: the chains side by side fill the cores.
-    chains = concurrency.in_parallel({number: lambda number=number, u0=u0, first=first: chain(u0, first, number < len(given))
-                                      for number, (u0, first) in enumerate(u_starts)})
-    best = min(chains.values(), key=lambda result: result.cost)  # the first of equals, as the starts are ordered
+    followed = concurrency.in_parallel({number: lambda start=start: chain(*start) for number, start in enumerate(starts)})
+    best = min(followed.values(), key=lambda result: result.cost)  # the first of equals, as the starts are ordered
     theta_star = low + best.x * span
     model_star = simulate(theta_star[None])[0]
     ll = float(likelihood.log_likelihood(data, model_star, sigma, instruments=instruments))
@@ -346,7 +358,7 @@ def fit(
     return Fit(
         hypothesis, hypothesis.effective_values(theta_star, base), model_star, ll,
         float(likelihood.reduced_chi2(data, model_star, sigma, n_fitted=k, instruments=instruments)), log_evidence, sum(runs), at_bound,
-        covariance, instruments,
+        covariance, instruments, searched_from,
     )
 
 

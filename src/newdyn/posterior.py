@@ -113,12 +113,15 @@ def sample(
     observed: Mapping[str, xr.DataArray] | None = None,
     attrs: Mapping[str, object] | None = None,
     to_values: BatchFn | None = None,
+    verify: bool = True,
 ):
     """The posterior of ``names`` around the Laplace approximation (``mean``, ``covariance``): by quadrature for up to
     :data:`MAX_QUADRATURE_PARAMETERS`, else by importance sampling.  ``log_prior_batch`` is −inf outside the prior's
     support, where the likelihood is never called; the likelihood must return −inf, never NaN, where a simulation
     fails.  With ``to_values`` the functions and the approximation are in coordinates of the caller's choosing (the
-    prior's density with its Jacobian), where a ridge may be straighter, and the draws are mapped to the values by it."""
+    prior's density with its Jacobian), where a ridge may be straighter, and the draws are mapped to the values by it.
+    Without ``verify`` (nothing the caller concludes rests on it) one batch of importance sampling, verified only if
+    that batch is enough, and no quadrature."""
     whitened = _Whitened.of(mean, covariance)
 
     def log_posterior(theta):  # (log prior + log-likelihood, log-likelihood), the likelihood only inside the support
@@ -129,10 +132,11 @@ def sample(
             ll[inside] = log_likelihood_batch(theta[inside])
         return lp + ll, ll
 
-    checkable = len(names) <= MAX_QUADRATURE_PARAMETERS
+    checkable = verify and len(names) <= MAX_QUADRATURE_PARAMETERS
+    effort = settings if verify else dataclasses.replace(settings, max_draws=settings.batch)
     theta, log_weight, log_post, log_like, cells, found = _importance(
-        log_posterior, whitened, dataclasses.replace(settings, pareto_k_max=min(settings.pareto_k_max, CHECKED_PARETO_K))
-        if checkable else settings)
+        log_posterior, whitened, dataclasses.replace(effort, pareto_k_max=min(effort.pareto_k_max, CHECKED_PARETO_K))
+        if checkable else effort)
     if checkable and not found["converged"]:
         tried = f"importance sampling first: {found['reason']}"
         theta, log_weight, log_post, log_like, cells, found = _quadrature(
