@@ -100,6 +100,9 @@ def test_a_stiffer_motor_shaft_is_a_parameter_change_and_its_equivalents_are_nam
     assert v["statement"].startswith(f"parameter change: {v['effect']} = ")
     assert v["where_nominal_fails"] and v["where_it_fails"] == []  # the nominal model fails, the drift fits
     kT1 = next(r for r in v["ranking"] if r["hypothesis"] == "parameter_change:kT1")
+    assert kT1["finding_visible"]  # and anything ranked above the verdict's hypothesis shows nothing
+    above = v["ranking"][:next(i for i, r in enumerate(v["ranking"]) if r["effect"] == v["effect"])]
+    assert all(r["explains"] and not r["finding_visible"] for r in above)
     assert kT1["parameters"]["kT1"]["mean"] == pytest.approx(3.25e6, rel=0.01)
     assert kT1["parameters"]["kT1"]["hdi_low"] < 3.25e6 < kT1["parameters"]["kT1"]["hdi_high"]
     if len(v["equivalent"]) > 1:  # seen through b1_x and w1 only, shaft stiffnesses trade off
@@ -219,6 +222,23 @@ def test_laplace_evidence_of_a_drift_agrees_with_exact_quadrature():
     healthy = hypotheses.fit(hypotheses.Hypothesis("healthy", "healthy"), data, sigma, values, SAMPLING, channels)
     assert healthy.log_evidence == healthy.log_likelihood == pytest.approx(
         float(likelihood.log_likelihood(data, simulation.simulate(values, SAMPLING, channels), sigma)))
+
+
+def test_an_effect_fitted_where_it_does_not_show_adds_nothing_the_data_could_see():
+    """A joint whose T_max lies above the torque it carries never slips: its model is its drifted rig's, and what it
+    adds is nothing, where the same joint slipping adds far more than the evidence margin."""
+    stick = next(h for h in SETTINGS.hypotheses() if h.name == "stick_slip")
+    values = slots.complete({})
+    sigma = noise.add_noise(simulation.simulate(values, SAMPLING, CHANNELS), CHANNELS, 40.0, 1)[1]
+
+    def added(**fitted):
+        theta = np.array([[fitted[p] for p in stick.parameters]])
+        outputs = hypotheses.evaluate(stick, theta, values, SAMPLING, CHANNELS, SETTINGS.max_step)[0]
+        return hypotheses.contribution(stick, fitted, outputs, values, SAMPLING, CHANNELS, sigma, SETTINGS.max_step)
+
+    never = {"T_max": 2400.0, "r_k": 1.0, "J2a_share": 1 / 3, "kT1": 3.1e6}
+    assert added(**never) < 1e-6
+    assert added(**{**never, "T_max": 1854.95}) > 100 * SETTINGS.evidence_margin
 
 
 def test_a_fit_of_one_chain_follows_the_start_that_fits_the_search_window_best():

@@ -62,8 +62,9 @@ def test_recorded_at_part_load_only_the_verdict_says_at_which_load_a_stick_slip_
     rivals = {row["rival"]: row["advice"] for row in v["record_next"]["rivals"]}
     advice = rivals["stick_slip"]
     assert advice["separates"] and advice["parameter"] == "T0" and advice["high"] is None
-    lowest_limit = SETTINGS.fault_ranges["stick_slip"]["T_max"][0]  # the prior's: the lowest a rival may have
-    assert PART_LOAD < lowest_limit / 1.307 * 0.97 <= advice["low"] <= SETTINGS.operating_range["T0"][1]
+    # Above the part load, where the rival did not slip; how far above depends on its J2a share, which a joint that
+    # never slips leaves free (the healthy joint torque peaks at 1.307 T0 at the default share, higher off it).
+    assert PART_LOAD < advice["low"] <= SETTINGS.operating_range["T0"][1]
     assert not any(a["separates"] for r, a in rivals.items() if r.startswith("parameter_change"))  # drifts of nothing
     assert f"record at T0 >= {advice['low']:.4g} N·m to tell healthy from stick_slip" in v["statement"]
 

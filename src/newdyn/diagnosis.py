@@ -394,8 +394,14 @@ def _verdict(fits, calibrations, signatures, settings: Settings, values, samplin
             "explains": _explains(fits[name], calibrations, settings.chi2_max), "parameters": _fit_parameters(fits[name], calibrations),
             "at_bound": list(fits[name].at_bound), "search": fits[name].search,
             "hellinger": float(mine.min()), "closest_signature": str(mine["signature"].values[int(np.argmin(mine.values))]),
+            "finding_log_bayes_factor": hypotheses.contribution(fits[name].hypothesis, fits[name].values, fits[name].model, values,
+                                                                sampling, settings.channels, sigma, settings.max_step),
         })
-    top = ranking[0]
+        ranking[-1]["finding_visible"] = ranking[-1]["finding_log_bayes_factor"] > settings.evidence_margin
+    # A finding the data cannot tell from the model without it is no finding: an effect fitted where it does not show
+    # (a joint that never slips, a crack of depth zero) only ties with its own drift, and leaves the verdict to what is
+    # ahead of it without it.
+    top = next(row for row in ranking if row["class"] == HEALTHY or row["finding_visible"] or not row["explains"])
     if top["explains"]:
         verdict, effect = top["class"], top["effect"]
         equivalent = [r["effect"] for r in ranking if r["class"] == verdict and r["explains"]

@@ -238,6 +238,18 @@ def evaluate(hypothesis: Hypothesis, theta: np.ndarray, base: Mapping[str, float
                                      search)
 
 
+def contribution(hypothesis: Hypothesis, values: Mapping[str, float], outputs: np.ndarray, base: Mapping[str, float],
+                 sampling: model.Sampling, channels: Sequence[str], sigma: np.ndarray, max_step: float) -> float:
+    """What ``hypothesis`` adds to the model, as the expected log Bayes factor of telling its ``outputs`` (at its fitted
+    ``values`` on ``base``) from the model without it, ½ Σ ((outputs − without) / σ)²: without, the nominal model for a
+    drift, the model with the same drifts but no effect for an effect."""
+    effect = effects.active().get(hypothesis.kind)
+    own = effect.parameter_names() if effect is not None else values
+    without = evaluate(Hypothesis(HEALTHY, HEALTHY), np.zeros((1, 0)),
+                       {**base, **{p: v for p, v in values.items() if p not in own}}, sampling, channels, max_step)[0]
+    return float(0.5 * np.sum(((outputs - without) / np.asarray(sigma)[:, None]) ** 2))
+
+
 def fit_windows(sampling: model.Sampling) -> list[int]:
     """Sample counts of the windows a fit goes through: the record's first :data:`SEARCH_WINDOW`
     seconds, doubled until the whole record."""

@@ -23,7 +23,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from . import comparison, concurrency, effects, hypotheses, instrument_checks, io, model, next_condition, noise, sensors, slots
+from . import comparison, concurrency, hypotheses, instrument_checks, io, model, next_condition, noise, sensors, slots
 from .discovery import search, verify
 from .hypotheses import HEALTHY, PARAMETER_CHANGE
 from .settings import Settings
@@ -61,8 +61,9 @@ def diagnose(name: str, recordings: Sequence[Diagnosed], settings: Settings) -> 
                                               settings.evidence_margin)
 
     fits = concurrency.in_parallel({n: lambda h=h: joint(h) for n, h in hyps.items()})
-    ranking = sorted((_row(fits[n], [rows[n] for rows in own], settings) for n in hyps), key=lambda row: -row["log_evidence"])
-    top = ranking[0]
+    ranking = sorted((_row(fits[n], [rows[n] for rows in own], seen, settings) for n in hyps), key=lambda row: -row["log_evidence"])
+    # As for one recording (newdyn.diagnosis): a finding that shows in no recording is passed over for the model without it.
+    top = next(row for row in ranking if row["class"] == HEALTHY or row["finding_visible"] or not row["explains"])
     if top["explains"]:
         verdict, effect = top["class"], top["effect"]
         equivalent = [r["effect"] for r in ranking if r["class"] == verdict and r["explains"]
@@ -71,7 +72,7 @@ def diagnose(name: str, recordings: Sequence[Diagnosed], settings: Settings) -> 
     else:
         verdict, effect, equivalent = "unexplained", None, []
         after = min(ranking, key=lambda row: max(row["chi2"]))["hypothesis"]
-    lines = _recording_lines(recordings, seen, fits, hyps, after, settings)
+    lines = _recording_lines(recordings, seen, fits, next(row for row in ranking if row["hypothesis"] == after), settings)
     searched = settings.searches(verdict != "unexplained")
     result = {
         "machine": name, "verdict": verdict, "effect": effect, "equivalent": [e for e in equivalent if e is not None],
@@ -144,9 +145,11 @@ def _equal_terms(found: search.Discovery, margin: float) -> list[str]:
     return list(dict.fromkeys(term for term, _ in search.equivalent(found, margin)))
 
 
-def _row(fit: hypotheses.JointFit, alone: Sequence[Mapping], settings: Settings) -> dict:
-    """A hypothesis's line in the machine's ranking: joint evidence and misfits, and how consistent the recordings are."""
+def _row(fit: hypotheses.JointFit, alone: Sequence[Mapping], seen: Sequence[hypotheses.Recording], settings: Settings) -> dict:
+    """A hypothesis's line in the machine's ranking: joint evidence and misfits, what it adds in each recording, and how
+    consistent the recordings are."""
     separate = float(sum(row["log_evidence"] for row in alone))
+    added = [_added(fit, i, s, settings) for i, s in enumerate(seen)]
     log_bayes_factor = fit.log_evidence - separate
     hellinger = {
         p: max((comparison.hellinger_gaussians(a["parameters"][p]["mean"], a["parameters"][p]["sd"],
@@ -158,22 +161,22 @@ def _row(fit: hypotheses.JointFit, alone: Sequence[Mapping], settings: Settings)
         "hypothesis": fit.hypothesis.name, "class": fit.hypothesis.verdict_class, "effect": fit.hypothesis.effect,
         "log_evidence": fit.log_evidence, "chi2": list(fit.chi2_red),
         "explains": all(chi2 <= settings.chi2_max for chi2 in fit.chi2_red), "parameters": fit.laplace_parameters(),
-        "at_bound": list(fit.at_bound),
+        "at_bound": list(fit.at_bound), "finding_log_bayes_factor": added, "finding_visible": max(added) > settings.evidence_margin,
         "consistency": {"log_bayes_factor": log_bayes_factor, "separate_log_evidence": separate,
                         "consistent": log_bayes_factor > -settings.evidence_margin, "hellinger": hellinger,
                         "explains_each_alone": all(row["explains"] for row in alone)},
     }
 
 
-def _recording_lines(recordings: Sequence[Diagnosed], seen: Sequence[hypotheses.Recording], fits, hyps, after: str,
+def _recording_lines(recordings: Sequence[Diagnosed], seen: Sequence[hypotheses.Recording], fits, after: Mapping,
                      settings: Settings) -> list[dict]:
-    """Per recording: its condition, channels, its own verdict, χ² before (nominal) and after (the machine's model), and
-    whether the machine's finding is visible in it: the expected log Bayes factor of its contribution there."""
-    found = fits[after]
+    """Per recording: its condition, channels, its own verdict, χ² before (nominal) and after (the machine's model, whose
+    ranking row is ``after``), and whether the machine's finding is visible in it: the expected log Bayes factor of its
+    contribution there."""
+    found = fits[after["hypothesis"]]
     lines = []
     for i, (r, s) in enumerate(zip(recordings, seen)):
-        without = _without_finding(found, s, hyps, settings)
-        contribution = float(0.5 * np.sum(((found.models[i] - without) / s.sigma[:, None]) ** 2))
+        contribution = after["finding_log_bayes_factor"][i]
         lines.append({
             "name": r.measurement.name, "condition": dict(r.measurement.operating), "channels": list(s.channels),
             "missing_channels": [row["channel"] for row in r.verdict.get("missing_channels", [])],
@@ -186,14 +189,10 @@ def _recording_lines(recordings: Sequence[Diagnosed], seen: Sequence[hypotheses.
     return lines
 
 
-def _without_finding(fit: hypotheses.JointFit, seen: hypotheses.Recording, hyps, settings: Settings) -> np.ndarray:
-    """The model of one recording without what the machine's verdict adds: the nominal model for a drift, the model with
-    its drifts but without the effect for an effect."""
-    base = dict(seen.base)
-    if fit.hypothesis.kind not in (HEALTHY, PARAMETER_CHANGE):
-        own = effects.active()[fit.hypothesis.kind].parameter_names()
-        base.update({p: v for p, v in fit.values.items() if p not in own})
-    return hypotheses.evaluate(hyps[HEALTHY], np.zeros((1, 0)), base, seen.sampling, seen.channels, settings.max_step)[0]
+def _added(fit: hypotheses.JointFit, i: int, seen: hypotheses.Recording, settings: Settings) -> float:
+    """What ``fit``'s hypothesis adds in recording ``i`` (:func:`newdyn.hypotheses.contribution`)."""
+    return hypotheses.contribution(fit.hypothesis, fit.values, fit.models[i], seen.base, seen.sampling, seen.channels, seen.sigma,
+                                   settings.max_step)
 
 
 def statement(verdict: Mapping, chi2_max: float) -> str:
