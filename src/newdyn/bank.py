@@ -7,7 +7,7 @@ squares on each of those windows from the member that fits it best, instead of f
 :data:`MEMBERS` points put 32 on each axis of a two-parameter box, as dense as the search's own population.  A
 four-parameter box (stick-slip) gets fewer than six an axis, too few to find the truth's narrow basin (seeding the
 search with its best members led it astray): its fit starts from members only where another hypothesis already
-explains the data, so that its fit cannot decide the verdict (:func:`needs_search`), and searches everywhere else.
+explains the data to the noise, its evidence then a lower bound (:func:`needs_search`), and searches everywhere else.
 """
 
 from __future__ import annotations

@@ -180,8 +180,9 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
         return concurrency.in_parallel({kind: lambda kind=kind: fault_fit(kind, search_globally)
                                         for kind in sorted(kinds, key=lambda kind: -len(hyps[kind].priors))})
 
-    # A hypothesis too large for its members searches globally only where nothing else explains the data: elsewhere
-    # its best fit cannot take the verdict from what does, and its members' fit stands as a lower bound on it.
+    # A hypothesis too large for its members searches globally only where nothing else explains the data: elsewhere it
+    # could take the verdict only by fitting better than what already fits to the noise, and its members' fit stands as
+    # a lower bound on its evidence (the ranking's search says so).
     large = [kind for kind in settings.fault_ranges if bank_module.needs_search(hyps[kind])]
     fitted = fault_fits([kind for kind in settings.fault_ranges if kind not in large])
     explained = [name for name, fit in {**fits, **fitted}.items() if _explains(fit, calibrations, settings.chi2_max)]
