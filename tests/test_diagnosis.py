@@ -2,6 +2,7 @@
 
 import json
 import re
+import threading
 from dataclasses import fields, replace
 from pathlib import Path
 
@@ -13,6 +14,7 @@ import newdyn.study
 from newdyn import (
     bank,
     calibration,
+    concurrency,
     diagnosis,
     effects,
     faults,
@@ -252,6 +254,18 @@ def test_a_fit_of_one_chain_follows_the_start_that_fits_the_search_window_best()
     both = hypotheses.fit(*args, [far, near], search=False)
     assert one.values == alone.values and one.log_evidence == alone.log_evidence
     assert alone.n_simulations < one.n_simulations < both.n_simulations
+
+
+def test_a_fit_told_to_stop_stops_at_its_next_simulation():
+    """A fit run on speculation stops once its event is set, and runs to its end while it is not."""
+    m = measurement("kT1", {"kT1": 3.1e6}, seed=4)
+    drift = next(h for h in SETTINGS.hypotheses() if h.name == "parameter_change:kT1")
+    args = (drift, m.y[:2], m.sigma[:2], slots.complete({}), SAMPLING, CHANNELS[:2], [{"kT1": 3.12e6}])
+    stop = threading.Event()
+    assert hypotheses.fit(*args, search=False, stop=stop).values == hypotheses.fit(*args, search=False).values
+    stop.set()
+    with pytest.raises(concurrency.Stopped):
+        hypotheses.fit(*args, search=False, stop=stop)
 
 
 def test_a_fault_fit_reports_the_values_the_model_ran_with():

@@ -25,6 +25,19 @@ def test_log_likelihood_is_the_sum_of_gaussian_log_densities():
     assert np.ndim(log_likelihood(data, models[0], sigma)) == 0
 
 
+def test_a_large_batch_scores_each_model_as_it_would_alone():
+    """A batch scored a few rows at a time gives every row the same bits as scored alone, and as the broadcast of
+    one σ per model does."""
+    rng = np.random.default_rng(1)
+    sigma = np.array([0.5, 2.0, 1e-3])
+    data = rng.normal(size=(3, 40))
+    models = data + rng.normal(size=(2 * likelihood.SCORED_ROWS + 3, 3, 40)) * sigma[:, None]
+
+    alone = np.array([log_likelihood(data, m, sigma, per_channel=True) for m in models])
+    assert np.array_equal(log_likelihood(data, models, sigma, per_channel=True), alone)
+    assert np.array_equal(log_likelihood(data, models, np.tile(sigma, (len(models), 1)), per_channel=True), alone)
+
+
 def test_log_likelihood_refuses_mismatched_shapes_and_bad_sigma():
     data = np.zeros((2, 10))
     with pytest.raises(ValueError, match="model"):

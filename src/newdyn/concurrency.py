@@ -3,8 +3,9 @@ instruments' closed form) that runs without the GIL, so a lone diagnosis uses ev
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable, Hashable, Mapping
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor, wait
 from typing import TypeVar
 
 import numba
@@ -13,16 +14,43 @@ K = TypeVar("K", bound=Hashable)
 T = TypeVar("T")
 
 
-def in_parallel(tasks: Mapping[K, Callable[[], T]]) -> dict[K, T]:
-    """The results of ``tasks`` by name, in ``tasks``' order, run in as many threads as numba has.  Each task's result
-    is what it would be alone: the compiled code's results do not depend on threads or on what runs beside it."""
+class Stopped(Exception):
+    """Raised by a speculative task that was told to stop (:func:`in_parallel`'s ``speculative``)."""
+
+
+def _threads(n_tasks: int) -> int:
+    """Threads for ``n_tasks`` side by side: as many as numba has, or 1 where its threading layer may not be entered
+    from two threads (numba's own workqueue)."""
     try:
         layer = numba.threading_layer()
     except ValueError:  # nothing parallel has run yet
         layer = None
-    workers = min(len(tasks), numba.get_num_threads())
-    if workers <= 1 or layer not in ("omp", "tbb"):  # numba's own workqueue layer may not be entered from two threads
-        return {name: task() for name, task in tasks.items()}
-    with ThreadPoolExecutor(workers) as pool:
+    return min(n_tasks, numba.get_num_threads()) if layer in ("omp", "tbb") else 1
+
+
+def in_parallel(tasks: Mapping[K, Callable[[], T]], speculative: Mapping[K, Callable[[threading.Event], T]] | None = None,
+                wanted: Callable[[dict[K, T]], bool] | None = None) -> dict[K, T]:
+    """The results of ``tasks`` by name, in ``tasks``' order, run in as many threads as numba has.  Each task's result
+    is what it would be alone: the compiled code's results do not depend on threads or on what runs beside it.
+
+    ``speculative`` tasks run beside them, on the chance that ``wanted`` (of ``tasks``' results) will be true once
+    those are done; where it is false they are told to stop (their event is set, on which they raise :class:`Stopped`)
+    and left out of the result, so that speculating costs only the threads' share while ``tasks`` ran."""
+    speculative = dict(speculative or {})
+    stop = threading.Event()
+    if _threads(len(tasks) + len(speculative)) <= 1:
+        results = {name: task() for name, task in tasks.items()}
+        if speculative and wanted(results):
+            return {**results, **{name: task(stop) for name, task in speculative.items()}}
+        return results
+    with ThreadPoolExecutor(_threads(len(tasks) + len(speculative))) as pool:
+        # the speculative first, as the largest tasks, so that they do not start last
+        guesses = {name: pool.submit(task, stop) for name, task in speculative.items()}
         futures = {name: pool.submit(task) for name, task in tasks.items()}
-        return {name: future.result() for name, future in futures.items()}
+        wait(futures.values())
+        results = {name: future.result() for name, future in futures.items()}
+        if speculative and not wanted(results):
+            stop.set()
+            wait(guesses.values())
+            return results
+        return {**results, **{name: future.result() for name, future in guesses.items()}}

@@ -162,31 +162,37 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
     fits.update({f"{PARAMETER_CHANGE}:{p}": _drift_fit(hyps[f"{PARAMETER_CHANGE}:{p}"], cal, instruments) for p, cal in calibrations.items()})
     closest = signatures.mean("parameter")
 
-    def fault_fit(kind, search_globally):
+    def fault_fit(kind, search_globally=False, stop=None):
         started = time.perf_counter()
         mine = closest.where(signatures["hypothesis"] == kind, drop=True)
         start = json.loads(str(mine["values"].values[int(np.argmin(mine.values))]))
         members = None if search_globally else bank_module.members(bank, kind)
-        # Too large for its members, where another hypothesis explains the data: its fit is only a lower bound on its
-        # evidence, from its one best start.
+        # Too large for its members: from its one best start, its fit is a lower bound on its evidence.
         chains = 1 if members is not None and bank_module.needs_search(hyps[kind]) else None
         fit = hypotheses.fit(hyps[kind], data, sigma, values, sampling, channels, [start], settings.max_step, instruments=instruments,
-                             members=members, chains=chains)
+                             members=members, chains=chains, stop=stop)
         log.info("%s: fit of %s from %s (%d simulations, chi2 %.4g) in %.1f s", measurement.name, kind, fit.search, fit.n_simulations,
                  fit.chi2_red, time.perf_counter() - started)
         return fit
 
-    def fault_fits(kinds, search_globally=False):  # the largest first, so that the longest fit does not start last
-        return concurrency.in_parallel({kind: lambda kind=kind: fault_fit(kind, search_globally)
-                                        for kind in sorted(kinds, key=lambda kind: -len(hyps[kind].priors))})
+    def by_size(kinds):  # the largest first, so that the longest fit does not start last
+        return sorted(kinds, key=lambda kind: -len(hyps[kind].priors))
 
     # A hypothesis too large for its members searches globally only where nothing else explains the data: elsewhere it
     # could take the verdict only by fitting better than what already fits to the noise, and its members' fit stands as
-    # a lower bound on its evidence (the ranking's search says so).
+    # a lower bound on its evidence (the ranking's search says so).  Its members' fit runs beside the smaller faults'
+    # on the chance that something explains the data; if nothing does, it is stopped and searches instead.
     large = [kind for kind in settings.fault_ranges if bank_module.needs_search(hyps[kind])]
-    fitted = fault_fits([kind for kind in settings.fault_ranges if kind not in large])
-    explained = [name for name, fit in {**fits, **fitted}.items() if _explains(fit, calibrations, settings.chi2_max)]
-    fitted.update(fault_fits(large, search_globally=not explained))
+    explained = [name for name, fit in fits.items() if _explains(fit, calibrations, settings.chi2_max)]
+
+    def explains_any(fitted):
+        explained.extend(name for name, fit in fitted.items() if _explains(fit, calibrations, settings.chi2_max))
+        return bool(explained)
+
+    fitted = concurrency.in_parallel({kind: lambda kind=kind: fault_fit(kind) for kind in by_size([kind for kind in settings.fault_ranges if kind not in large])},
+                                     {kind: lambda stop, kind=kind: fault_fit(kind, stop=stop) for kind in by_size(large)}, explains_any)
+    if not explained:
+        fitted.update(concurrency.in_parallel({kind: lambda kind=kind: fault_fit(kind, search_globally=True) for kind in by_size(large)}))
     fits.update({kind: fitted[kind] for kind in settings.fault_ranges})
     stage(f"fits of {', '.join(settings.fault_ranges)}" + (f" ({', '.join(large)} from members: {', '.join(explained)} explains the data)"
                                                           if large and explained else ""))

@@ -11,6 +11,7 @@ different numbers of parameters compare on one scale (the Occam factor is in the
 from __future__ import annotations
 
 import math
+import threading
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from typing import NamedTuple
@@ -273,6 +274,7 @@ def fit(
     instruments: sensors.Instruments | None = None,
     members: Members | None = None,
     chains: int | None = None,
+    stop: threading.Event | None = None,
 ) -> Fit:
     """Best fit of ``hypothesis`` by bounded least squares on the simulator (misfit standardized by
     ``sigma``, plus the Normal priors' terms), the best of several starts kept; with ``instruments`` the
@@ -284,7 +286,8 @@ def fit(
     with a search's longer steps at a slipping joint.  Each start is fitted on its
     window, then on the longer ones up to the whole record, each from the last one's optimum:
     stick-slip's misfit has many local minima, and only a short window shows the truth's basin wide.  With ``chains``,
-    only that many starts are followed: those that fit the longest search window best.
+    only that many starts are followed: those that fit the longest search window best.  Once ``stop`` is set, the next
+    simulation raises :class:`newdyn.concurrency.Stopped` instead (a fit run on speculation that is no longer wanted).
 
     Log-evidence by the Laplace approximation in unit coordinates u = (θ − low)/(high − low):
     log Z ≈ log L(u*) + log π(u*) + (k/2) log 2π − ½ log det H − (parameters at a bound)·log 2, with H the
@@ -296,6 +299,8 @@ def fit(
     runs = []  # simulations per call (appended from the threads the starts are followed in)
 
     def simulate(theta, window=sampling, for_search=False):
+        if stop is not None and stop.is_set():
+            raise concurrency.Stopped
         runs.append(len(theta))
         return evaluate(hypothesis, theta, base, window, channels, max_step, for_search)
 

@@ -21,9 +21,9 @@ from . import sensors
 HDI_PROB = 0.94  # the credible intervals newdyn reports: ArviZ's default, 94 % highest density
 
 
-def _standardized_residuals(data: np.ndarray, model: np.ndarray, sigma: np.ndarray) -> np.ndarray:
-    """(y − m)/σ_c with shape checks; ``model`` and ``sigma`` may carry leading axes that broadcast
-    (e.g. one model and one σ per MCMC walker)."""
+def _checked(data, model, sigma) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``data``, ``model`` and ``sigma`` as float arrays, their shapes checked; ``model`` and ``sigma`` may carry
+    leading axes that broadcast (e.g. one model and one σ per MCMC walker)."""
     data, model, sigma = (np.asarray(a, dtype=float) for a in (data, model, sigma))
     if data.ndim != 2:
         raise ValueError(f"data must be (n_channels, n_samples), got shape {data.shape}")
@@ -31,17 +31,33 @@ def _standardized_residuals(data: np.ndarray, model: np.ndarray, sigma: np.ndarr
         raise ValueError(f"model must be (..., {data.shape[0]}, {data.shape[1]}), got shape {model.shape}")
     if sigma.ndim < 1 or sigma.shape[-1] != data.shape[0] or not np.all(np.isfinite(sigma) & (sigma > 0)):
         raise ValueError(f"sigma must be (..., {data.shape[0]}) positive finite values, got {sigma!r}")
-    return (data - model) / sigma[..., None]
+    return data, model, sigma
 
 
 def standardized_residuals(data, model, sigma, instruments: sensors.Instruments | None = None) -> np.ndarray:
     """(..., C, n) misfits (y − m)/σ, or with ``instruments`` (:mod:`newdyn.sensors`) (..., C, n + k) numbers
     whose squares sum to the same quadratic form as the marginal likelihood's."""
-    z = _standardized_residuals(data, model, sigma)
+    data, model, sigma = _checked(data, model, sigma)
     if instruments is None:
-        return z
-    return sensors.standardized_residuals(np.asarray(data, dtype=float), np.asarray(model, dtype=float),
-                                          np.asarray(sigma, dtype=float), instruments)
+        return (data - model) / sigma[..., None]
+    return sensors.standardized_residuals(data, model, sigma, instruments)
+
+
+# Models scored at a time: a batch's misfit of many rows at once would be a temporary of hundreds of megabytes, whose
+# allocation and memory traffic cost more than the simulations behind it; a few rows' stays in the cache.
+SCORED_ROWS = 64
+
+
+def _sum_of_squares(data: np.ndarray, model: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """Σ_k ((y_ck − m_ck)/σ_c)² per leading index and channel, rows of a batch of models (n, C, T) under one σ (C,)
+    a few at a time; each row's sum is the same numbers in the same order as for the whole batch at once."""
+    if model.ndim != 3 or sigma.ndim != 1:
+        return np.sum(((data - model) / sigma[..., None]) ** 2, axis=-1)
+    squares = np.empty(model.shape[:2])
+    for start in range(0, len(model), SCORED_ROWS):
+        rows = slice(start, start + SCORED_ROWS)
+        squares[rows] = np.sum(((data - model[rows]) / sigma[:, None]) ** 2, axis=-1)
+    return squares
 
 
 def log_likelihood(data, model, sigma, per_channel: bool = False, instruments: sensors.Instruments | None = None) -> np.ndarray:
@@ -63,15 +79,13 @@ def log_likelihood(data, model, sigma, per_channel: bool = False, instruments: s
     -------
     (...) or, with ``per_channel``, (..., n_channels); ``...`` is the broadcast of the leading axes.
     """
-    z = _standardized_residuals(data, model, sigma)
+    data, model, sigma = _checked(data, model, sigma)
     if instruments is not None:
-        return sensors.log_likelihood(np.asarray(data, dtype=float), np.asarray(model, dtype=float),
-                                      np.asarray(sigma, dtype=float), instruments, per_channel)
-    n_samples = z.shape[-1]
+        return sensors.log_likelihood(data, model, sigma, instruments, per_channel)
     # The normalization matters only when σ or the channel set differs between compared likelihoods,
     # but keeping it makes the value a true log density of the data.
-    normalization = n_samples * (np.log(np.asarray(sigma, dtype=float)) + 0.5 * np.log(2 * np.pi))
-    per = -0.5 * np.sum(z**2, axis=-1) - normalization
+    normalization = data.shape[-1] * (np.log(sigma) + 0.5 * np.log(2 * np.pi))
+    per = -0.5 * _sum_of_squares(data, model, sigma) - normalization
     return per if per_channel else per.sum(axis=-1)
 
 

@@ -1,0 +1,57 @@
+"""Tasks side by side in threads, and speculative ones stopped when their results are not wanted."""
+
+import threading
+
+import numba
+import numpy as np
+import pytest
+
+from newdyn import concurrency
+
+
+@numba.njit(parallel=True)
+def _parallel_sum(x):
+    total = 0.0
+    for i in numba.prange(x.size):
+        total += x[i]
+    return total
+
+
+@pytest.fixture(params=["threads", "one thread"])
+def threads(request):
+    """Both ways :func:`concurrency.in_parallel` runs: in a pool (once numba's threading layer is up) and in turn."""
+    _parallel_sum(np.ones(100))  # starts numba's threading layer
+    if request.param == "threads" and concurrency._threads(2) < 2:
+        pytest.skip(f"numba's {numba.threading_layer()} threading layer is not entered from two threads")
+    before = numba.get_num_threads()
+    numba.set_num_threads(max(2, before) if request.param == "threads" else 1)
+    yield request.param
+    numba.set_num_threads(before)
+
+
+def test_results_are_by_name_in_the_tasks_order(threads):
+    results = concurrency.in_parallel({name: lambda name=name: name * 2 for name in "cab"})
+    assert list(results) == list("cab") and results == {"c": "cc", "a": "aa", "b": "bb"}
+
+
+def waits_for(stop: threading.Event, ran: list):
+    """A speculative task that runs until it is stopped, as a fit's simulations do."""
+    ran.append(True)
+    while not stop.wait(0.01):
+        pass
+    raise concurrency.Stopped
+
+
+def test_speculative_tasks_are_kept_when_wanted(threads):
+    seen = []
+    results = concurrency.in_parallel({"small": lambda: 1}, {"large": lambda stop: 0 if stop.is_set() else 2},
+                                      lambda done: seen.append(done) or True)
+    assert results == {"small": 1, "large": 2} and seen == [{"small": 1}]
+
+
+def test_unwanted_speculative_tasks_are_stopped_and_left_out(threads):
+    ran = []
+    results = concurrency.in_parallel({"small": lambda: 1}, {"large": lambda stop: waits_for(stop, ran)}, lambda done: False)
+    assert results == {"small": 1}
+    # in a pool it ran beside the small task until stopped; in turn it never started
+    assert ran == ([True] if threads == "threads" else [])
