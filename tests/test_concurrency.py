@@ -36,9 +36,7 @@ def test_results_are_by_name_in_the_tasks_order(threads):
 
 def waits_for(stop: threading.Event, ran: list):
     """A speculative task that runs until it is stopped, as a fit's simulations do."""
-    ran.append(True)
-    while not stop.wait(0.01):
-        pass
+    ran.append("told to stop" if stop.wait(timeout=60) else "never told to stop")
     raise concurrency.Stopped
 
 
@@ -54,4 +52,15 @@ def test_unwanted_speculative_tasks_are_stopped_and_left_out(threads):
     results = concurrency.in_parallel({"small": lambda: 1}, {"large": lambda stop: waits_for(stop, ran)}, lambda done: False)
     assert results == {"small": 1}
     # in a pool it ran beside the small task until stopped; in turn it never started
-    assert ran == ([True] if threads == "threads" else [])
+    assert ran == (["told to stop"] if threads == "threads" else [])
+
+
+def test_a_failing_task_stops_the_speculative_ones_and_is_raised(threads):
+    ran = []
+
+    def fails():
+        raise RuntimeError("a fit failed")
+
+    with pytest.raises(RuntimeError, match="a fit failed"):
+        concurrency.in_parallel({"small": fails}, {"large": lambda stop: waits_for(stop, ran)}, lambda done: True)
+    assert ran == (["told to stop"] if threads == "threads" else [])

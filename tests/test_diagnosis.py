@@ -310,7 +310,8 @@ def test_a_stick_slip_fit_over_several_load_cycles_reaches_the_misfit_of_the_tru
 
 def test_a_two_parameter_fit_from_the_banks_members_reaches_the_searchs_optimum_with_far_fewer_simulations():
     """A breathing crack with a kT1 drift: least squares from the best of the bank's members on each search window
-    ends where it ends from the differential evolution there."""
+    ends where it ends from the differential evolution there, and so does its one chain (as the diagnosis runs it)
+    from the start that fits the longest search window best."""
     m = measurement("crack", fault("breathing_crack", alpha=0.35, kT3=2.5e6), seed=6)
     crack = next(h for h in SETTINGS.hypotheses() if h.name == "breathing_crack")
     values, channels = slots.complete({}), CHANNELS[:2]
@@ -320,9 +321,11 @@ def test_a_two_parameter_fit_from_the_banks_members_reaches_the_searchs_optimum_
     assert members.unit.shape == (bank.MEMBERS, 2) and members.outputs.shape[1:] == (2, hypotheses.fit_windows(SAMPLING)[1])
     searched = hypotheses.fit(crack, m.y[:2], m.sigma[:2], values, SAMPLING, channels)
     started = hypotheses.fit(crack, m.y[:2], m.sigma[:2], values, SAMPLING, channels, members=members)
-    assert started.log_likelihood == pytest.approx(searched.log_likelihood, abs=0.05)
-    assert started.values["alpha"] == pytest.approx(searched.values["alpha"], rel=1e-3)
-    assert started.n_simulations < searched.n_simulations / 3
+    one_chain = hypotheses.fit(crack, m.y[:2], m.sigma[:2], values, SAMPLING, channels, members=members, chains=1)
+    for fit in (started, one_chain):
+        assert fit.log_likelihood == pytest.approx(searched.log_likelihood, abs=0.05)
+        assert fit.values["alpha"] == pytest.approx(searched.values["alpha"], rel=1e-3)
+    assert one_chain.n_simulations < started.n_simulations < searched.n_simulations / 3
 
 
 def test_a_bank_is_reused_only_at_the_condition_and_settings_it_was_made_for(tmp_path):

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Callable, Hashable, Mapping
-from concurrent.futures import ThreadPoolExecutor, wait
+from concurrent.futures import ThreadPoolExecutor
 from typing import TypeVar
 
 import numba
@@ -34,23 +34,28 @@ def in_parallel(tasks: Mapping[K, Callable[[], T]], speculative: Mapping[K, Call
     is what it would be alone: the compiled code's results do not depend on threads or on what runs beside it.
 
     ``speculative`` tasks run beside them, on the chance that ``wanted`` (of ``tasks``' results) will be true once
-    those are done; where it is false they are told to stop (their event is set, on which they raise :class:`Stopped`)
-    and left out of the result, so that speculating costs only the threads' share while ``tasks`` ran."""
+    those are done; where it is false, or a task fails, they are told to stop (their event is set, on which they raise
+    :class:`Stopped`) and left out of the result, so that speculating costs only their share of the cores while
+    ``tasks`` ran.  Where there is one thread, they run after ``tasks``, and only when wanted."""
     speculative = dict(speculative or {})
+    if speculative and wanted is None:
+        raise ValueError("speculative tasks need a wanted() to decide on them")
     stop = threading.Event()
-    if _threads(len(tasks) + len(speculative)) <= 1:
+    threads = _threads(len(tasks) + len(speculative))
+    if threads <= 1:
         results = {name: task() for name, task in tasks.items()}
         if speculative and wanted(results):
             return {**results, **{name: task(stop) for name, task in speculative.items()}}
         return results
-    with ThreadPoolExecutor(_threads(len(tasks) + len(speculative))) as pool:
+    keep = False
+    with ThreadPoolExecutor(threads) as pool:
         # the speculative first, as the largest tasks, so that they do not start last
         guesses = {name: pool.submit(task, stop) for name, task in speculative.items()}
         futures = {name: pool.submit(task) for name, task in tasks.items()}
-        wait(futures.values())
-        results = {name: future.result() for name, future in futures.items()}
-        if speculative and not wanted(results):
-            stop.set()
-            wait(guesses.values())
-            return results
-        return {**results, **{name: future.result() for name, future in guesses.items()}}
+        try:
+            results = {name: future.result() for name, future in futures.items()}
+            keep = not speculative or wanted(results)
+        finally:
+            if not keep:
+                stop.set()
+    return {**results, **{name: future.result() for name, future in guesses.items()}} if keep else results
