@@ -190,7 +190,8 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
         explained.extend(name for name, fit in fitted.items() if _explains(fit, calibrations, settings.chi2_max))
         return bool(explained)
 
-    fitted = concurrency.in_parallel({kind: lambda kind=kind: fault_fit(kind) for kind in by_size([kind for kind in settings.fault_ranges if kind not in large])},
+    small = [kind for kind in settings.fault_ranges if kind not in large]
+    fitted = concurrency.in_parallel({kind: lambda kind=kind: fault_fit(kind) for kind in by_size(small)},
                                      {kind: lambda stop, kind=kind: fault_fit(kind, stop=stop) for kind in by_size(large)}, explains_any)
     if not explained:
         fitted.update(concurrency.in_parallel({kind: lambda kind=kind: fault_fit(kind, search_globally=True) for kind in by_size(large)}))
