@@ -184,15 +184,15 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
     # a lower bound on its evidence (the ranking's search says so).  Its members' fit runs beside the smaller faults'
     # on the chance that something explains the data; if nothing does, it is stopped and searches instead.
     large = [kind for kind in settings.fault_ranges if bank_module.needs_search(hyps[kind])]
-    explained = [name for name, fit in fits.items() if _explains(fit, calibrations, settings.chi2_max)]
 
-    def explains_any(fitted):
-        explained.extend(name for name, fit in fitted.items() if _explains(fit, calibrations, settings.chi2_max))
-        return bool(explained)
+    def explaining(candidates):
+        return [name for name, fit in candidates.items() if _explains(fit, calibrations, settings.chi2_max)]
 
     small = [kind for kind in settings.fault_ranges if kind not in large]
     fitted = concurrency.in_parallel({kind: lambda kind=kind: fault_fit(kind) for kind in by_size(small)},
-                                     {kind: lambda stop, kind=kind: fault_fit(kind, stop=stop) for kind in by_size(large)}, explains_any)
+                                     {kind: lambda stop, kind=kind: fault_fit(kind, stop=stop) for kind in by_size(large)},
+                                     lambda done: bool(explaining({**fits, **done})))
+    explained = explaining({**fits, **{kind: fitted[kind] for kind in small}})
     if not explained:
         fitted.update(concurrency.in_parallel({kind: lambda kind=kind: fault_fit(kind, search_globally=True) for kind in by_size(large)}))
     fits.update({kind: fitted[kind] for kind in settings.fault_ranges})
