@@ -167,11 +167,12 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
         mine = closest.where(signatures["hypothesis"] == kind, drop=True)
         start = json.loads(str(mine["values"].values[int(np.argmin(mine.values))]))
         members = None if search_globally else bank_module.members(bank, kind)
-        # From members, one chain: the start that fits the longest search window best, of the closest signature and the
-        # best member on each search window (for a fault of at most two parameters these are points of a lattice as
-        # dense as a search's population, near one another; for a larger one, its fit is a lower bound on its evidence).
+        # One chain: the start that fits the longest search window best, of the closest signature and the best member
+        # (or the search's best) on each search window.  Members of a fault of at most two parameters are points of a
+        # lattice as dense as a search's population, near one another; for a larger fault, its fit from members is a
+        # lower bound on its evidence.  The other starts' chains reached the same optimum at the cost of two more.
         fit = hypotheses.fit(hyps[kind], data, sigma, values, sampling, channels, [start], settings.max_step, instruments=instruments,
-                             members=members, chains=None if members is None else 1, stop=stop)
+                             members=members, chains=1, stop=stop)
         log.info("%s: fit of %s from %s (%d simulations, chi2 %.4g) in %.1f s", measurement.name, kind, fit.search, fit.n_simulations,
                  fit.chi2_red, time.perf_counter() - started)
         return fit
