@@ -198,12 +198,19 @@ def calibrate(
         all_per_channel += [cell_per_channel, span_per_channel]
         all_ll += [cell_ll, span_ll]
     grid, unique = np.unique(np.concatenate(grids), return_index=True)
-    models = np.concatenate(all_models)[unique]
     ll = np.concatenate(all_ll)[unique]
     posterior = likelihood.grid_posterior(grid, ll, prior.log_pdf(grid))
-    best = models[np.argmax(ll)]
+    # Only the best model is kept: the passes' outputs (tens of MB) are not copied together for it.
+    part, row = _part_and_row([len(m) for m in all_models], int(unique[np.argmax(ll)]))
+    best = all_models[part][row]
     chi2 = float(likelihood.reduced_chi2(data, best, sigma, n_fitted=1, instruments=instruments))
     return Calibration(posterior, prior.sd, chi2, best, chi2_max, np.concatenate(all_per_channel)[unique])
+
+
+def _part_and_row(sizes: Sequence[int], index: int) -> tuple[int, int]:
+    """Which of consecutive parts of ``sizes`` rows holds row ``index`` of them all, and its row there."""
+    part = int(np.searchsorted(np.cumsum(sizes), index, side="right"))
+    return part, index - int(np.sum(sizes[:part]))
 
 
 def _highest_maxima(log_like: np.ndarray) -> np.ndarray:
