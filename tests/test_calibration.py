@@ -44,6 +44,15 @@ def test_parameter_change_is_explained_by_its_parameter(coarse_models, truth, pa
     assert np.sum(np.abs(post.grid - post.mean) < post.sd) >= 5
 
 
+def test_the_best_fit_is_the_most_likely_model_of_every_pass(coarse_models):
+    """The best fit comes from whichever pass holds the likelihood's maximum (a refined one, off the coarse grid)."""
+    result = calibrate(coarse_models, {"kT1": 3.13e6}, "kT1")
+    post = result.posterior
+    best_value = post.grid[np.argmax(post.log_likelihood)]
+    assert not np.any(np.isclose(GRIDS["kT1"].axis, best_value, rtol=0, atol=1.0))
+    np.testing.assert_array_equal(result.best_fit, calibration.simulate_grid({}, "kT1", [best_value], SAMPLING, CHANNELS)[0])
+
+
 @pytest.mark.parametrize("parameter", ["kT1", "kT3"])
 def test_stick_slip_is_not_explained_by_a_stiffness(coarse_models, parameter):
     """The paper's Fig. 4: calibrating kT1 or kT3 cannot absorb the stick-slip's new dynamics."""
