@@ -50,29 +50,38 @@ import numpy as np
 
 from .. import model
 
-#: Places an effect can act on -> what its coordinate ``s.x`` is and how its force acts.
+
+@dataclass(frozen=True)
+class TorsionalPlace:
+    """A torsional place: across the element between bodies ``a`` and ``b`` (s.x = θa − θb), or on disk ``a`` alone
+    (``b`` None, s.x = θa), the bodies named by their angles in :data:`newdyn.model.ANGLES`; ``stiffness`` is the rig
+    parameter of the element's spring, where it is one."""
+
+    description: str
+    a: str
+    b: str | None = None
+    stiffness: str | None = None
+
+
+#: Places an effect can act on -> what its coordinate ``s.x`` is and how its force acts, each written once here.
 #: Across an element between bodies a and b (a on the motor side), ``s.x`` is θa − θb and the
 #: effect's force τ acts like the element's own spring torque k·x: −τ on a, +τ on b.
 #: On a disk, ``s.x`` is its angle and the force is a torque on it (+: speeding it up).
 #: On a lateral node direction, ``s.x`` is its displacement and the force acts on it (+: along +x/+y).
-TORSIONAL_PLACES: Mapping[str, str] = {
-    "motor": "disk 1 (motor rotor): a torque on it; s.x = θ1",
-    "motor_shaft": "across the motor shaft kT1 (1 – 2a): s.x = θ1 − θ2a",
-    "slip_joint": "across the joint between motor shaft end 2a and motor-side hub 2b: s.x = θ2a − θ2b",
-    "coupling": "across the coupling element kT2 (2b – 3): s.x = θ2b − θ3",
-    "load_shaft": "across the load shaft kT3 (3 – 4): s.x = θ3 − θ4",
-    "load": "disk 4 (load): a torque on it; s.x = θ4",
+TORSIONAL: Mapping[str, TorsionalPlace] = {
+    "motor": TorsionalPlace("disk 1 (motor rotor): a torque on it; s.x = θ1", "theta1"),
+    "motor_shaft": TorsionalPlace("across the motor shaft kT1 (1 – 2a): s.x = θ1 − θ2a", "theta1", "theta2a", "kT1"),
+    "slip_joint": TorsionalPlace("across the joint between motor shaft end 2a and motor-side hub 2b: s.x = θ2a − θ2b",
+                                 "theta2a", "theta2b"),
+    "coupling": TorsionalPlace("across the coupling element kT2 (2b – 3): s.x = θ2b − θ3", "theta2b", "theta3", "kT2"),
+    "load_shaft": TorsionalPlace("across the load shaft kT3 (3 – 4): s.x = θ3 − θ4", "theta3", "theta4", "kT3"),
+    "load": TorsionalPlace("disk 4 (load): a torque on it; s.x = θ4", "theta4"),
 }
-#: The bodies each torsional place lies across, (a, b) with s.x = θa − θb, or (a, None) on disk a with s.x = θa,
-#: named by their angles in :data:`newdyn.model.ANGLES`.
-TORSIONAL_BODIES: Mapping[str, tuple[str, str | None]] = {
-    "motor": ("theta1", None),
-    "motor_shaft": ("theta1", "theta2a"),
-    "slip_joint": ("theta2a", "theta2b"),
-    "coupling": ("theta2b", "theta3"),
-    "load_shaft": ("theta3", "theta4"),
-    "load": ("theta4", None),
-}
+TORSIONAL_PLACES: Mapping[str, str] = {place: torsional.description for place, torsional in TORSIONAL.items()}
+#: The bodies each torsional place lies across, (a, b) with s.x = θa − θb, or (a, None) on disk a with s.x = θa.
+TORSIONAL_BODIES: Mapping[str, tuple[str, str | None]] = {place: (torsional.a, torsional.b) for place, torsional in TORSIONAL.items()}
+#: Places across an element between two bodies (an effect's force there acts like the element's torque).
+ELEMENT_PLACES: tuple[str, ...] = tuple(place for place, torsional in TORSIONAL.items() if torsional.b is not None)
 LATERAL_PLACES: Mapping[str, str] = {
     f"{node}_{axis}": f"node {node} in {axis}: a force on it; s.x = its displacement" for node in model.NODES for axis in "xy"
 }

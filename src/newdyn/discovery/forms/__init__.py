@@ -24,7 +24,7 @@ import numpy as np
 
 from ... import model, simulation
 from ...effects import PLACES
-from ...effects.base import TORSIONAL_BODIES, TORSIONAL_PLACES
+from ...effects.base import ELEMENT_PLACES, TORSIONAL, TORSIONAL_BODIES, TORSIONAL_PLACES
 
 #: Where a place's coordinate is in the simulator's state: (a, b) with x = a − b (b None: x = a).
 _COORDINATES: Mapping[str, tuple[str, str | None]] = {
@@ -32,11 +32,9 @@ _COORDINATES: Mapping[str, tuple[str, str | None]] = {
 }
 #: The stiffness of the element at an across-element place, or of a bearing node's ground spring.
 ELEMENT_STIFFNESS: Mapping[str, str] = {
-    "motor_shaft": "kT1", "coupling": "kT2", "load_shaft": "kT3",
+    **{place: torsional.stiffness for place, torsional in TORSIONAL.items() if torsional.stiffness is not None},
     **{f"{model.NODES[node]}_{axis}": f"k_b{axis}" for node in model.BEARING_NODES for axis in "xy"},
 }
-#: Places across an element between two bodies (an effect's force there acts like the element's torque).
-ELEMENT_PLACES: tuple[str, ...] = ("motor_shaft", "slip_joint", "coupling", "load_shaft")
 #: Places a force can be estimated at: all but the slip joint, whose locked halves move as one.
 ESTIMABLE_PLACES: tuple[str, ...] = tuple(p for p in PLACES if p != "slip_joint")
 
