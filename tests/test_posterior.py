@@ -47,6 +47,20 @@ def test_quadrature_recovers_a_correlated_gaussian_from_an_approximation_off_cen
     np.testing.assert_allclose(got_sd, sd, rtol=0.06)
 
 
+def test_quadrature_lays_its_lattice_again_where_the_approximation_is_far_too_narrow():
+    """An approximation forty times too narrow: the widest lattice about it, ±30 of its sds, spans under one sd of the
+    posterior; laid again about that lattice's own moments, the quadrature is verified and exact to its resolution."""
+    mean, sd = STIFFNESS_AND_DEPTH
+    cov = np.array([[1.0, 0.6], [0.6, 1.0]]) * np.outer(sd, sd)
+    idata = posterior.sample(gaussian(mean, cov), box([0, 0], [1e7, 1]), ["k", "a"], mean + np.array([0.3, 0.2]) * sd,
+                             cov / 40**2, SETTINGS)
+    assert idata.attrs["method"] == "quadrature" and idata.attrs["converged"] == 1, idata.attrs["reason"]
+    assert "quadrature about the Laplace approximation" in idata.attrs["tried"]
+    got_mean, got_sd = moments(idata, ["k", "a"])
+    np.testing.assert_array_less(np.abs(got_mean - mean), 4 * sd / np.sqrt(SETTINGS.batch))
+    np.testing.assert_allclose(got_sd, sd, rtol=0.06)
+
+
 def test_a_posterior_nothing_rests_on_costs_one_batch_of_importance_sampling_and_never_quadrature():
     """Unverified (``verify=False``): from an approximation off centre and too narrow, one batch of draws and no
     lattice; from the exact one, that batch verifies the answer."""

@@ -9,7 +9,9 @@ Quadrature (one or two parameters): the midpoint rule on cells of side :data:`ST
 widened on every side whose outermost row holds more than :data:`EDGE_MASS` of the posterior, then every cell but
 the lightest, which hold :data:`UNSPLIT_MASS` of it together, split in halves, until the mean and sd of every
 parameter agree between two splittings to :data:`RESOLUTION` of its sd; its draws are cells spread over their
-volume, kept in the prior's support.  Splitting by weight, not by density, refines a thin ridge's long tail too.  Exact to the lattice's resolution whatever the posterior's shape: where a drift trades
+volume, kept in the prior's support.  Where the posterior reaches past the lattice's widest extent,
+±:data:`MAX_HALF_WIDTH`, the approximation's scale is far off, and the lattice is laid again about that lattice's own
+mean and covariance.  Splitting by weight, not by density, refines a thin ridge's long tail too.  Exact to the lattice's resolution whatever the posterior's shape: where a drift trades
 off with an effect along a thin curved ridge (cubic coupling's γ against kT1), a Gaussian proposal's draws miss the
 ridge's ends and importance sampling understates the spread.
 
@@ -141,6 +143,13 @@ def sample(
         tried = f"importance sampling first: {found['reason']}"
         theta, log_weight, log_post, log_like, cells, found = _quadrature(
             log_posterior, whitened, _ridge(whitened.z(theta), np.exp(log_weight)))
+        if found["edge_mass"] > EDGE_MASS:
+            # The posterior reaches past the widest lattice about the Laplace approximation, whose scale is far off;
+            # that lattice's own mean and covariance, of all but its edge's mass, are near the posterior's.
+            tried += f"; quadrature about the Laplace approximation: {found['reason']}"
+            recentred = _Whitened.of(*_mean_and_covariance(theta, log_weight))
+            theta, log_weight, log_post, log_like, cells, found = _quadrature(
+                log_posterior, recentred, _ridge(recentred.z(theta), np.exp(log_weight)))
         found["tried"] = tried
     rng = np.random.default_rng(settings.seed)
     picked = _systematic(np.exp(log_weight), settings.batch, rng)
@@ -282,6 +291,12 @@ def _moments(theta: np.ndarray, log_values: np.ndarray) -> tuple[np.ndarray, np.
     weight = _normalized(log_values)
     mean = weight @ theta
     return mean, np.sqrt(weight @ (theta - mean) ** 2)
+
+
+def _mean_and_covariance(theta: np.ndarray, log_weight: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and covariance of points ``theta`` (n, k) under normalized log weights."""
+    weight = np.exp(log_weight)
+    return weight @ theta, np.cov(theta, rowvar=False, aweights=weight, ddof=0).reshape(theta.shape[1], theta.shape[1])
 
 
 def _systematic(weights: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
