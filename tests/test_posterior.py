@@ -61,6 +61,16 @@ def test_quadrature_lays_its_lattice_again_where_the_approximation_is_far_too_na
     np.testing.assert_allclose(got_sd, sd, rtol=0.06)
 
 
+def test_a_lattice_is_laid_again_only_about_weights_that_span_every_parameter():
+    equal = np.log(np.full(3, 1 / 3))
+    for degenerate in ([[0, 0], [1, 1], [2, 2]], [[1, 2], [1, 2], [1, 2]]):  # on a line, at one point
+        assert posterior._recentred(np.array(degenerate, dtype=float), equal) is None
+    spread = np.array([[0.0, 0.0], [3.0, 0.0], [0.0, 3.0]])
+    recentred = posterior._recentred(spread, equal)
+    np.testing.assert_allclose(recentred.theta(np.zeros((1, 2)))[0], [1.0, 1.0])
+    np.testing.assert_allclose(recentred.scale, np.sqrt(2.0))  # each coordinate's variance: (1 + 4 + 1) / 3
+
+
 def test_a_posterior_nothing_rests_on_costs_one_batch_of_importance_sampling_and_never_quadrature():
     """Unverified (``verify=False``): from an approximation off centre and too narrow, one batch of draws and no
     lattice; from the exact one, that batch verifies the answer."""

@@ -143,11 +143,9 @@ def sample(
         tried = f"importance sampling first: {found['reason']}"
         theta, log_weight, log_post, log_like, cells, found = _quadrature(
             log_posterior, whitened, _ridge(whitened.z(theta), np.exp(log_weight)))
-        if found["edge_mass"] > EDGE_MASS:
-            # The posterior reaches past the widest lattice about the Laplace approximation, whose scale is far off;
-            # that lattice's own mean and covariance, of all but its edge's mass, are near the posterior's.
+        recentred = _recentred(theta, log_weight) if found["edge_mass"] > EDGE_MASS else None
+        if recentred is not None:
             tried += f"; quadrature about the Laplace approximation: {found['reason']}"
-            recentred = _Whitened.of(*_mean_and_covariance(theta, log_weight))
             theta, log_weight, log_post, log_like, cells, found = _quadrature(
                 log_posterior, recentred, _ridge(recentred.z(theta), np.exp(log_weight)))
         found["tried"] = tried
@@ -293,10 +291,19 @@ def _moments(theta: np.ndarray, log_values: np.ndarray) -> tuple[np.ndarray, np.
     return mean, np.sqrt(weight @ (theta - mean) ** 2)
 
 
-def _mean_and_covariance(theta: np.ndarray, log_weight: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Mean and covariance of points ``theta`` (n, k) under normalized log weights."""
+def _recentred(theta: np.ndarray, log_weight: np.ndarray) -> _Whitened | None:
+    """Whitened coordinates about the mean and covariance of lattice points ``theta`` (n, k) under normalized log
+    weights: where the posterior reaches past the widest lattice about the Laplace approximation, whose scale is far
+    off, those of all but the edge's mass are near the posterior's.  None where the weights span fewer than k
+    dimensions: no lattice can be laid about them."""
     weight = np.exp(log_weight)
-    return weight @ theta, np.cov(theta, rowvar=False, aweights=weight, ddof=0).reshape(theta.shape[1], theta.shape[1])
+    covariance = np.cov(theta, rowvar=False, aweights=weight, ddof=0).reshape(theta.shape[1], theta.shape[1])
+    if not np.all(np.diag(covariance) > 0):
+        return None
+    try:
+        return _Whitened.of(weight @ theta, covariance)
+    except np.linalg.LinAlgError:
+        return None
 
 
 def _systematic(weights: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
