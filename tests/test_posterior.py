@@ -135,6 +135,23 @@ def test_importance_sampling_recovers_a_correlated_gaussian_in_three_parameters(
     np.testing.assert_allclose(got_sd, sd, rtol=4 / np.sqrt(2 * ess))
 
 
+@pytest.mark.parametrize(("narrower", "missed"), [(4, "pareto_k"), (3, "ess")])
+def test_importance_sampling_fits_its_proposal_again_where_the_approximation_is_too_narrow(narrower, missed):
+    """An approximation a quarter as wide as the posterior: k̂ says the first batch misses it; a third as wide: k̂
+    passes but the most draws leave too few effective ones.  Fitted again to its weighted draws, the proposal verifies
+    the posterior's closed-form moments."""
+    mean, sd = np.array([3.0e6, 0.35, 2000.0]), np.array([8.0e3, 1.0e-3, 0.5])
+    cov = np.array([[1.0, -0.9, 0.3], [-0.9, 1.0, -0.2], [0.3, -0.2, 1.0]]) * np.outer(sd, sd)
+    idata = posterior.sample(gaussian(mean, cov), box([0, 0, 0], [1e7, 1, 1e4]), ["k", "a", "t"],
+                             mean + np.array([0.5, -0.5, 0.3]) * sd, cov / narrower**2, SETTINGS)
+    assert idata.attrs["converged"] == 1 and idata.attrs["refits"] == 1, idata.attrs["reason"]
+    assert idata.attrs["tried"].startswith(f"proposal fitted again to its weighted draws after: {missed}")
+    ess = idata.attrs["ess_bulk"]
+    got_mean, got_sd = moments(idata, ["k", "a", "t"])
+    np.testing.assert_array_less(np.abs(got_mean - mean), 4 * sd / np.sqrt(ess))
+    np.testing.assert_allclose(got_sd, sd, rtol=4 / np.sqrt(2 * ess))
+
+
 def test_importance_sampling_refuses_a_posterior_with_a_second_mode_in_the_approximations_tail():
     """As much mass again 5 sds from where the approximation sits, within the proposal's reach but far in its
     tail: the few draws there carry huge weights, and k̂ says the estimate cannot be trusted."""
@@ -147,6 +164,7 @@ def test_importance_sampling_refuses_a_posterior_with_a_second_mode_in_the_appro
                              posterior.PosteriorSettings(seed=1, batch=1000, max_draws=4000))
     assert idata.attrs["converged"] == 0 and idata.attrs["pareto_k"] > 0.7
     assert "misses the posterior" in idata.attrs["reason"]
+    assert idata.attrs["refits"] == posterior.REFITS  # a proposal fitted to draws that outweigh each other misses too
 
 
 @pytest.mark.parametrize("k", [2, 3])

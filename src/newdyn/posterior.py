@@ -18,7 +18,10 @@ ridge's ends and importance sampling understates the spread.
 Importance sampling (three or more): draws of a Student-t with the approximation's mean and covariance, weighted by
 posterior over proposal and Pareto-smoothed (:func:`arviz.psislw`, Vehtari et al. 2024), a batch at a time until the
 smoothed weights' effective sample size reaches its target.  Its k̂ says whether the estimate can be trusted (at most
-:attr:`PosteriorSettings.pareto_k_max`); more draws of a proposal that misses the posterior would not mend it.
+:attr:`PosteriorSettings.pareto_k_max`); more draws of a proposal that misses the posterior would not mend it, so where
+a proposal leaves the answer unverified (k̂ too large after a batch, or too few effective draws after the most), it is
+fitted again to its weighted draws (their mean and covariance, as in population Monte Carlo, Cappé et al. 2004), up to
+:data:`REFITS` times, and only the last proposal's draws count.
 
 The result is an :class:`arviz.InferenceData` shaped like :func:`newdyn.sampling.run`'s: a ``posterior`` of one chain
 of equally weighted draws, ``sample_stats`` with their ``lp`` and ``log_likelihood``, a ``weighted`` group with every
@@ -47,6 +50,7 @@ MAX_QUADRATURE_PARAMETERS = 2  # a lattice in more dimensions costs more simulat
 # Where quadrature can take over, importance sampling must leave weights of finite variance (Vehtari et al.: k̂ ≤ 0.5);
 # between 0.5 and 0.7 a thin curved ridge's ends were missed and its spread understated by a third.
 CHECKED_PARETO_K = 0.5
+REFITS = 2  # times importance sampling (three or more parameters) may fit its proposal again to its weighted draws
 BatchFn = Callable[[np.ndarray], np.ndarray]  # theta (n, k) -> (n,)
 
 STEP = 0.25  # the first lattice's step in z: four points per sd of the approximation, enough to see a ridge thinner than it
@@ -138,7 +142,7 @@ def sample(
     effort = settings if verify else dataclasses.replace(settings, max_draws=settings.batch)
     theta, log_weight, log_post, log_like, cells, found = _importance(
         log_posterior, whitened, dataclasses.replace(effort, pareto_k_max=min(effort.pareto_k_max, CHECKED_PARETO_K))
-        if checkable else effort)
+        if checkable else effort, refits=REFITS if verify and not checkable else 0)
     if checkable and not found["converged"]:
         tried = f"importance sampling first: {found['reason']}"
         theta, log_weight, log_post, log_like, cells, found = _quadrature(
@@ -244,9 +248,30 @@ def _quadrature(log_posterior, whitened: _Whitened, ridge: np.ndarray):
     return theta_at(z), _normalized(values[:, 0] + k * np.log(size), log=True), values[:, 0], values[:, 1], (z, size, theta_at), found
 
 
-def _importance(log_posterior, whitened: _Whitened, settings: PosteriorSettings):
-    """Importance sampling from a Student-t around the approximation (module docstring): (proposals θ, smoothed
-    normalized log weights, log posteriors, log-likelihoods, None, what it found)."""
+def _importance(log_posterior, whitened: _Whitened, settings: PosteriorSettings, refits: int = 0):
+    """Importance sampling from a Student-t around the approximation, its proposal fitted again to its weighted draws
+    up to ``refits`` times where k̂ says it misses the posterior (module docstring): (proposals θ, smoothed normalized
+    log weights, log posteriors, log-likelihoods, None, what it found)."""
+    missed = []
+    while True:
+        theta, log_weight, log_post, log_like, found = _importance_from(log_posterior, whitened, settings)
+        if found["converged"] or len(missed) == refits:
+            break
+        refitted = _recentred(theta[np.isfinite(log_weight)], log_weight[np.isfinite(log_weight)])
+        if refitted is None:
+            break
+        missed.append(f"{found['reason']} ({found['n_proposals']} draws)")
+        whitened = refitted
+    found["refits"] = len(missed)
+    if missed:
+        found["tried"] = "proposal fitted again to its weighted draws after: " + "; then ".join(missed)
+        found["reason"] = found["reason"].replace("the Laplace approximation misses", "the proposal fitted again misses")
+    return theta, log_weight, log_post, log_like, None, found
+
+
+def _importance_from(log_posterior, whitened: _Whitened, settings: PosteriorSettings):
+    """Importance sampling from a Student-t with ``whitened``'s mean and covariance: (proposals θ, smoothed normalized
+    log weights, log posteriors, log-likelihoods, what it found)."""
     import arviz as az
 
     k = len(whitened.mean)
@@ -275,7 +300,7 @@ def _importance(log_posterior, whitened: _Whitened, settings: PosteriorSettings)
             break
     found = {"method": IMPORTANCE, "converged": not failed, "reason": "; ".join(failed), "pareto_k": float(pareto_k),
              "ess_bulk": ess, "n_proposals": len(theta)}
-    return theta, log_weight, log_post, log_like, None, found
+    return theta, log_weight, log_post, log_like, found
 
 
 def _normalized(log_values: np.ndarray, log: bool = False) -> np.ndarray:
@@ -292,10 +317,10 @@ def _moments(theta: np.ndarray, log_values: np.ndarray) -> tuple[np.ndarray, np.
 
 
 def _recentred(theta: np.ndarray, log_weight: np.ndarray) -> _Whitened | None:
-    """Whitened coordinates about the mean and covariance of lattice points ``theta`` (n, k) under normalized log
-    weights: where the posterior reaches past the widest lattice about the Laplace approximation, whose scale is far
-    off, those of all but the edge's mass are near the posterior's.  None where the weights span fewer than k
-    dimensions: no lattice can be laid about them."""
+    """Whitened coordinates about the mean and covariance of points ``theta`` (n, k) under normalized log weights:
+    lattice points where the posterior reaches past the widest lattice about the Laplace approximation, whose scale
+    is far off (those of all but the edge's mass are near the posterior's), or the draws of a proposal that missed it.
+    None where the weights span fewer than k dimensions: no lattice nor proposal can be laid about them."""
     weight = np.exp(log_weight)
     covariance = np.cov(theta, rowvar=False, aweights=weight, ddof=0).reshape(theta.shape[1], theta.shape[1])
     if not np.all(np.diag(covariance) > 0):
@@ -339,5 +364,6 @@ def _inference_data(names, draws, log_post, log_like, points, log_weight, point_
         "n_draws": len(draws),
     }
     if found["method"] == IMPORTANCE:
-        idata.attrs["proposal"] = f"multivariate Student-t (df {settings.df:g}) with the Laplace approximation's mean and covariance"
+        fitted = "the Laplace approximation" if not found["refits"] else "the weighted draws of the proposal before it"
+        idata.attrs["proposal"] = f"multivariate Student-t (df {settings.df:g}) with the mean and covariance of {fitted}"
     return idata
