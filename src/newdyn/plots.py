@@ -265,8 +265,9 @@ def mcmc_diagnostics(mcmc_paths: Sequence[PathLike], png_path: PathLike, code_ha
 def _verification(attrs) -> str:
     """How a posterior of :mod:`newdyn.posterior` was computed and verified, in one line."""
     if "pareto_k" in attrs:
+        refitted = f", the proposal fitted again {int(attrs['refits'])}x" if int(attrs["refits"]) else ""
         return (f"{attrs['method']}: Pareto k = {float(attrs['pareto_k']):.2f}, ESS = {float(attrs['ess_bulk']):.0f} "
-                f"of {int(attrs['n_proposals'])} proposals")
+                f"of {int(attrs['n_proposals'])} proposals{refitted}")
     return f"{attrs['method']}: {int(attrs['n_points'])} lattice points, step {float(attrs['step']):g} sd of the Laplace approximation"
 
 
