@@ -11,7 +11,7 @@ from scipy import integrate, stats
 from newdyn import effects, faults, model, reference, simulation, slots
 from newdyn import noise as measurement_noise
 from newdyn.discovery import effect_file, force, search, verify
-from newdyn.discovery.forms import FORMS, Peaks, Trajectory
+from newdyn.discovery.forms import FORMS, Peaks, Shape, Trajectory
 from newdyn.discovery.linear import LinearRig
 from newdyn.effects import Kinematics, RigValues
 from newdyn.effects.check import effect_parameters_type
@@ -290,6 +290,28 @@ def test_including_an_effect_file_adds_it_for_the_block_only(tmp_path):
         with pytest.raises(effects.EffectError, match="already active"), effects.including(tmp_path / "torque_ripple.py"):
             pass
     assert list(effects.active()) == before
+
+
+@pytest.mark.parametrize(("uncompiled", "together"), [({"coupling", "b1_x"}, ["b1_x", "coupling"]), ({"coupling"}, [])])
+def test_full_fits_whose_kernels_are_not_compiled_share_one_kernel(monkeypatch, uncompiled, together):
+    """Candidates whose kernels are not compiled yet are fitted with all their generic files active, one kernel to
+    compile; one whose kernel is compiled, or a lone one that is not, is fitted with its own file alone."""
+    shape = Shape({"frequency": 50.0}, "50 Hz")
+    candidates = [search.Candidate("periodic", place, 0.0, shape, 50.0, None, {}, 1.0, None) for place in ("coupling", "load", "b1_x")]
+    monkeypatch.setattr(verify, "_compiled", lambda path: path.stem.removeprefix("discovered_periodic_") not in uncompiled)
+    fitted = []
+
+    def fit(candidate, effect, *_):
+        fitted.append((candidate.acts_on, [name.removeprefix("discovered_periodic_") for name in effects.active() if name.startswith("discovered")]))
+        assert effect.name == f"discovered_periodic_{candidate.acts_on}"
+        return candidate.acts_on
+
+    monkeypatch.setattr(verify, "_full_fit", fit)
+    fits = verify._full_fits(candidates, None, None, {}, None, None, None)
+    assert [fits[id(c)] for c in candidates] == ["coupling", "load", "b1_x"]
+    assert [active for place, active in fitted if place in together] == [together] * len(together)
+    assert all(active == [place] for place, active in fitted if place not in together)
+    assert not any(name.startswith("discovered") for name in effects.active())
 
 
 def test_equivalent_placements_rest_on_the_full_fits_and_on_the_best_forms_linearized_scores():

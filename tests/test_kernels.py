@@ -93,3 +93,14 @@ def test_an_effect_file_is_compiled_once_wherever_it_lies_and_anew_when_edited(t
     assert here == elsewhere
     assert edited != here
     assert kernels.kernel_digest(dict(effects.active())) not in (here, edited)
+
+
+def test_a_kernel_counts_as_compiled_once_it_is_and_not_for_an_effect_set_never_run(tmp_path):
+    simulate({}, model.Sampling(n_samples=1))
+    assert kernels.is_compiled(dict(effects.active()))
+    source = (effects.LIBRARY / "cubic_coupling.py").read_text().replace('"cubic_coupling"', '"user_cubic"')
+    (tmp_path / "user_cubic.py").write_text(f"{source}# written for {tmp_path}\n")  # a set no run has had
+    try:
+        assert not kernels.is_compiled(dict(effects.use(["user_cubic"], tmp_path)))
+    finally:
+        effects.use([])

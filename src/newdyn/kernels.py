@@ -317,9 +317,9 @@ def module(active: dict[str, type[effects.Effect]] | None = None) -> ModuleType:
     if digest in _MODULES:
         _LOADED[key] = _MODULES[digest]
         return _MODULES[digest]
-    folder = cache.folder() / "kernels"
+    path = _path(digest)
+    folder = path.parent
     folder.mkdir(parents=True, exist_ok=True)
-    path = folder / f"kernel_{digest}.py"
     if not path.exists():
         # Written once and never rewritten: numba's cache is keyed on the file's time stamp.
         with tempfile.NamedTemporaryFile("w", dir=folder, suffix=".tmp", delete=False, encoding="utf-8") as f:
@@ -337,6 +337,17 @@ def module(active: dict[str, type[effects.Effect]] | None = None) -> ModuleType:
     _compile_once(compiled, path)
     _MODULES[digest] = _LOADED[key] = compiled
     return compiled
+
+
+def is_compiled(active: dict[str, type[effects.Effect]]) -> bool:
+    """Whether the kernel of the effects ``active`` is compiled already (in this process or the cache folder)."""
+    active = dict(active)
+    return tuple(active.items()) in _LOADED or _path(kernel_digest(active)).with_suffix(".ready").exists()
+
+
+def _path(digest: str) -> Path:
+    """Where the kernel module of ``digest`` is written, numba's cache of it beside it."""
+    return cache.folder() / "kernels" / f"kernel_{digest}.py"
 
 
 def _compile_once(compiled: ModuleType, path: Path) -> None:

@@ -10,6 +10,7 @@ parameters, and ranked by that fit's Laplace evidence, as the library's hypothes
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Mapping, Sequence
 from dataclasses import replace
 from pathlib import Path
@@ -18,7 +19,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import xarray as xr
 
-from .. import cache, effects, hypotheses, io, model, noise, sensors, simulation
+from .. import cache, effects, hypotheses, io, kernels, model, noise, sensors, simulation
 from . import effect_file, search
 from .forms import FORMS, Shape
 
@@ -40,7 +41,7 @@ def discover(name: str, calibrated: hypotheses.Fit, data, sigma, values, samplin
     leading = [c for c in found.candidates if search.log_bayes_factor(c, found) >= FULL_FIT_SHARE * top]
     terms = list(dict.fromkeys(c.term for c in leading))[:FULL_FIT_TERMS]
     tried = [c for term in terms for c in [c for c in leading if c.term == term][:FULL_FIT_PLACES]]
-    full = {id(c): _full_fit(c, data, sigma, values, calibrated, sampling, settings) for c in tried}
+    full = _full_fits(tried, data, sigma, values, calibrated, sampling, settings)
     ranked = sorted(tried, key=lambda c: -full[id(c)].log_evidence) + [c for c in found.candidates if id(c) not in full]
 
     def row(c):
@@ -121,16 +122,41 @@ def _force_dataset(found: search.Discovery) -> xr.Dataset:
     )
 
 
-def _full_fit(candidate: search.Candidate, data, sigma, values, calibrated: hypotheses.Fit, sampling,
-              settings: Settings) -> hypotheses.Fit:
-    """``candidate`` (its form's generic effect file) and the drift parameters fitted on the full simulator,
-    within :func:`newdyn.discovery.effect_file.prior_range` of its linearized fit."""
-    with effects.including(_generic_file(candidate.term, candidate.acts_on, candidate.shape)) as effect:
-        ranges = {effect.name: {key: effect_file.prior_range(key, row)[:2] for key, row in candidate.parameters.items()}}
-        hypothesis = hypotheses.library(settings.calibration_priors(), ranges, settings.drift)[-1]
-        start = {**{key: float(row["value"]) for key, row in candidate.parameters.items()}, **calibrated.values}
-        return hypotheses.fit(hypothesis, data, sigma, values, sampling, settings.channels, [start], settings.max_step, search=False,
-                              instruments=_datasheets(calibrated, settings, sampling))
+def _full_fits(candidates: Sequence[search.Candidate], data, sigma, values, calibrated: hypotheses.Fit, sampling,
+               settings: Settings) -> dict[int, hypotheses.Fit]:
+    """Each candidate's :func:`_full_fit`, by ``id``.  One whose kernel (the active effects and its form's generic
+    file) is compiled already runs in it; the others share one kernel that holds all their files, each absent from
+    the others' fits (an absent effect adds nothing, so the numbers are the same): one compile, not one per candidate."""
+    files = {id(c): _generic_file(c.term, c.acts_on, c.shape) for c in candidates}
+    fresh = sorted((c for c in candidates if not _compiled(files[id(c)])), key=lambda c: files[id(c)].name)
+    together = fresh if len(fresh) > 1 else []
+    fits = {}
+    with contextlib.ExitStack() as stack:
+        included = {id(c): stack.enter_context(effects.including(files[id(c)])) for c in together}
+        for c in together:
+            fits[id(c)] = _full_fit(c, included[id(c)], data, sigma, values, calibrated, sampling, settings)
+    for c in candidates:
+        if id(c) not in fits:
+            with effects.including(files[id(c)]) as effect:
+                fits[id(c)] = _full_fit(c, effect, data, sigma, values, calibrated, sampling, settings)
+    return fits
+
+
+def _compiled(path: Path) -> bool:
+    """Whether the kernel of the active effects with the effect file ``path`` is compiled already."""
+    with effects.including(path):
+        return kernels.is_compiled(effects.active())
+
+
+def _full_fit(candidate: search.Candidate, effect: type[effects.Effect], data, sigma, values, calibrated: hypotheses.Fit,
+              sampling, settings: Settings) -> hypotheses.Fit:
+    """``candidate`` (``effect``, its form's generic effect file, active) and the drift parameters fitted on the full
+    simulator, within :func:`newdyn.discovery.effect_file.prior_range` of its linearized fit."""
+    ranges = {effect.name: {key: effect_file.prior_range(key, row)[:2] for key, row in candidate.parameters.items()}}
+    hypothesis = hypotheses.library(settings.calibration_priors(), ranges, settings.drift)[-1]
+    start = {**{key: float(row["value"]) for key, row in candidate.parameters.items()}, **calibrated.values}
+    return hypotheses.fit(hypothesis, data, sigma, values, sampling, settings.channels, [start], settings.max_step, search=False,
+                          instruments=_datasheets(calibrated, settings, sampling))
 
 
 def fit_across(term: str, place: str, shape: Shape, parameters: Sequence[Mapping], recordings: Sequence[hypotheses.Recording],
