@@ -312,6 +312,10 @@ def test_full_fits_whose_kernels_are_not_compiled_share_one_kernel(monkeypatch, 
     assert [active for place, active in fitted if place in together] == [together] * len(together)
     assert all(active == [place] for place, active in fitted if place not in together)
     assert not any(name.startswith("discovered") for name in effects.active())
+    for place in ("coupling", "load"):  # what a fit's model is simulated with later: the kernel it was fitted in
+        with verify.including(f"discovered_periodic_{place}"):
+            beside = [name.removeprefix("discovered_periodic_") for name in effects.active() if name.startswith("discovered")]
+        assert beside == (together if place in together else [place])
 
 
 def test_equivalent_placements_rest_on_the_full_fits_and_on_the_best_forms_linearized_scores():

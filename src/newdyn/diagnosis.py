@@ -47,7 +47,6 @@ from . import bank as bank_module
 from . import (
     calibration,
     concurrency,
-    effects,
     hypotheses,
     instrument_checks,
     io,
@@ -284,7 +283,7 @@ def _compare_versions(verdict, fits, calibrations, effect_posterior, discovered,
     idata = model_comparison.evaluate_versions(evaluators, data, sigma, cycle, settings.channels)
     if discovered is not None:
         low, high = np.array([[p.low, p.high] for p in discovered.hypothesis.priors]).T
-        with effects.including(verify.generic_path(discovered.hypothesis.effect)):
+        with verify.including(discovered.hypothesis.effect):
             idata.update(model_comparison.evaluate_versions(
                 {"discovered": version(discovered, model_comparison.draws(discovered.theta, discovered.covariance, low, high, rng))},
                 data, sigma, cycle, settings.channels))

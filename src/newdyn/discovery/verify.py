@@ -130,6 +130,8 @@ def _full_fits(candidates: Sequence[search.Candidate], data, sigma, values, cali
     files = {id(c): _generic_file(c.term, c.acts_on, c.shape) for c in candidates}
     fresh = sorted((c for c in candidates if not _compiled(files[id(c)])), key=lambda c: files[id(c)].name)
     together = fresh if len(fresh) > 1 else []
+    group = [files[id(c)] for c in together]
+    _FITTED_BESIDE.update({files[id(c)].stem: group if files[id(c)] in group else [files[id(c)]] for c in candidates})
     fits = {}
     with contextlib.ExitStack() as stack:
         included = {id(c): stack.enter_context(effects.including(files[id(c)])) for c in together}
@@ -140,6 +142,20 @@ def _full_fits(candidates: Sequence[search.Candidate], data, sigma, values, cali
             with effects.including(files[id(c)]) as effect:
                 fits[id(c)] = _full_fit(c, effect, data, sigma, values, calibrated, sampling, settings)
     return fits
+
+
+# The generic effect files each full fit ran beside (its own among them), by effect name: the kernel it was fitted in.
+_FITTED_BESIDE: dict[str, list[Path]] = {}
+
+
+@contextlib.contextmanager
+def including(effect_name: str):
+    """The generic effect ``effect_name`` active inside a with-block, beside the files it was fitted with, so that
+    its simulations run in the kernel its fit compiled."""
+    with contextlib.ExitStack() as stack:
+        for path in _FITTED_BESIDE.get(effect_name, [generic_path(effect_name)]):
+            stack.enter_context(effects.including(path))
+        yield
 
 
 def _compiled(path: Path) -> bool:
