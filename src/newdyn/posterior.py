@@ -250,8 +250,8 @@ def _quadrature(log_posterior, whitened: _Whitened, ridge: np.ndarray):
 
 def _importance(log_posterior, whitened: _Whitened, settings: PosteriorSettings, refits: int = 0):
     """Importance sampling from a Student-t around the approximation, its proposal fitted again to its weighted draws
-    up to ``refits`` times where k̂ says it misses the posterior (module docstring): (proposals θ, smoothed normalized
-    log weights, log posteriors, log-likelihoods, None, what it found)."""
+    up to ``refits`` times while it leaves the answer unverified (module docstring): (the last proposal's θ, smoothed
+    normalized log weights, log posteriors, log-likelihoods, None, what it found)."""
     missed = []
     while True:
         theta, log_weight, log_post, log_like, found = _importance_from(log_posterior, whitened, settings)
