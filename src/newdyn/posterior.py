@@ -252,26 +252,25 @@ def _importance(log_posterior, whitened: _Whitened, settings: PosteriorSettings,
     """Importance sampling from a Student-t around the approximation, its proposal fitted again to its weighted draws
     up to ``refits`` times while it leaves the answer unverified (module docstring): (the last proposal's θ, smoothed
     normalized log weights, log posteriors, log-likelihoods, None, what it found)."""
-    missed = []
+    missed, proposal = [], "the Laplace approximation"
     while True:
-        theta, log_weight, log_post, log_like, found = _importance_from(log_posterior, whitened, settings)
+        theta, log_weight, log_post, log_like, found = _importance_from(log_posterior, whitened, settings, proposal)
         if found["converged"] or len(missed) == refits:
             break
-        refitted = _recentred(theta[np.isfinite(log_weight)], log_weight[np.isfinite(log_weight)])
+        refitted = _recentred(theta, log_weight)
         if refitted is None:
             break
         missed.append(f"{found['reason']} ({found['n_proposals']} draws)")
-        whitened = refitted
+        whitened, proposal = refitted, "the proposal fitted again"
     found["refits"] = len(missed)
     if missed:
         found["tried"] = "proposal fitted again to its weighted draws after: " + "; then ".join(missed)
-        found["reason"] = found["reason"].replace("the Laplace approximation misses", "the proposal fitted again misses")
     return theta, log_weight, log_post, log_like, None, found
 
 
-def _importance_from(log_posterior, whitened: _Whitened, settings: PosteriorSettings):
-    """Importance sampling from a Student-t with ``whitened``'s mean and covariance: (proposals θ, smoothed normalized
-    log weights, log posteriors, log-likelihoods, what it found)."""
+def _importance_from(log_posterior, whitened: _Whitened, settings: PosteriorSettings, proposal: str):
+    """Importance sampling from a Student-t with ``whitened``'s mean and covariance (``proposal`` says whose, for the
+    reason it may give): (proposals θ, smoothed normalized log weights, log posteriors, log-likelihoods, what it found)."""
     import arviz as az
 
     k = len(whitened.mean)
@@ -293,7 +292,7 @@ def _importance_from(log_posterior, whitened: _Whitened, settings: PosteriorSett
             ess = float(1.0 / np.sum(np.exp(2 * log_weight[finite])))
         failed = []
         if not pareto_k <= settings.pareto_k_max:
-            failed.append(f"pareto_k {pareto_k:.2f} > {settings.pareto_k_max:g}: the Laplace approximation misses the posterior")
+            failed.append(f"pareto_k {pareto_k:.2f} > {settings.pareto_k_max:g}: {proposal} misses the posterior")
         if not ess >= settings.ess_min:
             failed.append(f"ess {ess:.0f} < {settings.ess_min:g}")
         if not failed or len(theta) + settings.batch > settings.max_draws or pareto_k > settings.pareto_k_max:
