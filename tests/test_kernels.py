@@ -1,5 +1,6 @@
 """Properties of the compiled kernel that the physics tests do not reach: its own sin/cos and batching."""
 
+import ast
 import math
 
 import numba
@@ -104,3 +105,15 @@ def test_a_kernel_counts_as_compiled_once_it_is_and_not_for_an_effect_set_never_
         assert not kernels.is_compiled(dict(effects.use(["user_cubic"], tmp_path)))
     finally:
         effects.use([])
+
+
+def test_the_rendered_kernel_writes_every_flat_index_out_as_the_index_it_stands_for():
+    """Each _at(row, lane) call, over lines, nested and after non-ASCII text on its line, becomes np.uint64((row) *
+    LANES + (lane)); the rendered kernel calls _at nowhere."""
+    source = "x = w[_at(R_Y + 1,  # θ\n         lane)]  # ω\ny = 'θ' + str(_at(k, _at(2, 3)))\n"
+    assert kernels._index_written_out(source) == (
+        "x = w[np.uint64((R_Y + 1) * LANES + (lane))]  # ω\n"
+        "y = 'θ' + str(np.uint64((k) * LANES + (np.uint64((2) * LANES + (3)))))\n"
+    )
+    calls = [node for node in ast.walk(ast.parse(kernels.render(effects.active()))) if isinstance(node, ast.Call)]
+    assert calls and not [call for call in calls if isinstance(call.func, ast.Name) and call.func.id == "_at"]

@@ -27,7 +27,8 @@ the same velocities.  θ2a/θ2b move as one body J2a + J2b while stuck.
 """
 
 # ruff: noqa: F821 - the layout (_I, N_PAR, N_SWITCHING, SWITCHING_ON, OUT_*) and the effect code (_forces,
-# _event_value, _switch_effect) are generated into the rendered module by newdyn.kernels.
+# _event_value, _switch_effect) are generated into the rendered module by newdyn.kernels, which writes out the index
+# _at too.
 import math
 from collections import namedtuple  # noqa: F401 - the generated effect parameters
 
@@ -101,11 +102,9 @@ R_K23 = R_K1V + NQ  # k2 + k3
 R_DENSE = R_K23 + NY  # the state inside a step, interpolated from its stages (rows DENSE_ROWS and their velocities)
 N_ROWS = R_DENSE + NY
 
-@njit(**_JIT, inline="always")
-def _at(row, lane):
-    """Flat index of (row, lane).  Unsigned, so numba emits no negative-index wraparound select,
-    which would hide the unit lane stride from LLVM's vectorizer."""
-    return np.uint64(row * LANES + lane)
+# _at(row, lane), the flat index of (row, lane), is written out by newdyn.kernels as np.uint64((row) * LANES + (lane)).
+# Unsigned, so numba emits no negative-index wraparound select, which would hide the unit lane stride from LLVM's
+# vectorizer.
 
 
 # --- the physics: one lane at state rows ``src`` ---------------------------------------------------
@@ -363,13 +362,20 @@ def _interior_events(w, n_lanes, t, h):
 
 
 @njit(**_JIT)
+def _lane_event(w, lane, src, t):
+    """:func:`_event_value` of one lane, compiled once for the paths that take one lane at a time: each inlined copy
+    of it (the vectorized loops need theirs) costs the compile a second or more."""
+    return _event_value(w, lane, src, t)
+
+
+@njit(**_JIT)
 def _first_interior_event(w, lane, t, h):
     """The first interior check point θ of the step just taken where an event function is positive
     (its value in row R_G, whose in R_WHICH), or 1.0 if there is none."""
     for k in range(1, INTERIOR_CHECKS):
         theta = k / INTERIOR_CHECKS
         _dense(w, lane, theta, h)
-        g, which = _event_value(w, lane, R_DENSE, t + theta * h)
+        g, which = _lane_event(w, lane, R_DENSE, t + theta * h)
         if g > 0.0:
             w[_at(R_G, lane)] = g
             w[_at(R_WHICH, lane)] = which
@@ -404,7 +410,7 @@ def _switch(w, lane, which, t):
     time after the joint locks."""
     for _ in range(MAX_IMMEDIATE_SWITCHES):
         _switch_effect(w, lane, which, t)
-        g, which = _event_value(w, lane, R_Y, t)
+        g, which = _lane_event(w, lane, R_Y, t)
         if not g > 0.0:
             break
     w[_at(R_FINE_UNTIL, lane)] = math.inf if _joint_open(w, lane) != 0.0 else t + w[_at(R_SETTLE, lane)]
@@ -672,7 +678,7 @@ def _simulate_block(params, fine_steps, settle, sims, t_first, fs, n_samples, su
             events_possible = events_possible or params[row, slot] != 0.0
     n_run = _pad(w, n_lanes)
     for lane in range(n_lanes):  # an effect whose event function is already positive at t = 0 switches there
-        g, which = _event_value(w, lane, R_Y, 0.0)
+        g, which = _lane_event(w, lane, R_Y, 0.0)
         if g > 0.0:
             _switch(w, lane, which, 0.0)
     t = 0.0

@@ -16,6 +16,7 @@ import fcntl
 import hashlib
 import importlib.util
 import inspect
+import itertools
 import os
 import sys
 import tempfile
@@ -131,7 +132,35 @@ def render(active: dict[str, type[effects.Effect]]) -> str:
             layout += [f"_event_{i} = njit(**_EFFECT_JIT)(kernel_ready(_EFFECT_{i}.event))",
                        f"_switch_{i} = njit(**_EFFECT_JIT)(kernel_ready(_EFFECT_{i}.switch))"]
     source = TEMPLATE.read_text(encoding="utf-8").replace("# @layout@", "\n".join(layout))
-    return source + "\n\n" + _generated(active, index, switching)
+    return _index_written_out(source + "\n\n" + _generated(active, index, switching))
+
+
+def _index_written_out(source: str) -> str:
+    """``source`` with each ``_at(row, lane)`` written out as the flat index it stands for, np.uint64((row) * LANES +
+    (lane)).  As a function numba inlines, each of its hundreds of calls cost a copy of its IR and a type inference,
+    over a tenth of the kernel's compile; written out, LLVM gets the same code."""
+    lines = source.splitlines(keepends=True)
+    starts = [0, *itertools.accumulate(len(line) for line in lines)]
+
+    def offset(line: int, byte: int) -> int:  # ast's columns count UTF-8 bytes
+        return starts[line - 1] + len(lines[line - 1].encode("utf-8")[:byte].decode("utf-8"))
+
+    def outermost(node):  # the calls of _at that are not inside another one's arguments
+        if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id == "_at":
+            yield node
+        else:
+            for child in ast.iter_child_nodes(node):
+                yield from outermost(child)
+
+    edits = []
+    for call in outermost(ast.parse(source)):
+        # An argument is written out on its own, in brackets so that one spanning lines parses.
+        row, lane = (_index_written_out(f"({ast.get_source_segment(source, argument)})")[1:-1] for argument in call.args)
+        edits.append((offset(call.lineno, call.col_offset), offset(call.end_lineno, call.end_col_offset),
+                      f"np.uint64(({row}) * LANES + ({lane}))"))
+    for start, end, text in sorted(edits, reverse=True):
+        source = source[:start] + text + source[end:]
+    return source
 
 
 def _parameters(i: int, effect, index: dict[str, int]) -> str:
