@@ -306,6 +306,26 @@ def test_a_stick_slip_fit_over_several_load_cycles_reaches_the_misfit_of_the_tru
     at_truth = hypotheses.fit(stick, y, sigma, slots.complete({}), record, CHANNELS[:2], [{**truth, "kT1": 3e6}], search=False)
     assert fit.chi2_red < at_truth.chi2_red + 0.05 < 1.1
     assert fit.values["T_max"] * fit.values["r_k"] == pytest.approx(2024.0 * 0.90, rel=0.005)
+    # Weighted otherwise (as a whitened pass weighs a coloured channel), least squares from the search's optimum
+    # reaches the truth's misfit under that weighting: the basin is the data's, not the weighting's.
+    weighted = sigma * np.array([1.0, 1.5])
+    refit = hypotheses.fit(stick, y, weighted, slots.complete({}), record, CHANNELS[:2], [fit.values], search=False)
+    at_truth = hypotheses.fit(stick, y, weighted, slots.complete({}), record, CHANNELS[:2], [{**truth, "kT1": 3e6}], search=False)
+    assert refit.chi2_red < at_truth.chi2_red + 0.05 and refit.n_simulations < 0.2 * fit.n_simulations
+
+
+def test_a_whitened_pass_fits_what_the_white_pass_searched_from_that_searchs_optimum(diagnosed):
+    """The second, whitened pass of a diagnosis does not search the same data again: a hypothesis the first pass searched
+    globally starts its least squares from that search's optimum, and ends there in a tenth of the simulations."""
+    first = diagnosed["stick_slip"].fits["stick_slip"]
+    assert first.search == hypotheses.SEARCHED_FROM[1]
+    again = diagnosis.diagnose(measurement("stick_slip", STICK_SLIP), SETTINGS, searched={"stick_slip": first})
+    refit = again.fits["stick_slip"]
+    assert search_of(again.verdict, "stick_slip") == hypotheses.SEARCHED_FROM[2]
+    assert search_of(again.verdict, "breathing_crack") == "members"
+    assert refit.chi2_red <= first.chi2_red + 1e-3 and refit.n_simulations < 0.1 * first.n_simulations
+    assert refit.values == pytest.approx(first.values, rel=1e-3)
+    assert again.verdict["verdict"] == diagnosed["stick_slip"].verdict["verdict"]
 
 
 def test_a_two_parameter_fit_from_the_banks_members_reaches_the_searchs_optimum_with_far_fewer_simulations():

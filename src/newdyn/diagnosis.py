@@ -109,12 +109,15 @@ class Diagnosis:
 
 
 def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mapping[str, str] | None = None,
-             colour: noise.Colour | None = None, level: np.ndarray | None = None, bank_path: str | None = None) -> Diagnosis:
+             colour: noise.Colour | None = None, level: np.ndarray | None = None, bank_path: str | None = None,
+             searched: Mapping[str, hypotheses.Fit] | None = None) -> Diagnosis:
     """Diagnose ``measurement`` (already read and checked); ``grid_paths`` are the study's shared
     coarse-grid files per calibration parameter and ``bank_path`` its bank (:mod:`newdyn.bank`), each reused when its
     condition is the measurement's (else computed here).  ``colour``
     (with the coloured channels' σ ``level``) is the noise's, when a first pass found it; without it, a first pass
-    fits under white noise and, when its best fit's residual reads coloured, the diagnosis runs again whitened."""
+    fits under white noise and, when its best fit's residual reads coloured, the diagnosis runs again whitened, each
+    hypothesis the first pass searched globally (its fits ``searched``) fitted from that search's optimum instead of
+    searching the same data again."""
     check_measurement(measurement, settings.channels, settings.noise_band_hz)
     configured, missing = settings, tuple(c for c in settings.channels if c not in measurement.channels)
     settings = replace(settings, channels=present_channels(measurement, settings.channels))
@@ -125,6 +128,7 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
     hyps = {h.name: h for h in settings.hypotheses()}
     if colour is not None:
         sigma, noise_source = coloured_level(channels, sigma, noise_source, colour, level)
+    searched = searched or {}
     instruments = settings.instruments(sampling.fs, colour)  # as the datasheets say; out-of-spec ones are found per fit
 
     def calibrate_all(y, refine_points):
@@ -165,13 +169,19 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
         started = time.perf_counter()
         mine = closest.where(signatures["hypothesis"] == kind, drop=True)
         start = json.loads(str(mine["values"].values[int(np.argmin(mine.values))]))
-        members = None if search_globally else bank_module.members(bank, kind)
-        # One chain: the start that fits the longest search window best, of the closest signature and the best member
-        # (or the search's best) on each search window.  Members of a fault of at most two parameters are points of a
-        # lattice as dense as a search's population, near one another; for a larger fault, its fit from members is a
-        # lower bound on its evidence.  The other starts' chains reached the same optimum at the cost of two more.
-        fit = hypotheses.fit(hyps[kind], data, sigma, values, sampling, channels, [start], settings.max_step, instruments=instruments,
-                             members=members, chains=1, stop=stop)
+        if kind in searched:  # the white-noise pass searched the same data globally: its optimum starts this fit
+            fit = replace(hypotheses.fit(hyps[kind], data, sigma, values, sampling, channels, [start, searched[kind].values],
+                                         settings.max_step, search=False, instruments=instruments, chains=1),
+                          search=hypotheses.SEARCHED_FROM[2])
+        else:
+            # One chain: the start that fits the longest search window best, of the closest signature and the best
+            # member (or the search's best) on each search window.  Members of a fault of at most two parameters are
+            # points of a lattice as dense as a search's population, near one another; for a larger fault, its fit from
+            # members is a lower bound on its evidence.  The other starts' chains reached the same optimum at the cost of
+            # two more.
+            fit = hypotheses.fit(hyps[kind], data, sigma, values, sampling, channels, [start], settings.max_step,
+                                 instruments=instruments, members=None if search_globally else bank_module.members(bank, kind),
+                                 chains=1, stop=stop)
         log.info("%s: fit of %s from %s (%d simulations, chi2 %.4g) in %.1f s", measurement.name, kind, fit.search, fit.n_simulations,
                  fit.chi2_red, time.perf_counter() - started)
         return fit
@@ -183,7 +193,7 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
     # could take the verdict only by fitting better than what already fits to the noise, and its members' fit stands as
     # a lower bound on its evidence (the ranking's search says so).  Its members' fit runs beside the smaller faults'
     # on the chance that something explains the data; if nothing does, it is stopped and searches instead.
-    large = [kind for kind in settings.fault_ranges if bank_module.needs_search(hyps[kind])]
+    large = [kind for kind in settings.fault_ranges if bank_module.needs_search(hyps[kind]) and kind not in searched]
 
     def explaining(candidates):
         return [name for name, fit in candidates.items() if _explains(fit, calibrations, settings.chi2_max)]
@@ -204,7 +214,8 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
         found, level = noise.colour(data - _shown(best, data, sigma), settings.noise_colour_order, settings.evidence_margin)
         if not found.white:
             stage(f"noise colour {found.summary(channels)} from the residual of {best.hypothesis.name}: again, whitened")
-            return diagnose(measurement, configured, grid_paths, found, level, bank_path)
+            return diagnose(measurement, configured, grid_paths, found, level, bank_path,
+                            {kind: fit for kind, fit in fits.items() if fit.search == hypotheses.SEARCHED_FROM[1]})
     colour = colour or noise.white(len(channels))
 
     best_fault = max(settings.fault_ranges, key=lambda kind: fits[kind].log_evidence)
