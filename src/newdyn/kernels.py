@@ -152,14 +152,20 @@ def _index_written_out(source: str) -> str:
             for child in ast.iter_child_nodes(node):
                 yield from outermost(child)
 
+    def text(node: ast.AST) -> str:  # as ast.get_source_segment, which splits the whole source into lines at each call
+        return source[offset(node.lineno, node.col_offset):offset(node.end_lineno, node.end_col_offset)]
+
+    def written_out(argument: ast.AST) -> str:  # in brackets, so that an argument spanning lines parses on its own
+        inner = text(argument)
+        return _index_written_out(f"({inner})")[1:-1] if "_at(" in inner else inner
+
     edits = []
     for call in outermost(ast.parse(source)):
-        # An argument is written out on its own, in brackets so that one spanning lines parses.
-        row, lane = (_index_written_out(f"({ast.get_source_segment(source, argument)})")[1:-1] for argument in call.args)
+        row, lane = (written_out(argument) for argument in call.args)
         edits.append((offset(call.lineno, call.col_offset), offset(call.end_lineno, call.end_col_offset),
                       f"np.uint64(({row}) * LANES + ({lane}))"))
-    for start, end, text in sorted(edits, reverse=True):
-        source = source[:start] + text + source[end:]
+    for start, end, written in sorted(edits, reverse=True):
+        source = source[:start] + written + source[end:]
     return source
 
 
