@@ -307,15 +307,15 @@ def test_full_fits_whose_kernels_are_not_compiled_share_one_kernel(monkeypatch, 
         return candidate.acts_on
 
     monkeypatch.setattr(verify, "_full_fit", fit)
-    fits = verify._full_fits(candidates, None, None, {}, None, None, None)
+    fits, kernel_files = verify._full_fits(candidates, None, None, {}, None, None, None)
     assert [fits[id(c)] for c in candidates] == ["coupling", "load", "b1_x"]
     assert [active for place, active in fitted if place in together] == [together] * len(together)
     assert all(active == [place] for place, active in fitted if place not in together)
     assert not any(name.startswith("discovered") for name in effects.active())
-    for place in ("coupling", "load"):  # what a fit's model is simulated with later: the kernel it was fitted in
-        with verify.including(f"discovered_periodic_{place}"):
+    for c in candidates[:2]:  # what a fit's model is simulated with later: the kernel it was fitted in
+        with verify.Discovered({}, None, kernel_files=tuple(kernel_files[id(c)])).as_fitted():
             beside = [name.removeprefix("discovered_periodic_") for name in effects.active() if name.startswith("discovered")]
-        assert beside == (together if place in together else [place])
+        assert beside == (together if c.acts_on in together else [c.acts_on])
 
 
 def test_equivalent_placements_rest_on_the_full_fits_and_on_the_best_forms_linearized_scores():

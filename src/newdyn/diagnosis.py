@@ -222,8 +222,8 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
     discovery = None
     if settings.searches(any(_explains(fit, calibrations, settings.chi2_max) for fit in fits.values())):
         discovery = verify.discover(measurement.name, fits[_best_of(fits, "parameter_change")], data, sigma, values, sampling, settings)
-        stage(f"discovery ({len(discovery[0]['candidates'])} candidates)")
-    ahead = _explaining_ahead(fits, calibrations, best_fault, settings.chi2_max, discovery and discovery[2])
+        stage(f"discovery ({len(discovery.section['candidates'])} candidates)")
+    ahead = _explaining_ahead(fits, calibrations, best_fault, settings.chi2_max, discovery and discovery.fit)
     effect_posterior = _effect_posterior(fits[best_fault], data, sigma, values, sampling, channels, settings, ahead)
     if ahead is None:
         fits[best_fault] = _polished(fits[best_fault], effect_posterior, data, sigma, values, sampling, channels, settings, instruments)
@@ -251,23 +251,25 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
         verdict["missing_channels"] = _missing_channels(missing, verdict, fits, values, sampling, data, sigma, settings)
     verdict["noise"] = {"sigma": dict(zip(channels, sigma.tolist())), "source": noise_source,
                         "colour": colour.summary(channels)}
-    effect_file = discovered = forces = None
     # Discovery ran before the MCMC; a library fault whose polish explained the data after all drops it.
-    if discovery is not None and settings.searches(verdict["verdict"] != "unexplained"):
-        verdict["discovery"], effect_file, discovered, forces = discovery
-        if discovered is not None:
-            versions["discovered"] = _shown(discovered, data, sigma)
-            verdict["models"]["discovered"] = discovered.hypothesis.name
-            verdict["model_versions"].append(_version_row("+ discovered", discovered, versions["discovered"], data, channels))
-    verdict["model_comparison"], pointwise = _compare_versions(verdict, fits, calibrations, effect_posterior, discovered, data, sigma,
+    if discovery is not None and not settings.searches(verdict["verdict"] != "unexplained"):
+        discovery = None
+    if discovery is not None:
+        verdict["discovery"] = discovery.section
+        if discovery.fit is not None:
+            versions["discovered"] = _shown(discovery.fit, data, sigma)
+            verdict["models"]["discovered"] = discovery.fit.hypothesis.name
+            verdict["model_versions"].append(_version_row("+ discovered", discovery.fit, versions["discovered"], data, channels))
+    verdict["model_comparison"], pointwise = _compare_versions(verdict, fits, calibrations, effect_posterior, discovery, data, sigma,
                                                                values, sampling, settings)
     stage("model versions compared by PSIS-LOO")
     verdict["statement"] = statement.statement(verdict, settings.chi2_max)
     return Diagnosis(measurement, channels, data, sigma, noise_source, calibrations, fits, signatures, verdict,
-                     versions, effect_posterior, effect_file, forces, pointwise)
+                     versions, effect_posterior, discovery and discovery.effect_file, discovery and discovery.forces, pointwise)
 
 
-def _compare_versions(verdict, fits, calibrations, effect_posterior, discovered, data, sigma, values, sampling, settings: Settings):
+def _compare_versions(verdict, fits, calibrations, effect_posterior, discovery: verify.Discovered | None, data, sigma, values, sampling,
+                      settings: Settings):
     """``az.compare`` of the model versions by PSIS-LOO over blocks of one channel and load cycle, and their
     pointwise log-likelihoods (version, draw, channel, cycle).  Draws: the drift's grid posterior, the
     library effect's posterior, the discovered term's Laplace approximation; the nominal model has none."""
@@ -292,9 +294,10 @@ def _compare_versions(verdict, fits, calibrations, effect_posterior, discovered,
     evaluators["effect"] = version(effect, stacked[rng.choice(len(stacked), n, replace=len(stacked) < n)])
     cycle = model_comparison.cycles(sampling.times, values["load_freq"])
     idata = model_comparison.evaluate_versions(evaluators, data, sigma, cycle, settings.channels)
-    if discovered is not None:
+    if discovery is not None and discovery.fit is not None:
+        discovered = discovery.fit
         low, high = np.array([[p.low, p.high] for p in discovered.hypothesis.priors]).T
-        with verify.including(discovered.hypothesis.effect):
+        with discovery.as_fitted():
             idata.update(model_comparison.evaluate_versions(
                 {"discovered": version(discovered, model_comparison.draws(discovered.theta, discovered.covariance, low, high, rng))},
                 data, sigma, cycle, settings.channels))

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import Mapping, Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -31,9 +31,29 @@ FULL_FIT_PLACES = 2
 FULL_FIT_SHARE = 0.5
 
 
-def discover(name: str, calibrated: hypotheses.Fit, data, sigma, values, sampling, settings: Settings):
-    """The discovery section of the verdict, the best candidate's effect file (name, content) and its fit on the
-    full simulator (both None when the search found no candidate), and the force estimated at each place."""
+@dataclass(frozen=True)
+class Discovered:
+    """What discovery found in a measurement."""
+
+    section: dict  # the verdict's discovery section
+    forces: xr.Dataset  # the force estimated at each place
+    effect_file: tuple[str, str] | None = None  # (name, content) of the best candidate's found effect file
+    fit: hypotheses.Fit | None = None  # the best candidate fitted on the full simulator
+    kernel_files: tuple[Path, ...] = ()  # the generic effect files that fit ran beside, its own among them: its kernel
+
+    @contextlib.contextmanager
+    def as_fitted(self):
+        """The best candidate's generic effect active inside a with-block, beside the files it was fitted with, so that
+        its simulations run in the kernel its fit compiled."""
+        with contextlib.ExitStack() as stack:
+            for path in self.kernel_files:
+                stack.enter_context(effects.including(path))
+            yield
+
+
+def discover(name: str, calibrated: hypotheses.Fit, data, sigma, values, sampling, settings: Settings) -> Discovered:
+    """The discovery section of the verdict, the force estimated at each place and, where the search found a candidate,
+    the best one's effect file and its fit on the full simulator."""
     base = {**values, **calibrated.values}
     read = sensors.reading(data, calibrated.model, sigma, _datasheets(calibrated, settings, sampling))  # what the instruments add taken out
     found = search.discover(data - read, sigma, base, sampling, settings.channels, settings.max_step)
@@ -41,7 +61,7 @@ def discover(name: str, calibrated: hypotheses.Fit, data, sigma, values, samplin
     leading = [c for c in found.candidates if search.log_bayes_factor(c, found) >= FULL_FIT_SHARE * top]
     terms = list(dict.fromkeys(c.term for c in leading))[:FULL_FIT_TERMS]
     tried = [c for term in terms for c in [c for c in leading if c.term == term][:FULL_FIT_PLACES]]
-    full = _full_fits(tried, data, sigma, values, calibrated, sampling, settings)
+    full, kernel_files = _full_fits(tried, data, sigma, values, calibrated, sampling, settings)
     ranked = sorted(tried, key=lambda c: -full[id(c)].log_evidence) + [c for c in found.candidates if id(c) not in full]
 
     def row(c):
@@ -49,7 +69,7 @@ def discover(name: str, calibrated: hypotheses.Fit, data, sigma, values, samplin
         if id(c) in full:
             fit = full[id(c)]
             summary.update(chi2_after=fit.chi2_red, log_evidence=fit.log_evidence, method="full simulator",
-                           parameters=_merged(c.parameters, fit.laplace_parameters()))
+                           parameters=merged(c.parameters, fit.laplace_parameters()))
         return summary
 
     equal = _equivalent(found, {(c.term, c.acts_on): full[id(c)].log_evidence for c in tried}, settings.evidence_margin)
@@ -67,14 +87,14 @@ def discover(name: str, calibrated: hypotheses.Fit, data, sigma, values, samplin
         section["separating_channels"] = search.separating_channels(separable, found, dict(zip(others, noise_sd.tolist())))
     forces = _force_dataset(found)
     if not ranked:
-        return section, None, None, forces
+        return Discovered(section, forces)
     best, fit = ranked[0], full[id(ranked[0])]
-    refit = replace(best, parameters=_merged(best.parameters, fit.laplace_parameters()))
+    refit = replace(best, parameters=merged(best.parameters, fit.laplace_parameters()))
     effect_name, content = effect_file.render(refit, name)
     section["effect_file"] = f"{effect_name}.py"
     section["fit"] = {"effect": effect_name, "chi2_after": fit.chi2_red, "log_evidence": fit.log_evidence,
                       "explains": fit.chi2_red <= settings.chi2_max, "parameters": fit.laplace_parameters()}
-    return section, (effect_name, content), fit, forces
+    return Discovered(section, forces, (effect_name, content), fit, tuple(kernel_files[id(best)]))
 
 
 def _equivalent(found: search.Discovery, fitted: Mapping[tuple[str, str], float], margin: float) -> list[tuple[str, str]]:
@@ -123,15 +143,15 @@ def _force_dataset(found: search.Discovery) -> xr.Dataset:
 
 
 def _full_fits(candidates: Sequence[search.Candidate], data, sigma, values, calibrated: hypotheses.Fit, sampling,
-               settings: Settings) -> dict[int, hypotheses.Fit]:
-    """Each candidate's :func:`_full_fit`, by ``id``.  One whose kernel (the active effects and its form's generic
-    file) is compiled already runs in it; the others share one kernel that holds all their files, each absent from
-    the others' fits (an absent effect adds nothing, so the numbers are the same): one compile, not one per candidate."""
+               settings: Settings) -> tuple[dict[int, hypotheses.Fit], dict[int, list[Path]]]:
+    """Each candidate's :func:`_full_fit` and the generic effect files it ran beside (its own among them), by ``id``.
+    One whose kernel (the active effects and its form's generic file) is compiled already runs in it; the others share
+    one kernel that holds all their files, each absent from the others' fits (an absent effect adds nothing, so the
+    numbers are the same): one compile, not one per candidate."""
     files = {id(c): _generic_file(c.term, c.acts_on, c.shape) for c in candidates}
     fresh = sorted((c for c in candidates if not _compiled(files[id(c)])), key=lambda c: files[id(c)].name)
     together = fresh if len(fresh) > 1 else []
     group = [files[id(c)] for c in together]
-    _FITTED_BESIDE.update({files[id(c)].stem: group if files[id(c)] in group else [files[id(c)]] for c in candidates})
     fits = {}
     with contextlib.ExitStack() as stack:
         included = {id(c): stack.enter_context(effects.including(files[id(c)])) for c in together}
@@ -141,21 +161,7 @@ def _full_fits(candidates: Sequence[search.Candidate], data, sigma, values, cali
         if id(c) not in fits:
             with effects.including(files[id(c)]) as effect:
                 fits[id(c)] = _full_fit(c, effect, data, sigma, values, calibrated, sampling, settings)
-    return fits
-
-
-# The generic effect files each full fit ran beside (its own among them), by effect name: the kernel it was fitted in.
-_FITTED_BESIDE: dict[str, list[Path]] = {}
-
-
-@contextlib.contextmanager
-def including(effect_name: str):
-    """The generic effect ``effect_name`` active inside a with-block, beside the files it was fitted with, so that
-    its simulations run in the kernel its fit compiled."""
-    with contextlib.ExitStack() as stack:
-        for path in _FITTED_BESIDE.get(effect_name, [generic_path(effect_name)]):
-            stack.enter_context(effects.including(path))
-        yield
+    return fits, {id(c): group if files[id(c)] in group else [files[id(c)]] for c in candidates}
 
 
 def _compiled(path: Path) -> bool:
@@ -208,7 +214,7 @@ def _datasheets(calibrated: hypotheses.Fit, settings: Settings, sampling) -> sen
     return settings.instruments(sampling.fs, calibrated.instruments.colour if calibrated.instruments is not None else None)
 
 
-def _merged(linearized: Mapping, full: Mapping) -> dict:
+def merged(linearized: Mapping, full: Mapping) -> dict:
     """The candidate's parameters with their full-simulator fit's values where it has them (units kept)."""
     return {key: ({**row, **{k: full[key][k] for k in ("mean", "sd", "hdi_low", "hdi_high")}, "value": full[key]["map"]}
                   if key in full else dict(row)) for key, row in linearized.items()}
