@@ -44,7 +44,7 @@ def slipping():
 def test_stick_slip_that_slips_at_full_load_only_is_one_finding_visible_where_it_slips(slipping):
     full, part = slipping
     assert full.verdict["effect"] == "stick_slip" and part.verdict["verdict"] == "healthy"  # part load: it never slips
-    v = machine.diagnose("rig", [full, part], SETTINGS)
+    v = machine.diagnose("rig", [full, part], SETTINGS).verdict
     assert (v["verdict"], v["effect"]) == ("new_dynamics", "stick_slip")
     assert v["parameters"]["T_max"]["hdi_low"] <= 1854.95 <= v["parameters"]["T_max"]["hdi_high"]
     lines = {line["name"]: line for line in v["recordings"]}
@@ -57,7 +57,7 @@ def test_stick_slip_that_slips_at_full_load_only_is_one_finding_visible_where_it
 def test_recorded_at_part_load_only_the_verdict_says_at_which_load_a_stick_slip_would_show(slipping):
     """At part load the joint never slips: healthy, with a stick-slip that the recording leaves open as a rival, which a
     recording at a load where the healthy joint torque (1.307 T0 at its peak) would pass its static limit would show."""
-    v = machine.diagnose("rig", [slipping[1]], SETTINGS)
+    v = machine.diagnose("rig", [slipping[1]], SETTINGS).verdict
     assert v["verdict"] == "healthy" and v["record_next"]["model"] == "healthy"
     rivals = {row["rival"]: row["advice"] for row in v["record_next"]["rivals"]}
     advice = rivals["stick_slip"]
@@ -77,7 +77,7 @@ def drifted():
 
 
 def test_a_drift_of_one_value_under_two_conditions_is_consistent(drifted):
-    v = machine.diagnose("rig", [drifted["stiff_full"], drifted["stiff_part"]], SETTINGS)
+    v = machine.diagnose("rig", [drifted["stiff_full"], drifted["stiff_part"]], SETTINGS).verdict
     assert v["verdict"] == "parameter_change" and "kT1" in v["equivalent"]
     kT1 = v["consistency"]["parameter_change:kT1"]
     assert kT1["consistent"] and kT1["log_bayes_factor"] > 0  # one value for both: the Occam factor of one parameter fewer
@@ -90,7 +90,7 @@ def test_a_drift_that_needs_different_values_under_two_conditions_is_named_as_co
     """Each recording alone is a kT1 drift, but of different sizes: one value cannot explain both."""
     assert all(r["hypothesis"] != "parameter_change:kT1" or r["explains"]
                for d in (drifted["stiff_full"], drifted["soft_part"]) for r in d.verdict["ranking"])
-    v = machine.diagnose("rig", [drifted["stiff_full"], drifted["soft_part"]], SETTINGS)
+    v = machine.diagnose("rig", [drifted["stiff_full"], drifted["soft_part"]], SETTINGS).verdict
     kT1 = v["consistency"]["parameter_change:kT1"]
     assert kT1["explains_each_alone"] and not kT1["consistent"] and kT1["log_bayes_factor"] < -SETTINGS.evidence_margin
     assert kT1["hellinger"]["kT1"] > 0.9  # the recordings' posteriors hardly overlap
@@ -125,7 +125,7 @@ def test_a_recording_through_a_probe_out_of_its_spec_keeps_its_own_instruments_a
     exact = diagnosed("exact", {}, FULL_LOAD, 6, settings)
     high = diagnosed("high", {}, PART_LOAD, 7, settings, gains={"b1_x": 1.08})
     assert [p["channel"] for p in high.verdict["sensor_problems"]] == ["b1_x"] and not exact.verdict["sensor_problems"]
-    v = machine.diagnose("rig", [exact, high], settings)
+    v = machine.diagnose("rig", [exact, high], settings).verdict
     assert v["verdict"] == "healthy"
     assert v["consistency"]["healthy"]["log_bayes_factor"] == pytest.approx(0.0, abs=1e-6)
     lines = {line["name"]: line for line in v["recordings"]}
@@ -133,12 +133,13 @@ def test_a_recording_through_a_probe_out_of_its_spec_keeps_its_own_instruments_a
     assert all(line["chi2_after"] <= settings.chi2_max for line in lines.values())
 
 
-def test_a_line_no_effect_explains_is_found_across_two_speeds_as_an_order_of_the_shaft_and_added_explains_both():
+def test_a_line_no_effect_explains_is_found_across_two_speeds_as_an_order_of_the_shaft_and_added_explains_both(tmp_path):
     """A torque ripple of 15 N·m, 6 per revolution of the motor (a test effect that the library does not hold),
     simulated by newdyn.reference at 1480 and 1200 rpm: nothing of the library explains the machine; the search
     across its recordings names an order of the shaft, its line at 148 Hz in one recording and 120 Hz in the other; and
     that order, added to the model and fitted to both on the full simulator (one order, each recording's own amplitude
-    and phase), brings both to the noise with the ripple's amplitude inside each recording's 94 % interval."""
+    and phase), brings both to the noise with the ripple's amplitude inside each recording's 94 % interval.  The
+    machine's found effect file holds that order and leaves the amplitude and phase to each scenario."""
     recordings = []
     with effects.including(ROOT / "tests" / "effects" / "torque_ripple.py"):
         for seed, speed in enumerate((1480.0, 1200.0)):
@@ -150,7 +151,8 @@ def test_a_line_no_effect_explains_is_found_across_two_speeds_as_an_order_of_the
     # library's verdict
     alone = [diagnosed_alone(m, replace(SETTINGS, discovery="never")) for m in recordings]
     assert all(r.verdict["verdict"] == "unexplained" and "discovery" not in r.verdict for r in alone)
-    v = machine.diagnose("rig", alone, SETTINGS)
+    found = machine.diagnose("rig", alone, SETTINGS)
+    v = found.verdict
     assert v["verdict"] == "unexplained"
     best = v["discovery"]["candidates"][0]
     assert best["term"] == "order" and best["shape"].startswith("6x")
@@ -164,3 +166,12 @@ def test_a_line_no_effect_explains_is_found_across_two_speeds_as_an_order_of_the
     assert len(fit["own_parameters"]) == 2
     assert all(own["amplitude"]["hdi_low"] <= 15.0 <= own["amplitude"]["hdi_high"] for own in fit["own_parameters"])
     assert "added to the model, it explains them" in v["statement"]
+    name, content = found.effect_file
+    assert v["discovery"]["effect_file"] == f"{name}.py" and name == f"{fit['effect']}_rig" and f"effect file {name}.py" in v["statement"]
+    (tmp_path / f"{name}.py").write_text(content)
+    declared = {p.name: p for p in effects.load_file(tmp_path / f"{name}.py").parameters}  # checked as a user's file is
+    assert declared["order"].default == pytest.approx(fit["parameters"]["order"]["mean"])
+    for key in ("amplitude", "phase"):
+        assert declared[key].default is None
+        assert all(declared[key].prior[0] < own[key]["mean"] < declared[key].prior[1] for own in fit["own_parameters"])
+    assert "across the recordings of the machine rig" in content and "rpm1480" in content and "rpm1200" in content

@@ -446,8 +446,9 @@ def diagnose_measurement(measurement_path: str, grid_paths: list[str], bank_path
 
 
 def diagnose_machine(name: str, measurement_paths: list[str], verdict_paths: list[str], spec: dict, output: str,
-                     code_hash: str) -> None:
-    """One verdict for a machine from its recordings, each diagnosed alone before (its verdict.json, in the same order)."""
+                     discovery: str, code_hash: str) -> None:
+    """One verdict for a machine from its recordings, each diagnosed alone before (its verdict.json, in the same order),
+    and the folder ``discovery`` with the effect file of the term found across them (empty where none was fitted)."""
     from . import io, machine, model, provenance, study
     from .settings import Settings
 
@@ -458,9 +459,14 @@ def diagnose_machine(name: str, measurement_paths: list[str], verdict_paths: lis
     recordings = [machine.Diagnosed(io.read_measurement(m, operating), json.loads(Path(v).read_text()))
                   for m, v in zip(measurement_paths, verdict_paths)]
     start = time.perf_counter()
-    verdict = machine.diagnose(name, recordings, settings)
-    log.info("machine %s: %s in %.1f s", name, verdict["statement"], time.perf_counter() - start)
-    io.write_json(output, {**verdict, "settings": json.loads(study.canonical_json(spec)), **provenance.attributes(code_hash)})
+    found = machine.diagnose(name, recordings, settings)
+    log.info("machine %s: %s in %.1f s", name, found.verdict["statement"], time.perf_counter() - start)
+    folder = Path(discovery)
+    folder.mkdir(parents=True, exist_ok=True)
+    if found.effect_file is not None:
+        file_name, content = found.effect_file
+        io.atomic_write(folder / f"{file_name}.py", lambda tmp: Path(tmp).write_text(content, encoding="utf-8"))
+    io.write_json(output, {**found.verdict, "settings": json.loads(study.canonical_json(spec)), **provenance.attributes(code_hash)})
 
 
 def write_bank(spec: dict, grid_paths: list[str], output: str, code_hash: str) -> None:
@@ -641,6 +647,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--name", required=True, help="the machine's name (its folder in measurements/)")
     p.add_argument("--recordings", required=True, nargs="+", help="the machine's measurement files")
     p.add_argument("--verdicts", required=True, nargs="+", help="each recording's own verdict.json, in the same order")
+    p.add_argument("--discovery", required=True, help="the folder for the effect file of a term found across the recordings")
     p = command("bank", "the signatures and members every diagnosis at one condition reuses", "diagnosis spec")
     p.add_argument("--grids", nargs="*", default=[], help="the study's coarse grid files, in any order")
     p = commands.add_parser("plot-diagnosis", help="the figures of one diagnosis")
@@ -707,7 +714,8 @@ def main(argv: list[str] | None = None) -> int:
             diagnose_measurement(args.measurement, args.grids, args.bank, json.loads(args.spec), args.verdict, args.table, args.netcdf,
                                  args.posterior, args.discovery, args.code_hash)
         elif args.command == "diagnose-machine":
-            diagnose_machine(args.name, args.recordings, args.verdicts, json.loads(args.spec), args.output, args.code_hash)
+            diagnose_machine(args.name, args.recordings, args.verdicts, json.loads(args.spec), args.output, args.discovery,
+                             args.code_hash)
         elif args.command == "bank":
             write_bank(json.loads(args.spec), args.grids, args.output, args.code_hash)
         elif args.command == "plot-diagnosis":

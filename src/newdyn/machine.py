@@ -24,9 +24,17 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from . import comparison, concurrency, hypotheses, instrument_checks, io, model, next_condition, noise, sensors, slots
-from .discovery import search, verify
+from .discovery import effect_file, search, verify
 from .hypotheses import HEALTHY, PARAMETER_CHANGE
 from .settings import Settings
+
+
+@dataclass(frozen=True)
+class MachineDiagnosis:
+    """A machine's verdict and, where discovery fitted a term across its recordings, that term's found effect file."""
+
+    verdict: dict
+    effect_file: tuple[str, str] | None = None  # (name, content)
 
 
 @dataclass(frozen=True)
@@ -49,8 +57,9 @@ def recording(diagnosed: Diagnosed, settings: Settings) -> hypotheses.Recording:
     )
 
 
-def diagnose(name: str, recordings: Sequence[Diagnosed], settings: Settings) -> dict:
-    """The machine's verdict (see the module docstring) from its ``recordings``, each already diagnosed alone."""
+def diagnose(name: str, recordings: Sequence[Diagnosed], settings: Settings) -> MachineDiagnosis:
+    """The machine's verdict (see the module docstring) from its ``recordings``, each already diagnosed alone, and the
+    effect file of the term discovery fitted across them (if any)."""
     seen = [recording(r, settings) for r in recordings]
     hyps = {h.name: h for h in settings.hypotheses()}
     own = [{row["hypothesis"]: row for row in r.verdict["ranking"]} for r in recordings]
@@ -73,7 +82,8 @@ def diagnose(name: str, recordings: Sequence[Diagnosed], settings: Settings) -> 
         verdict, effect, equivalent = "unexplained", None, []
         after = min(ranking, key=lambda row: max(row["chi2"]))["hypothesis"]
     lines = _recording_lines(recordings, seen, fits, next(row for row in ranking if row["hypothesis"] == after), settings)
-    searched = settings.searches(verdict != "unexplained")
+    discovery, found_file = (_discovery(name, recordings, ranking, fits, seen, settings) if settings.searches(verdict != "unexplained")
+                             else (None, None))
     result = {
         "machine": name, "verdict": verdict, "effect": effect, "equivalent": [e for e in equivalent if e is not None],
         "parameters": fits[after].laplace_parameters(), "model": after,
@@ -81,9 +91,9 @@ def diagnose(name: str, recordings: Sequence[Diagnosed], settings: Settings) -> 
         "consistency": {row["hypothesis"]: row["consistency"] for row in ranking},
         "recordings": lines, "ranking": ranking,
         "record_next": _record_next(ranking, fits, recordings, seen, settings),
-        **({"discovery": _discovery(ranking, fits, seen, settings)} if searched else {}),
+        **({"discovery": discovery} if discovery is not None else {}),
     }
-    return {"statement": statement(result, settings.chi2_max), **result}
+    return MachineDiagnosis({"statement": statement(result, settings.chi2_max), **result}, found_file)
 
 
 def _record_next(ranking: Sequence[Mapping], fits, recordings: Sequence[Diagnosed], seen: Sequence[hypotheses.Recording],
@@ -104,13 +114,14 @@ def _record_next(ranking: Sequence[Mapping], fits, recordings: Sequence[Diagnose
                                np.random.default_rng(int(settings.mcmc.get("seed", 0))))
 
 
-def _discovery(ranking: Sequence[Mapping], fits, seen: Sequence[hypotheses.Recording], settings: Settings) -> dict:
+def _discovery(name: str, recordings: Sequence[Diagnosed], ranking: Sequence[Mapping], fits, seen: Sequence[hypotheses.Recording],
+               settings: Settings) -> tuple[dict, tuple[str, str] | None]:
     """One term of the catalogue behind every recording's residual (:func:`newdyn.discovery.search.discover_across`),
     from the drift that the recordings' evidence favours, fitted to all of them: each form with one shape for all
     recordings, so that a line that moves with the speed is an order of a disk and one that stays a fixed frequency.
     Each term's best place, best first, what each recording alone would have said, and the best term added to the
     model: fitted to all recordings on the full simulator with that drift (:func:`newdyn.discovery.verify.fit_across`),
-    each recording's reduced χ² before and after."""
+    each recording's reduced χ² before and after; and that term's found effect file (:func:`effect_file.render_across`)."""
     drift = next(row["hypothesis"] for row in ranking if row["class"] in (HEALTHY, PARAMETER_CHANGE))
     fit = fits[drift]
     records = []
@@ -128,16 +139,25 @@ def _discovery(ranking: Sequence[Mapping], fits, seen: Sequence[hypotheses.Recor
                               if top - row["log_evidence"] <= settings.evidence_margin],
                "alone": [{"peaks_hz": list(found.peaks.frequencies), "equivalent_terms": _equal_terms(found, settings.evidence_margin)}
                          for found in across.alone]}
-    if across.scores:
-        row = across.scores[0]
-        found = instrument_checks.joint_checked(
-            verify.fit_across(row["term"], row["acts_on"], across.shapes[0], row["parameters"], seen, fit.values, settings), seen,
-            settings.evidence_margin)
-        section["fit"] = {"effect": found.hypothesis.name, "chi2_before": list(fit.chi2_red), "chi2_after": list(found.chi2_red),
-                          "log_evidence": found.log_evidence, "log_bayes_factor": found.log_evidence - fit.log_evidence,
-                          "explains": all(chi2 <= settings.chi2_max for chi2 in found.chi2_red),
-                          "parameters": found.laplace_parameters(), "own_parameters": found.own_parameters()}
-    return section
+    if not across.scores:
+        return section, None
+    row = across.scores[0]
+    found = instrument_checks.joint_checked(
+        verify.fit_across(row["term"], row["acts_on"], across.shapes[0], row["parameters"], seen, fit.values, settings), seen,
+        settings.evidence_margin)
+    # Each recording's rows of the term, the full fit's values in place of the linearized ones.
+    full = [verify.merged(linearized, {**found.laplace_parameters(), **own})
+            for linearized, own in zip(row["parameters"], found.own_parameters() or [{}] * len(seen))]
+    own_keys = [key for key in full[0] if found.own_values and key in found.own_values[0]]
+    effect_name, content = effect_file.render_across(
+        row["term"], row["acts_on"], across.shapes[0], {key: value for key, value in full[0].items() if key not in own_keys},
+        [{key: rows[key] for key in own_keys} for rows in full], name, [r.measurement.name for r in recordings])
+    section["effect_file"] = f"{effect_name}.py"
+    section["fit"] = {"effect": found.hypothesis.name, "chi2_before": list(fit.chi2_red), "chi2_after": list(found.chi2_red),
+                      "log_evidence": found.log_evidence, "log_bayes_factor": found.log_evidence - fit.log_evidence,
+                      "explains": all(chi2 <= settings.chi2_max for chi2 in found.chi2_red),
+                      "parameters": found.laplace_parameters(), "own_parameters": found.own_parameters()}
+    return section, (effect_name, content)
 
 
 def _equal_terms(found: search.Discovery, margin: float) -> list[str]:
@@ -250,5 +270,6 @@ def _discovered(section: Mapping, recordings: Sequence[str]) -> str:
     if "fit" in section:
         fit = section["fit"]
         chi2 = ", ".join(f"{name} {before:.3g} -> {after:.3g}" for name, before, after in zip(recordings, fit["chi2_before"], fit["chi2_after"]))
-        words += f"; added to the model, it {'explains' if fit['explains'] else 'does not explain'} them (reduced chi2 {chi2})"
+        words += (f"; added to the model, it {'explains' if fit['explains'] else 'does not explain'} them (reduced chi2 {chi2}; "
+                  f"effect file {section['effect_file']})")
     return words

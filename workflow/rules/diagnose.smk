@@ -151,7 +151,8 @@ rule diagnose_machine:
     input:
         unpack(machine_inputs),
     output:
-        "{root}/diagnosis/{machine}/verdict.json",
+        verdict="{root}/diagnosis/{machine}/verdict.json",
+        discovery=directory("{root}/diagnosis/{machine}/discovery"),
     log:
         "{root}/logs/diagnose_machine/{machine}.log",
     benchmark:
@@ -168,7 +169,7 @@ rule diagnose_machine:
     shell:
         "NUMBA_NUM_THREADS={threads} OPENBLAS_NUM_THREADS={threads} newdyn diagnose-machine --name {wildcards.machine} "
         "--recordings {input.recordings} --verdicts {input.verdicts} --spec {params.spec:q} --code-hash {params.code} "
-        "--output {output} 2>&1 | tee {log}"
+        "--output {output.verdict} --discovery {output.discovery} 2>&1 | tee {log}"
 
 
 rule plot_machine:

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 import re
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 
 from .forms import FORMS, Shape
 
@@ -65,12 +65,36 @@ def render(candidate, measurement: str) -> tuple[str, str]:
     """(effect name, content) of the found file of ``candidate`` (a :class:`.search.Candidate`) in ``measurement``."""
     name = effect_name(candidate.term, candidate.acts_on, candidate.shape, measurement)
     declared = {key: (float(row["value"]), row["unit"], prior_range(key, row)) for key, row in candidate.parameters.items()}
-    found = ", ".join(f"{key} = {row['value']:.6g}{'' if row['unit'] == '-' else ' ' + row['unit']} (sd {row['sd']:.3g})"
-                      for key, row in candidate.parameters.items())
+    found = ", ".join(f"{key} = {_valued(row)}" for key, row in candidate.parameters.items())
     return name, _content(name, candidate.term, candidate.acts_on, candidate.shape, declared,
                           f"Found by newdyn's discovery in the measurement {measurement}: {found}.  Add it to a study by\n"
                           f"copying this file into its effects folder and naming it in the config (``effects: [{name}]``).",
                           f"discovered in {measurement}")
+
+
+def render_across(term: str, place: str, shape: Shape, shared: Mapping[str, Mapping], own: Sequence[Mapping[str, Mapping]],
+                  machine: str, recordings: Sequence[str]) -> tuple[str, str]:
+    """(effect name, content) of the found file of a term found across a machine's ``recordings``: the form ``term`` at
+    ``place`` with ``shape``, its ``shared`` parameters' rows (value, sd, 94 % HDI, unit) one for all recordings and its
+    ``own`` rows one mapping per recording (a phased form's amplitude and phase).  A shared parameter's default is its
+    value; an own one has none, as it is each recording's (a scenario gives it), and its range covers every
+    recording's."""
+    name = effect_name(term, place, shape, machine)
+    declared = {key: (float(row["value"]), row["unit"], prior_range(key, row)) for key, row in shared.items()}
+    for key in own[0]:
+        ranges = [prior_range(key, rows[key]) for rows in own]
+        declared[key] = (None, own[0][key]["unit"], (min(r[0] for r in ranges), max(r[1] for r in ranges), *ranges[0][2:]))
+    found = "; ".join([*(f"{key} = {_valued(row)}" for key, row in shared.items()),
+                       *(f"{key} {', '.join(f'{_valued(rows[key])} in {r}' for r, rows in zip(recordings, own))}" for key in own[0])])
+    return name, _content(name, term, place, shape, declared,
+                          f"Found by newdyn's discovery across the recordings of the machine {machine}: {found}.  Add it to a\n"
+                          f"study by copying this file into its effects folder and naming it in the config (``effects:\n"
+                          f"[{name}]``)" + (f"; a scenario gives its {', '.join(own[0])}." if own[0] else "."),
+                          f"discovered across the recordings of {machine}")
+
+
+def _valued(row: Mapping) -> str:
+    return f"{row['value']:.6g}{'' if row['unit'] == '-' else ' ' + row['unit']} (sd {row['sd']:.3g})"
 
 
 def render_generic(term: str, place: str, shape: Shape) -> tuple[str, str]:
