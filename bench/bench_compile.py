@@ -2,7 +2,7 @@
 fresh and its built-in kernel compiled into an empty cache folder (NEWDYN_CACHE) in a process of its own, then the
 speed of the compiled code (the best of --repeat runs of a 64-simulation batch and of a lone simulation, one thread),
 both in the process that compiled it (a study's first job) and in a new one that loads it from the cache (every other
-job), and whether both revisions simulate every built-in effect to the same bits.
+job: what loading costs it too), and whether both revisions simulate every built-in effect to the same bits.
 
 Run: python bench/bench_compile.py [--baseline REV] [--head REV] [--repeat 7]   (about 3 minutes)
 """
@@ -56,7 +56,8 @@ print(json.dumps({"compile": compile_s, "batch": best(batch, repeat), "lone": be
 
 def measure(folder: Path, cache: Path, outputs: Path, repeat: int) -> dict[str, float]:
     """Compile time [s] and the best batch and lone simulation times [s] of the clone ``folder``: in the process that
-    compiled the kernel, and (``cached_batch``, ``cached_lone``) in a second one that loaded it."""
+    compiled the kernel, and (``cached_load``, the kernel's rendering and loading, ``cached_batch``, ``cached_lone``) in a
+    second one that loaded it."""
     environment = {**os.environ, "PYTHONPATH": str(folder / "src"), "NEWDYN_CACHE": str(cache), "NUMBA_NUM_THREADS": "1"}
     found = []
     for _ in range(2):
@@ -66,7 +67,7 @@ def measure(folder: Path, cache: Path, outputs: Path, repeat: int) -> dict[str, 
             sys.exit(f"the measurement failed in {folder}:\n{run.stderr[-3000:]}")
         found.append(json.loads(run.stdout.strip().splitlines()[-1]))
     compiled, cached = found
-    return {**compiled, "cached_batch": cached["batch"], "cached_lone": cached["lone"]}
+    return {**compiled, "cached_load": cached["compile"], "cached_batch": cached["batch"], "cached_lone": cached["lone"]}
 
 
 def main() -> None:
@@ -91,6 +92,7 @@ def main() -> None:
     for key, label, unit, scale in (("compile", "first compile", "s", 1.0),
                                     ("batch", "64 simulations, compiling", "s", 1.0),
                                     ("lone", "one simulation, compiling", "ms", 1e3),
+                                    ("cached_load", "loading it from the cache", "s", 1.0),
                                     ("cached_batch", "64 simulations, cached", "s", 1.0),
                                     ("cached_lone", "one simulation, cached", "ms", 1e3)):
         print(f"{label:28s} {old[key] * scale:16.3g}{unit:>2s} {new[key] * scale:16.3g}{unit:>2s} {new[key] / old[key]:13.2f}x")
