@@ -364,7 +364,7 @@ def _interior_events(w, n_lanes, t, h):
 @njit(**_JIT)
 def _lane_event(w, lane, src, t):
     """:func:`_event_value` of one lane, compiled once for the paths that take one lane at a time: each inlined copy
-    of it (the vectorized loops need theirs) costs the compile a second or more."""
+    of it (the vectorized loops need theirs) lengthens the compile."""
     return _event_value(w, lane, src, t)
 
 

@@ -137,8 +137,8 @@ def render(active: dict[str, type[effects.Effect]]) -> str:
 
 def _index_written_out(source: str) -> str:
     """``source`` with each ``_at(row, lane)`` written out as the flat index it stands for, np.uint64((row) * LANES +
-    (lane)).  As a function numba inlines, each of its hundreds of calls cost a copy of its IR and a type inference,
-    over a tenth of the kernel's compile; written out, LLVM gets the same code."""
+    (lane)).  As a function numba inlines, each of its hundreds of calls cost the compile a copy of its IR and a type
+    inference; written out, LLVM gets the same code."""
     lines = source.splitlines(keepends=True)
     starts = [0, *itertools.accumulate(len(line) for line in lines)]
 
