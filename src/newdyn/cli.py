@@ -450,6 +450,7 @@ def diagnose_machine(name: str, measurement_paths: list[str], verdict_paths: lis
     """One verdict for a machine from its recordings, each diagnosed alone before (its verdict.json, in the same order),
     and the folder ``discovery`` with the effect file of the term found across them (empty where none was fitted)."""
     from . import io, machine, model, provenance, study
+    from .discovery import effect_file
     from .settings import Settings
 
     if len(measurement_paths) != len(verdict_paths):
@@ -461,11 +462,7 @@ def diagnose_machine(name: str, measurement_paths: list[str], verdict_paths: lis
     start = time.perf_counter()
     found = machine.diagnose(name, recordings, settings)
     log.info("machine %s: %s in %.1f s", name, found.verdict["statement"], time.perf_counter() - start)
-    folder = Path(discovery)
-    folder.mkdir(parents=True, exist_ok=True)
-    if found.effect_file is not None:
-        file_name, content = found.effect_file
-        io.atomic_write(folder / f"{file_name}.py", lambda tmp: Path(tmp).write_text(content, encoding="utf-8"))
+    effect_file.write(discovery, found.effect_file)
     io.write_json(output, {**found.verdict, "settings": json.loads(study.canonical_json(spec)), **provenance.attributes(code_hash)})
 
 

@@ -61,7 +61,7 @@ from . import (
 from . import posterior as posterior_module
 from . import sensors as sensors_module
 from . import signatures as signature_module
-from .discovery import verify
+from .discovery import effect_file, verify
 from .hypotheses import HEALTHY, PARAMETER_CHANGE
 from .measurement_checks import check_measurement, noise_level, present_channels
 from .settings import Settings
@@ -577,16 +577,9 @@ def write(diagnosis: Diagnosis, verdict_path, table_path, netcdf_path, posterior
     the data, model versions, posteriors and signature distances (NetCDF), the effect model's posterior
     (ArviZ NetCDF), each file atomically, and the folder ``discovery_folder`` with the
     discovered term's effect file (empty when discovery did not run)."""
-    from pathlib import Path
-
     from . import provenance, sampling
 
-    folder = Path(discovery_folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    if diagnosis.effect_file is not None:
-        name, content = diagnosis.effect_file
-        io.atomic_write(folder / f"{name}.py", lambda tmp: Path(tmp).write_text(content, encoding="utf-8"))
-
+    effect_file.write(discovery_folder, diagnosis.effect_file)
     m = diagnosis.measurement
     stamp = provenance.attributes(code_hash)
     verdict = {"statement": diagnosis.verdict["statement"], "measurement": m.name, **diagnosis.verdict, "channels": list(diagnosis.channels),

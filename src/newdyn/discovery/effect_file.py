@@ -10,9 +10,12 @@ its ranges from :func:`prior_range`, not from the file).
 from __future__ import annotations
 
 import math
+import os
 import re
 from collections.abc import Mapping, Sequence
+from pathlib import Path
 
+from .. import io
 from .forms import FORMS, Shape
 
 #: A fitted parameter's range around its discovered value v, by name: (low, high, lower bound, lower
@@ -95,6 +98,16 @@ def render_across(term: str, place: str, shape: Shape, shared: Mapping[str, Mapp
 
 def _valued(row: Mapping) -> str:
     return f"{row['value']:.6g}{'' if row['unit'] == '-' else ' ' + row['unit']} (sd {row['sd']:.3g})"
+
+
+def write(folder: str | os.PathLike, found: tuple[str, str] | None) -> None:
+    """The folder ``folder`` with the found effect file ``found`` (name, content) in it, written atomically; the folder
+    alone (empty) where nothing was found."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    if found is not None:
+        name, content = found
+        io.atomic_write(folder / f"{name}.py", lambda tmp: Path(tmp).write_text(content, encoding="utf-8"))
 
 
 def render_generic(term: str, place: str, shape: Shape) -> tuple[str, str]:
