@@ -163,7 +163,8 @@ def test_importance_sampling_refuses_a_posterior_with_a_second_mode_in_the_appro
     idata = posterior.sample(two_modes, box([-100] * 3, [100] * 3), ["x", "u", "v"], np.zeros(3), np.eye(3),
                              posterior.PosteriorSettings(seed=1, batch=1000, max_draws=4000))
     assert idata.attrs["converged"] == 0 and idata.attrs["pareto_k"] > 0.7
-    assert "misses the posterior" in idata.attrs["reason"]
+    assert "the proposal fitted again misses the posterior" in idata.attrs["reason"]  # whose proposal, in words
+    assert "the Laplace approximation misses the posterior" in idata.attrs["tried"]
     assert idata.attrs["refits"] == posterior.REFITS  # a proposal fitted to draws that outweigh each other misses too
 
 

@@ -274,14 +274,14 @@ def _importance_from(log_posterior, whitened: _Whitened, settings: PosteriorSett
     import arviz as az
 
     k = len(whitened.mean)
-    proposal = stats.multivariate_t(loc=np.zeros(k), shape=np.eye(k), df=settings.df)
+    student_t = stats.multivariate_t(loc=np.zeros(k), shape=np.eye(k), df=settings.df)
     rng = np.random.default_rng(settings.seed)
     theta, log_q, log_post, log_like = np.empty((0, k)), np.empty(0), np.empty(0), np.empty(0)
     while True:
-        t = np.asarray(proposal.rvs(settings.batch, random_state=rng)).reshape(settings.batch, k)
+        t = np.asarray(student_t.rvs(settings.batch, random_state=rng)).reshape(settings.batch, k)
         post, like = log_posterior(whitened.theta(t))
         theta = np.vstack([theta, whitened.theta(t)])
-        log_q, log_post, log_like = (np.concatenate([a, b]) for a, b in ((log_q, proposal.logpdf(t).reshape(-1)),
+        log_q, log_post, log_like = (np.concatenate([a, b]) for a, b in ((log_q, student_t.logpdf(t).reshape(-1)),
                                                                           (log_post, post), (log_like, like)))
         raw = log_post - log_q
         finite = np.isfinite(raw)
