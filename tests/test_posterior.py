@@ -47,6 +47,32 @@ def test_quadrature_recovers_a_correlated_gaussian_from_an_approximation_off_cen
     np.testing.assert_allclose(got_sd, sd, rtol=0.06)
 
 
+@pytest.mark.parametrize("too_wide, split", [(1.0, False), (3.0, False), (8.0, True)])
+def test_quadrature_splits_its_cells_only_where_its_lattice_disagrees_with_the_lattice_of_its_even_points(too_wide, split):
+    """The first lattice, ±5 of the approximation's sds at a quarter of one, checked against its own points of even
+    index (the lattice at half a sd, no simulation more): a Gaussian the approximation fits, or is three times too
+    wide for, is resolved without a split; one eight times narrower than the approximation, its sd half a step, is
+    split, and resolved as well."""
+    mean, sd = STIFFNESS_AND_DEPTH
+    cov = np.array([[1.0, -0.9], [-0.9, 1.0]]) * np.outer(sd, sd)
+    evaluated = []
+
+    def log_posterior(theta):
+        evaluated.append(len(theta))
+        log_likelihood = gaussian(mean, cov)(theta)
+        return log_likelihood, log_likelihood
+
+    theta, log_weight, *_, found = posterior._quadrature(log_posterior, posterior._Whitened.of(mean, too_wide**2 * cov), np.zeros(0))
+    first_lattice = (2 * round(posterior.HALF_WIDTH / posterior.STEP) + 1) ** 2
+    assert found["converged"] and (found["step"] < posterior.STEP) == split
+    assert (sum(evaluated) > first_lattice) == split and found["n_points"] == sum(evaluated)
+    weight = np.exp(log_weight)
+    got_mean = weight @ theta
+    got_sd = np.sqrt(weight @ (theta - got_mean) ** 2)
+    np.testing.assert_array_less(np.abs(got_mean - mean), 0.01 * sd)  # the midpoint rule on a Gaussian: far below its bound
+    np.testing.assert_allclose(got_sd, sd, rtol=0.01)
+
+
 def test_quadrature_lays_its_lattice_again_where_the_approximation_is_far_too_narrow():
     """An approximation forty times too narrow: the widest lattice about it, ±30 of its sds, spans under one sd of the
     posterior; laid again about that lattice's own moments, the quadrature is verified and exact to its resolution."""
