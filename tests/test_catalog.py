@@ -1,6 +1,8 @@
 """The index of measurement files: each file is read once per size, time stamp and settings."""
 
 import os
+import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -80,3 +82,24 @@ def test_a_record_off_the_rig_clocks_sample_grid_is_refused_in_one_line_and_roun
                         "where the search for a missing term needs a whole number (t_first·fs, as 0.5 s at 5000 Hz gives "
                         "2500): put the stamps on the rig clock's grid k/fs (resample the record) "
                         "(docs/measurements.md#time-the-rigs-clock)")]
+
+
+@pytest.mark.parametrize("reserved", catalog.MACHINE_FOLDERS)
+def test_a_recording_named_like_its_machines_own_results_folder_is_refused_in_one_line(tmp_path, reserved):
+    machine = tmp_path / "pump7"
+    machine.mkdir()
+    write_good(machine / "full_load.csv")
+    write_good(machine / f"{reserved}.csv")
+    write_good(tmp_path / f"{reserved}.csv")  # a lone file of that name has no machine's folder beside it
+    good, problems = catalog.good_measurements(tmp_path, OPERATING, CHANNELS, 1000.0, tmp_path / "index.json")
+    assert good == {"pump7/full_load": str(machine / "full_load.csv"), reserved: str(tmp_path / f"{reserved}.csv")}
+    assert problems == [(f"{machine / reserved}.csv: a machine's recording may not be named '{reserved}', the name of the "
+                         f"machine's own results folder results/diagnosis/pump7/{reserved}; rename the file")]
+
+
+def test_the_reserved_names_are_the_folders_of_a_machines_results_in_the_workflow():
+    rules = (Path(__file__).parents[1] / "workflow" / "rules" / "diagnose.smk").read_text()
+    folders = {path.split("/")[0] for path in re.findall(r'"\{root\}/diagnosis/\{machine\}/([^"]+)"', rules) if "/" in path
+               or "." not in path}
+    assert folders == set(catalog.MACHINE_FOLDERS)
+

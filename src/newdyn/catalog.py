@@ -19,6 +19,9 @@ from . import cache
 from .measurement_files import CONDITIONS, NAME, SUFFIXES
 
 CHECKS = ("io.py", "measurement_checks.py", "discovery/search.py")  # the modules whose code decides whether a file is good
+# The folders of a machine's own results (results/diagnosis/<machine>/), beside each of its recordings' results there:
+# no recording may take their names.
+MACHINE_FOLDERS = ("discovery", "figures")
 
 
 def good_measurements(folder: str | os.PathLike, operating: Mapping[str, float], channels: Sequence[str], band_hz: float,
@@ -77,10 +80,15 @@ def checked_measurement(path: str | os.PathLike, operating: Mapping[str, float],
 
 def name_problem(path: str | os.PathLike, name: str) -> str | None:
     """The line refusing the measurement ``path`` for its ``name`` (``<recording>`` or ``<machine>/<recording>``), if
-    the name holds what a file or folder name of the measurements may not."""
-    if all(NAME.fullmatch(part) for part in name.split("/")):
-        return None
-    return f"{path}: names of files and folders may hold letters, digits, '_', '-' and '.' only"
+    the name holds what a file or folder name of the measurements may not, or a recording of a machine takes the name
+    of one of the machine's own result folders."""
+    parts = name.split("/")
+    if not all(NAME.fullmatch(part) for part in parts):
+        return f"{path}: names of files and folders may hold letters, digits, '_', '-' and '.' only"
+    if len(parts) == 2 and parts[1] in MACHINE_FOLDERS:
+        return (f"{path}: a machine's recording may not be named '{parts[1]}', the name of the machine's own results "
+                f"folder results/diagnosis/{parts[0]}/{parts[1]}; rename the file")
+    return None
 
 
 def _problem(path: Path, operating, channels, band_hz) -> str | None:
