@@ -103,8 +103,7 @@ class Diagnosis:
     verdict: dict
     versions: dict[str, np.ndarray]  # model version name -> outputs (channel, time)
     effect_posterior: object  # arviz.InferenceData of the best fault model's parameters (importance sampling or MCMC)
-    effect_file: tuple[str, str] | None = None  # (name, content) of the discovered term's effect file
-    forces: xr.Dataset | None = None  # discovery's force estimate at each place (place, pulse)
+    discovery: verify.Discovered | None = None  # what the search for a missing term found, where it ran
     pointwise: xr.DataArray | None = None  # each version's log-likelihood (comparison_version, comparison_draw, channel, load_cycle)
 
 
@@ -265,7 +264,7 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
     stage("model versions compared by PSIS-LOO")
     verdict["statement"] = statement.statement(verdict, settings.chi2_max)
     return Diagnosis(measurement, channels, data, sigma, noise_source, calibrations, fits, signatures, verdict,
-                     versions, effect_posterior, discovery and discovery.effect_file, discovery and discovery.forces, pointwise)
+                     versions, effect_posterior, discovery, pointwise)
 
 
 def _compare_versions(verdict, fits, calibrations, effect_posterior, discovery: verify.Discovered | None, data, sigma, values, sampling,
@@ -579,7 +578,7 @@ def write(diagnosis: Diagnosis, verdict_path, table_path, netcdf_path, posterior
     discovered term's effect file (empty when discovery did not run)."""
     from . import provenance, sampling
 
-    effect_file.write(discovery_folder, diagnosis.effect_file)
+    effect_file.write(discovery_folder, diagnosis.discovery and diagnosis.discovery.effect_file)
     m = diagnosis.measurement
     stamp = provenance.attributes(code_hash)
     verdict = {"statement": diagnosis.verdict["statement"], "measurement": m.name, **diagnosis.verdict, "channels": list(diagnosis.channels),
@@ -609,8 +608,8 @@ def write(diagnosis: Diagnosis, verdict_path, table_path, netcdf_path, posterior
         ds[f"prior_{p}"] = (f"grid_{p}", post.prior_density)
         ds[f"scaled_likelihood_{p}"] = (f"grid_{p}", post.scaled_likelihood)
         ds = ds.assign_coords({f"grid_{p}": post.grid})
-    if diagnosis.forces is not None:
-        ds = ds.merge(diagnosis.forces)
+    if diagnosis.discovery is not None:
+        ds = ds.merge(diagnosis.discovery.forces)
     if diagnosis.pointwise is not None:
         ds["pointwise_log_likelihood"] = diagnosis.pointwise.assign_attrs(
             long_name="log-likelihood of the data in one channel over one load cycle, at each version's posterior draws")
