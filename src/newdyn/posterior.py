@@ -9,8 +9,8 @@ Quadrature (one or two parameters): the midpoint rule on cells of side :data:`ST
 widened on every side whose outermost row holds more than :data:`EDGE_MASS` of the posterior.  Where the mean and sd
 of every parameter agree to :data:`RESOLUTION` of its sd with those of the lattice's points of even index (the
 lattice at twice the step, which costs no simulation), that is the answer; else every cell but the lightest, which
-hold :data:`UNSPLIT_MASS` of it together, is split in halves, until they agree between two splittings; its draws are cells spread over their
-volume, kept in the prior's support.  Where the posterior reaches past the lattice's widest extent,
+hold :data:`UNSPLIT_MASS` of it together, is split in halves, until they agree between two splittings.  Its draws
+are cells spread over their volume, kept in the prior's support.  Where the posterior reaches past the lattice's widest extent,
 ±:data:`MAX_HALF_WIDTH`, the approximation's scale is far off, and the lattice is laid again about that lattice's own
 mean and covariance.  Splitting by weight, not by density, refines a thin ridge's long tail too.  Exact to the lattice's resolution whatever the posterior's shape: where a drift trades
 off with an effect along a thin curved ridge (cubic coupling's γ against kT1), a Gaussian proposal's draws miss the
