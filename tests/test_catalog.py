@@ -102,4 +102,3 @@ def test_the_reserved_names_are_the_folders_of_a_machines_results_in_the_workflo
     folders = {path.split("/")[0] for path in re.findall(r'"\{root\}/diagnosis/\{machine\}/([^"]+)"', rules) if "/" in path
                or "." not in path}
     assert folders == set(catalog.MACHINE_FOLDERS)
-
