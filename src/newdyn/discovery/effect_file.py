@@ -67,11 +67,9 @@ def effect_name(term: str, place: str, shape: Shape, measurement: str | None = N
 def render(candidate, measurement: str) -> tuple[str, str]:
     """(effect name, content) of the found file of ``candidate`` (a :class:`.search.Candidate`) in ``measurement``."""
     name = effect_name(candidate.term, candidate.acts_on, candidate.shape, measurement)
-    declared = {key: (float(row["value"]), row["unit"], prior_range(key, row)) for key, row in candidate.parameters.items()}
     found = ", ".join(f"{key} = {_valued(row)}" for key, row in candidate.parameters.items())
-    return name, _content(name, candidate.term, candidate.acts_on, candidate.shape, declared,
-                          f"Found by newdyn's discovery in the measurement {measurement}: {found}.  Add it to a study by\n"
-                          f"copying this file into its effects folder and naming it in the config (``effects: [{name}]``).",
+    return name, _content(name, candidate.term, candidate.acts_on, candidate.shape, _declared(candidate.parameters),
+                          _found_where(f"Found by newdyn's discovery in the measurement {measurement}: {found}", name),
                           f"discovered in {measurement}")
 
 
@@ -83,17 +81,27 @@ def render_across(term: str, place: str, shape: Shape, shared: Mapping[str, Mapp
     value; an own one has none, as it is each recording's (a scenario gives it), and its range covers every
     recording's."""
     name = effect_name(term, place, shape, machine)
-    declared = {key: (float(row["value"]), row["unit"], prior_range(key, row)) for key, row in shared.items()}
+    declared = _declared(shared)
     for key in own[0]:
         ranges = [prior_range(key, rows[key]) for rows in own]
         declared[key] = (None, own[0][key]["unit"], (min(r[0] for r in ranges), max(r[1] for r in ranges), *ranges[0][2:]))
     found = "; ".join([*(f"{key} = {_valued(row)}" for key, row in shared.items()),
                        *(f"{key} {', '.join(f'{_valued(rows[key])} in {r}' for r, rows in zip(recordings, own))}" for key in own[0])])
     return name, _content(name, term, place, shape, declared,
-                          f"Found by newdyn's discovery across the recordings of the machine {machine}: {found}.  Add it to a\n"
-                          f"study by copying this file into its effects folder and naming it in the config (``effects:\n"
-                          f"[{name}]``)" + (f"; a scenario gives its {', '.join(own[0])}." if own[0] else "."),
+                          _found_where(f"Found by newdyn's discovery across the recordings of the machine {machine}: {found}", name,
+                                       f"; a scenario gives its {', '.join(own[0])}" if own[0] else ""),
                           f"discovered across the recordings of {machine}")
+
+
+def _declared(rows: Mapping[str, Mapping]) -> dict:
+    """Each parameter's (default, unit, range) from its found row: its value and :func:`prior_range` around it."""
+    return {key: (float(row["value"]), row["unit"], prior_range(key, row)) for key, row in rows.items()}
+
+
+def _found_where(found: str, name: str, note: str = "") -> str:
+    """The found file's account of itself: what was found where, and how a study takes it."""
+    return (f"{found}.  Add it to a study by\ncopying this file into its effects folder and naming it in the config "
+            f"(``effects: [{name}]``){note}.")
 
 
 def _valued(row: Mapping) -> str:
