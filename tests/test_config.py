@@ -7,6 +7,7 @@ import dataclasses
 import math
 import os
 import re
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -93,9 +94,38 @@ def test_checking_a_config_as_the_snakefile_does_leaves_numba_unimported(tmp_pat
     assert run.stdout.split() == ["[]"]
 
 
-def test_default_schema_path_is_the_repository_schema(default_config):
-    assert cfg.SCHEMA_PATH == SCHEMA
+def test_the_workflow_reads_the_schema_the_package_ships(default_config):
+    assert SCHEMA.resolve() == cfg.SCHEMA_PATH
+    assert cfg.SCHEMA_PATH.is_relative_to(Path(cfg.__file__).parent)
     cfg.check(copy.deepcopy(default_config), SOURCE)  # default schema_path
+
+
+def test_an_installed_package_checks_a_config_without_the_source_tree(tmp_path):
+    """A wheel of the package, installed away from the repository, checks a good config and names a bad one's field:
+    the schema is package data, not a file of the source tree."""
+    source = tmp_path / "source"
+    shutil.copytree(ROOT / "src", source / "src", ignore=shutil.ignore_patterns("*.egg-info", "__pycache__"))
+    for name in ("pyproject.toml", "README.md", "LICENSE"):
+        shutil.copy(ROOT / name, source / name)
+    subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "-w", tmp_path / "dist", source], check=True)
+    subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--target", tmp_path / "site",
+                    *(tmp_path / "dist").glob("newdyn-*.whl")], check=True)
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(yaml.safe_dump({"sampling": {"fs": "fast"}}))
+
+    def check(*paths):
+        code = "import sys, newdyn, newdyn.cli; print(newdyn.__file__); sys.exit(newdyn.cli.main(['check-config', *sys.argv[1:]]))"
+        return subprocess.run([sys.executable, "-c", code, *map(str, paths)], capture_output=True, text=True, cwd=tmp_path,
+                              env={**os.environ, "PYTHONPATH": str(tmp_path / "site")}, check=False)
+
+    good = check(DEFAULT)
+    assert good.returncode == 0, good.stderr
+    installed, verdict = good.stdout.splitlines()
+    assert Path(installed).is_relative_to(tmp_path / "site")
+    assert verdict == f"{DEFAULT}: OK"
+    wrong = check(DEFAULT, bad)
+    assert wrong.returncode != 0 and len(wrong.stderr.strip().splitlines()) == 1
+    assert "sampling.fs" in wrong.stderr and str(bad) in wrong.stderr
 
 
 def test_the_schema_names_no_channel_and_its_sensor_model_is_the_packages():

@@ -15,8 +15,8 @@ the built-ins plus the config's ``effects``), injected into the schema by :func:
 
 1. the config's ``effects``: each file is loaded and checked (:func:`newdyn.effects.use`), which makes
    them the active effects of this process;
-2. structure, against the JSON schema ``workflow/schemas/config.schema.yaml`` (the single source of the
-   keys and types) with the active kinds injected;
+2. structure, against the JSON schema ``newdyn/schemas/config.schema.yaml``, shipped in the package (the single
+   source of the keys and types; the workflow's ``workflow/schemas/`` links to it) with the active kinds injected;
 3. physics: every rig and operating value, every override and every fault against the bounds in
    :mod:`newdyn.model` and the effect files; the sampling window; finite SNRs; the resulting model
    values of every scenario (after overrides and fault); the calibration; the diagnosis and hidden-set
@@ -41,9 +41,8 @@ import yaml
 
 from . import effects, faults, model, slots, study
 
-#: The schema of the source tree this module lives in (src/newdyn/config.py -> workflow/schemas/...).
-#: From an installed (non-editable) package, pass ``schema_path`` explicitly.
-SCHEMA_PATH = Path(__file__).resolve().parents[2] / "workflow" / "schemas" / "config.schema.yaml"
+#: The config schema, package data: an installed package checks a config without the workflow's source tree.
+SCHEMA_PATH = Path(__file__).resolve().parent / "schemas" / "config.schema.yaml"
 
 #: Parameters a scenario may override (an effect's parameters are set through ``fault:`` only).
 OVERRIDABLE: tuple[str, ...] = model.RIG_PARAMETERS + model.OPERATING_PARAMETERS
