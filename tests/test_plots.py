@@ -236,6 +236,17 @@ def test_save_refuses_a_path_that_is_not_png(tmp_path):
         plots.save(Figure(), tmp_path / "figure.pdf")
 
 
+def test_a_log_axis_over_many_decades_draws_no_minor_ticks_and_a_short_one_keeps_them(tmp_path):
+    fig = Figure()
+    short, long, subfigure_long = (*fig.subfigures(1, 2)[0].subplots(2, 1), fig.subfigs[1].subplots())
+    for ax, decades in ((short, plots.LOG_MINOR_DECADES - 1), (long, plots.LOG_MINOR_DECADES + 1), (subfigure_long, 9)):
+        ax.semilogy([0.0, 1.0], [1.0, 10.0**decades])
+    plots.save(fig, tmp_path / "ticks.png")
+    assert len(short.yaxis.get_minorticklocs()) > 0
+    assert len(long.yaxis.get_minorticklocs()) == 0 and len(subfigure_long.yaxis.get_minorticklocs()) == 0
+    assert len(long.yaxis.get_majorticklocs()) > 0 and short.xaxis.get_scale() == "linear"
+
+
 def _discovery_result(line_hz=37.0, amplitude=8.0):
     """A diagnosis file holding a force estimate at two places: at `load` a line of ``amplitude`` at ``line_hz``."""
     pulses = np.arange(0.002, 1.5, 0.002)

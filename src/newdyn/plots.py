@@ -22,6 +22,7 @@ import xarray as xr
 from matplotlib.colors import LogNorm, Normalize
 from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
+from matplotlib.ticker import NullLocator
 
 from . import io, model, noise, provenance, residuals
 
@@ -32,6 +33,9 @@ MARK_COLOR = "red"
 CHI2_RED = r"$\chi^2_\mathrm{red}$"
 ZOOM_SD = 6.0  # half-width of the zoomed posterior panel, in posterior standard deviations
 HEATMAP_COLORS = matplotlib.colormaps["viridis"].with_extremes(bad="lightgrey")  # NaN cells grey
+# A log axis over more decades than this draws no minor ticks: there they are a smear, eight to a decade, and their
+# artists cost more to lay out and draw than the rest of a spectrum's panel.
+LOG_MINOR_DECADES = 4.0
 
 
 def save(fig: Figure, png_path: PathLike, code_hash: str = "", sources: Sequence[PathLike] = ()) -> None:
@@ -43,10 +47,19 @@ def save(fig: Figure, png_path: PathLike, code_hash: str = "", sources: Sequence
     # PDF metadata takes only its standard keys: the stamp goes into Subject as JSON.  Without a
     # CreationDate a rerun writes the same bytes.
     pdf_metadata = {"Creator": f"newdyn {stamp['newdyn_version']}", "Subject": json.dumps(stamp), "CreationDate": None}
+    _thin_log_minor_ticks(fig)
     io.atomic_write(png_path, lambda tmp: fig.savefig(tmp, format="png", dpi=PNG_DPI, metadata=stamp))
     # The PDF keeps the PNG's layout: laying the figure out again costs a third of drawing it.
     fig.set_layout_engine("none")
     io.atomic_write(png_path.with_suffix(".pdf"), lambda tmp: fig.savefig(tmp, format="pdf", metadata=pdf_metadata))
+
+
+def _thin_log_minor_ticks(fig) -> None:
+    """No minor ticks on a log axis of ``fig`` (its subfigures' too) that spans more than :data:`LOG_MINOR_DECADES`."""
+    for ax in fig.get_axes() + [a for sub in fig.subfigs for a in sub.get_axes()]:
+        for axis, (low, high) in ((ax.xaxis, ax.get_xlim()), (ax.yaxis, ax.get_ylim())):
+            if axis.get_scale() == "log" and abs(math.log10(high / low)) > LOG_MINOR_DECADES:
+                axis.set_minor_locator(NullLocator())
 
 
 def posterior_panels(
