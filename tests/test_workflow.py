@@ -552,11 +552,39 @@ def test_the_slurm_profile_asks_for_each_rules_memory_and_time(tmp_path):
     (tmp_path / "profile" / "config.yaml").write_text(yaml.safe_dump(profile))
     run = snakemake(tmp_path, "--workflow-profile", str(tmp_path / "profile"), "--dry-run")
     assert run.returncode == 0, run.stderr[-3000:]
-    jobs = re.findall(r"^rule (\w+):\n(?:    .*\n)*?    resources: (.*)$", run.stdout, re.MULTILINE)
+    jobs = re.findall(r"^( *)rule (\w+):\n(?:\1    .*\n)*?\1    resources: (.*)$", run.stdout, re.MULTILINE)  # a group's indented
+    jobs = [(rule, resources) for _, rule, resources in jobs]
     assert {rule for rule, _ in jobs} >= {"simulate", "calibrate_grid_default", "calibrate_mcmc_default", "diagnose", "plot_summary"}
     for rule, resources in jobs:
         if rule != "all":
             assert re.search(r"\bmem_mb=\d+", resources) and re.search(r"\bruntime=\d+", resources), (rule, resources)
+
+
+def test_on_a_batch_system_each_scenario_is_one_job_with_its_noisy_copies_and_their_calibrations(tmp_path):
+    """A batch system makes each job wait for the queue, its start and the next status check: there a scenario's
+    simulation, noisy copies and their calibrations run as one group job, one per scenario of each variant, and no
+    job of those rules runs alone.  (A local run ignores groups.)"""
+    run = snakemake(tmp_path, "--executor", "cluster-generic", "--cluster-generic-submit-cmd", "true", "--jobs", "2",
+                    "--dry-run")
+    assert run.returncode == 0, run.stderr[-3000:]
+    blocks = re.split(r"^.*Group job scenario .*$", run.stdout, flags=re.MULTILINE)[1:]
+    groups = {}
+    for block in blocks:
+        jobs = re.findall(r"^    rule (\w+):\n(?:        .*\n)*?        wildcards: variant=(\w+), scenario=(\w+)", block, re.MULTILINE)
+        [pair] = {(variant, scenario) for _, variant, scenario in jobs}
+        groups[pair] = sorted(rule for rule, _, _ in jobs)
+    config = yaml.safe_load(TEST_CONFIG.read_text())
+    expected = {}
+    for variant in newdyn.study.variant_names(config):
+        cfg = newdyn.study.variant_config(config, variant)
+        copies = len(cfg["noise"]["snr_db"]) * len(cfg["noise"]["seeds"])
+        mcmc = cfg["calibration"]["mcmc"]["parameters"] or cfg["calibration"]["joint"]["parameters"]
+        calibrations = [f"calibrate_grid_{variant}"] + [f"calibrate_mcmc_{variant}"] * bool(mcmc)
+        for scenario in cfg["scenarios"]:
+            expected[variant, scenario] = sorted(["simulate"] + (["add_noise"] + calibrations) * copies)
+    assert len(blocks) == len(expected) and groups == expected
+    alone = re.findall(r"^rule (simulate|add_noise|calibrate_\w+):", run.stdout, re.MULTILINE)
+    assert not alone, alone
 
 
 STAND_IN_SUBMIT = ROOT / ".test" / "stand-in-submit"  # every job a detached process, its id kept in $STAND_IN_JOBS

@@ -41,6 +41,8 @@ for variant, variant_config in VARIANTS.items():
             "results/benchmarks/calibrate_grid/{variant}/{scenario}/snr{snr}_seed{seed}.tsv"
         wildcard_constraints:
             variant=re.escape(variant),
+        group:
+            "scenario"
         conda:
             "../envs/newdyn.yaml"
         threads: 1
@@ -76,6 +78,8 @@ for variant, variant_config in VARIANTS.items():
             "results/benchmarks/calibrate_mcmc/{variant}/{scenario}/snr{snr}_seed{seed}.tsv"
         wildcard_constraints:
             variant=re.escape(variant),
+        group:
+            "scenario"
         conda:
             "../envs/newdyn.yaml"
         threads: 1

@@ -7,6 +7,8 @@ rule add_noise:
         "results/logs/add_noise/{variant}/{scenario}/snr{snr}_seed{seed}.log",
     benchmark:
         "results/benchmarks/add_noise/{variant}/{scenario}/snr{snr}_seed{seed}.tsv"
+    group:
+        "scenario"
     localrule: True
     conda:
         "../envs/newdyn.yaml"
