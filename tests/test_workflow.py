@@ -552,7 +552,7 @@ def test_the_slurm_profile_asks_for_each_rules_memory_and_time(tmp_path):
     (tmp_path / "profile" / "config.yaml").write_text(yaml.safe_dump(profile))
     run = snakemake(tmp_path, "--workflow-profile", str(tmp_path / "profile"), "--dry-run")
     assert run.returncode == 0, run.stderr[-3000:]
-    jobs = re.findall(r"^( *)rule (\w+):\n(?:\1    .*\n)*?\1    resources: (.*)$", run.stdout, re.MULTILINE)  # a group's indented
+    jobs = re.findall(r"^( *)rule (\w+):\n(?:\1    .*\n)*?\1    resources: (.*)$", run.stdout, re.MULTILINE)  # a group's jobs indented
     jobs = [(rule, resources) for _, rule, resources in jobs]
     assert {rule for rule, _ in jobs} >= {"simulate", "calibrate_grid_default", "calibrate_mcmc_default", "diagnose", "plot_summary"}
     for rule, resources in jobs:

@@ -42,7 +42,7 @@ for variant, variant_config in VARIANTS.items():
         wildcard_constraints:
             variant=re.escape(variant),
         group:
-            "scenario"
+            SCENARIO_GROUP
         conda:
             "../envs/newdyn.yaml"
         threads: 1
@@ -79,7 +79,7 @@ for variant, variant_config in VARIANTS.items():
         wildcard_constraints:
             variant=re.escape(variant),
         group:
-            "scenario"
+            SCENARIO_GROUP
         conda:
             "../envs/newdyn.yaml"
         threads: 1

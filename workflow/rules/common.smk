@@ -30,6 +30,11 @@ except newdyn.config.ConfigError as error:
 VARIANTS = {name: newdyn.study.variant_config(config, name) for name in newdyn.study.variant_names(config)}
 SEEDS = [str(seed) for seed in config["noise"]["seeds"]]
 
+# On a batch system a scenario is one job: its simulation, its noisy copies and their calibrations, the rules of this
+# group (one group job per scenario; a local run ignores groups). Each job a batch system runs waits for its queue,
+# its start and the next status check, which cost more than most of these jobs' work.
+SCENARIO_GROUP = "scenario"
+
 # Rules pass the hash of the code their `newdyn` command runs as a param (code_hash), so that an edit of any
 # module it imports, directly or through others, reruns exactly its jobs; an effect's own file counts only
 # for the jobs that load it (effect_files).

@@ -8,7 +8,7 @@ rule add_noise:
     benchmark:
         "results/benchmarks/add_noise/{variant}/{scenario}/snr{snr}_seed{seed}.tsv"
     group:
-        "scenario"
+        SCENARIO_GROUP
     localrule: True
     conda:
         "../envs/newdyn.yaml"

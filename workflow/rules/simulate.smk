@@ -1,6 +1,3 @@
-# On a batch system a scenario is one job: its simulation, its noisy copies and their calibrations, the rules of
-# group "scenario" (one group job per scenario; a local run ignores groups). Each job a batch system runs pays its
-# queue, its start and the wait for the next status check, which cost more than most of these jobs' work.
 rule simulate:
     output:
         "results/{variant}/simulations/{scenario}/clean.nc",
@@ -9,7 +6,7 @@ rule simulate:
     benchmark:
         "results/benchmarks/simulate/{variant}/{scenario}.tsv"
     group:
-        "scenario"
+        SCENARIO_GROUP
     conda:
         "../envs/newdyn.yaml"
     threads: 1
