@@ -93,6 +93,19 @@ def test_leading_axes_broadcast_like_the_plain_likelihood():
         assert together == pytest.approx([sensors.log_likelihood(data, m, SIGMA, instruments) for m in models], rel=1e-12)
 
 
+def test_a_window_of_the_record_gives_the_bits_of_the_same_samples_copied():
+    """A fit's first windows see ``data[:, :n]``, a view with the record's row stride: the likelihood, the residuals least
+    squares minimizes and the instruments' reading are those of the same samples in an array of their own, to the bit
+    (the compiled sums, reassociated for SIMD, would otherwise add them in another order and compile once more)."""
+    record = np.concatenate([readings(np.array([4e-8, 0.0]), np.array([1.01, 0.999]))] * 3, axis=1)
+    instruments = sensors.Instruments(np.array([[5e-8, 0.01, 0.4], [0.02, 0.002, 0.3]]), FS)
+    models = MODEL + 1e-3 * MODEL * RNG.standard_normal((8, *MODEL.shape))
+    window, copied = record[:, :N], np.array(record[:, :N])
+    assert not window.flags.c_contiguous
+    for function in (sensors.log_likelihood, sensors.standardized_residuals, sensors.reading):
+        assert np.array_equal(function(window, models, SIGMA, instruments), function(copied, models, SIGMA, instruments))
+
+
 def test_the_delay_is_integrated_out_as_quadrature_over_it_does():
     n, delay_sd = 1000, 0.5e-3
     t = np.arange(n) / FS

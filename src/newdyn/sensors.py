@@ -213,7 +213,9 @@ def _solve(data: np.ndarray, model: np.ndarray, sigma: np.ndarray, scale: np.nda
 def _seen(data, model, sigma, instruments: Instruments):
     """(data, model, σ, prior scales) as the likelihood sees them: whitened by the noise's colour.  Whitening W is
     linear and time-invariant, so it commutes with the delay and the gain, and takes a constant offset o to
-    o·(1 − Σa): the offset's column is scaled by that."""
+    o·(1 − Σa): the offset's column is scaled by that.  The data come back C-contiguous, as a fit's window of the record
+    is not: the compiled sums then have one layout to be compiled for, not one more in the first fit of a clone."""
+    data = np.ascontiguousarray(data)
     colour = instruments.colour
     if colour is None:
         return data, model, sigma, instruments.scale
@@ -317,6 +319,7 @@ def reading(data: np.ndarray, model: np.ndarray, sigma: np.ndarray, instruments:
     means (to first order in τ about its mode); the model itself with exact instruments."""
     if instruments is None:
         return model
+    data = np.ascontiguousarray(data)
     solution = _solved(data, model, sigma, instruments)[0]
     shape = solution.lead + data.shape
     flat = np.ascontiguousarray(np.broadcast_to(model, shape)).reshape(-1, *data.shape)
