@@ -386,29 +386,13 @@ def compare(paths: list[str], output: str, code_hash: str) -> None:
     log.info("compared %d posteriors into %s", len(posteriors), output)
 
 
-def plot_figures(kind: str, figures: list[dict], code_hash: str, processes: int = 1) -> None:
-    """Draw the figures of one stage of the study (each a PNG and a PDF) in ``processes`` processes side by side, each
-    importing matplotlib (and ArviZ) once for all the figures it draws: ``figures`` as :func:`plot` takes them, each
-    its ``png``, ``inputs`` and the drawing's settings.  A figure's bytes do not depend on which process drew it."""
-    jobs = [(kind, code_hash, figure) for figure in figures]
-    if processes > 1 and len(jobs) > 1:
-        import multiprocessing
-        from concurrent.futures import ProcessPoolExecutor
-
-        # Spawned, not forked: a fork would copy this process's BLAS and numba thread pools in whatever state they are.
-        with ProcessPoolExecutor(min(processes, len(jobs)), mp_context=multiprocessing.get_context("spawn")) as pool:
-            drawn = list(pool.map(_draw, jobs))
-    else:
-        drawn = [_draw(job) for job in jobs]
-    for png in drawn:
-        log.info("drew %s into %s", kind, png)
-
-
-def _draw(job: tuple[str, str, dict]) -> str:
-    """Draw one figure of :func:`plot_figures`; returns its PNG's path."""
-    kind, code_hash, figure = job
-    plot(kind, code_hash=code_hash, **figure)
-    return figure["png"]
+def plot_figures(kind: str, figures: list[dict], code_hash: str) -> None:
+    """Draw the figures of one stage of the study (each a PNG and a PDF) in one process, which imports matplotlib (and
+    ArviZ) once for all of them: ``figures`` as :func:`plot` takes them, each its ``png``, ``inputs`` and the drawing's
+    settings."""
+    for figure in figures:
+        plot(kind, code_hash=code_hash, **figure)
+        log.info("drew %s into %s", kind, figure["png"])
 
 
 def plot(kind: str, png: str, inputs: list[str], code_hash: str, measurement: str | None = None,
@@ -629,7 +613,6 @@ def _parser() -> argparse.ArgumentParser:
                    "results, the comparison file (signatures) or the summary table; measurement (overlays), the "
                    "measurement the grid calibrations fitted; snr_db and seed (signatures), which SNR and seed; "
                    "chi2_png (summary), the χ² heatmap (png gets the Hellinger one)")
-    p.add_argument("--processes", type=int, default=1, help="draw the figures in this many processes side by side")
     p.add_argument("--code-hash", default="")
     p = commands.add_parser("diagnose", help="diagnose a measurement: which hypothesis explains it")
     p.add_argument("--measurement", required=True)
@@ -706,7 +689,7 @@ def main(argv: list[str] | None = None) -> int:
         elif args.command == "compare":
             compare(args.inputs, args.output, args.code_hash)
         elif args.command == "plot":
-            plot_figures(args.kind, json.loads(args.figures), args.code_hash, args.processes)
+            plot_figures(args.kind, json.loads(args.figures), args.code_hash)
         elif args.command == "diagnose":
             diagnose_measurement(args.measurement, args.grids, args.bank, json.loads(args.spec), args.verdict, args.table, args.netcdf,
                                  args.posterior, args.discovery, args.code_hash)

@@ -1,7 +1,8 @@
 # Figures (PNG for the report, PDF beside each) and the report's grouping: one category per stage. One job per stage
 # draws every figure of it across the study, so that matplotlib (and for MCMC, ArviZ) is imported once per process
 # rather than for every figure; a change of any of a stage's inputs redraws the whole stage, which costs little once
-# imported.  The three large stages draw in two processes: they end the study, where a core would otherwise idle.
+# imported.  Each stage draws on one core: a job of two threads waits until both cores are free, which in a study
+# comes only once every job of one thread has ended, and its second process would pay the imports again.
 # Captions cannot name a figure's wildcards: its labels (scenario, SNR, seed) and subcategory (variant) do.
 
 
@@ -19,15 +20,14 @@ rule plot_posteriors:
     localrule: True
     conda:
         "../envs/newdyn.yaml"
-    threads: 2
     resources:
-        mem_mb=per_attempt(2048),
+        mem_mb=per_attempt(1024),
         runtime=per_attempt(10),
     params:
         figures=figure_plan("posteriors"),
         code=code_hash("plot"),
     shell:
-        "newdyn plot posteriors --figures {params.figures:q} --processes {threads} --code-hash {params.code} > {log} 2>&1"
+        "newdyn plot posteriors --figures {params.figures:q} --code-hash {params.code} > {log} 2>&1"
 
 
 # overlays: each measurement against its best fits, in time and spectrum
@@ -43,15 +43,14 @@ rule plot_overlays:
     localrule: True
     conda:
         "../envs/newdyn.yaml"
-    threads: 2
     resources:
-        mem_mb=per_attempt(2048),
+        mem_mb=per_attempt(1024),
         runtime=per_attempt(10),
     params:
         figures=figure_plan("overlays"),
         code=code_hash("plot"),
     shell:
-        "newdyn plot overlays --figures {params.figures:q} --processes {threads} --code-hash {params.code} > {log} 2>&1"
+        "newdyn plot overlays --figures {params.figures:q} --code-hash {params.code} > {log} 2>&1"
 
 
 # mcmc: trace and rank plots of each measurement's MCMC calibrations
@@ -67,15 +66,14 @@ rule plot_mcmc:
     localrule: True
     conda:
         "../envs/newdyn.yaml"
-    threads: 2
     resources:
-        mem_mb=per_attempt(2048),
+        mem_mb=per_attempt(1024),
         runtime=per_attempt(10),
     params:
         figures=figure_plan("mcmc"),
         code=code_hash("plot"),
     shell:
-        "newdyn plot mcmc --figures {params.figures:q} --processes {threads} --code-hash {params.code} > {log} 2>&1"
+        "newdyn plot mcmc --figures {params.figures:q} --code-hash {params.code} > {log} 2>&1"
 
 
 # signatures: the Hellinger matrices of each variant, SNR and seed
