@@ -667,9 +667,11 @@ def test_variant_config_replaces_and_selects(default_config):
     assert list(paper["scenarios"]) == ["healthy", "kT1_up", "stick_slip"]
     assert list(paper["calibration"]["parameters"]) == ["kT1", "kT3"]
     assert paper["calibration"]["mcmc"]["parameters"] == [] and paper["calibration"]["joint"]["parameters"] == []
+    assert study.mcmc_runs(paper) == []
     assert study.scenario_values(paper, "kT1_up")["beta"] == 0.0  # the variant's rig under every scenario
     default = study.variant_config(default_config, "default")
     assert default == {k: v for k, v in default_config.items() if k != "variants"}
+    assert study.mcmc_runs(default) == ["kT1", "joint"]  # each MCMC parameter's run, then the joint one
     without = {k: v for k, v in default_config.items() if k != "variants"}
     assert study.variant_names(without) == ["default"] and study.variant_config(without, "default") == without
     with pytest.raises(KeyError, match="unknown variant"):

@@ -578,8 +578,7 @@ def test_on_a_batch_system_each_scenario_is_one_job_with_its_noisy_copies_and_th
     for variant in newdyn.study.variant_names(config):
         cfg = newdyn.study.variant_config(config, variant)
         copies = len(cfg["noise"]["snr_db"]) * len(cfg["noise"]["seeds"])
-        mcmc = cfg["calibration"]["mcmc"]["parameters"] or cfg["calibration"]["joint"]["parameters"]
-        calibrations = [f"calibrate_grid_{variant}"] + [f"calibrate_mcmc_{variant}"] * bool(mcmc)
+        calibrations = [f"calibrate_grid_{variant}"] + [f"calibrate_mcmc_{variant}"] * bool(newdyn.study.mcmc_runs(cfg))
         for scenario in cfg["scenarios"]:
             expected[variant, scenario] = sorted(["simulate"] + (["add_noise"] + calibrations) * copies)
     assert len(blocks) == len(expected) and groups == expected

@@ -56,6 +56,13 @@ def variant_config(config: Mapping, name: str) -> dict:
     return derived
 
 
+def mcmc_runs(config: Mapping) -> list[str]:
+    """The MCMC calibrations of each measurement of a variant (:func:`variant_config`): one per MCMC parameter, and
+    "joint" where it has a joint calibration."""
+    calibration = config["calibration"]
+    return calibration["mcmc"]["parameters"] + (["joint"] if calibration.get("joint", NO_JOINT)["parameters"] else [])
+
+
 def joint_dimension(config: Mapping) -> int:
     """Number of quantities the joint calibration samples: its parameters, and one σ per channel if inferred."""
     calibration = config["calibration"]

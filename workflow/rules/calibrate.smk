@@ -61,7 +61,7 @@ for variant, variant_config in VARIANTS.items():
 # one), as a job's start and imports cost about as much as one run; as for the grid calibrations, each variant has its
 # rule.
 for variant, variant_config in VARIANTS.items():
-    if not mcmc_runs(variant_config):
+    if not newdyn.study.mcmc_runs(variant_config):
         continue
 
     rule:

@@ -199,13 +199,13 @@ def grid_calibration_spec(wildcards):
 
 
 def mcmc_spec(wildcards):
-    """What the MCMC calibrations of one measurement depend on besides its input files: per run of mcmc_runs (in that
+    """What the MCMC calibrations of one measurement depend on besides its input files: per run of newdyn.study.mcmc_runs (in that
     order), a parameter's own or the joint one's settings."""
     cfg = study(wildcards)
     calibration = cfg["calibration"]
     joint = calibration["joint"]
     runs = []
-    for run in mcmc_runs(cfg):
+    for run in newdyn.study.mcmc_runs(cfg):
         if run == "joint":
             spec = {
                 "parameters": {name: calibration["parameters"][name] for name in joint["parameters"]},
@@ -230,15 +230,9 @@ def mcmc_spec(wildcards):
     return newdyn.study.canonical_json({"effects": EFFECTS, "runs": runs})
 
 
-def mcmc_runs(cfg):
-    """The MCMC calibrations of each measurement: one per MCMC parameter, and "joint" if configured."""
-    calibration = cfg["calibration"]
-    return calibration["mcmc"]["parameters"] + (["joint"] if calibration["joint"]["parameters"] else [])
-
-
 def mcmc_calibration_files(cfg):
-    """The MCMC calibrations of the variant ``cfg`` on one measurement, in the order of mcmc_runs."""
-    return _measurement_calibrations(mcmc_runs(cfg), "mcmc")
+    """The MCMC calibrations of the variant ``cfg`` on one measurement, in the order of newdyn.study.mcmc_runs."""
+    return _measurement_calibrations(newdyn.study.mcmc_runs(cfg), "mcmc")
 
 
 def mcmc_grid_results(cfg):
@@ -252,7 +246,7 @@ def calibration_targets(variant, methods=("grid", "mcmc")):
     """A variant's calibration files."""
     cfg = VARIANTS[variant]
     pattern = "results/{variant}/calibration/{scenario}/{parameter}/snr{snr}_seed{seed}_{method}.nc"
-    parameters = {"grid": list(cfg["calibration"]["parameters"]), "mcmc": mcmc_runs(cfg)}
+    parameters = {"grid": list(cfg["calibration"]["parameters"]), "mcmc": newdyn.study.mcmc_runs(cfg)}
     return [
         path
         for method in methods
@@ -330,8 +324,8 @@ def _measurement_figures(variant, cfg, scenario, snr, seed):
             )
         ],
     }
-    if mcmc_runs(cfg):
-        runs = expand(results, parameter=mcmc_runs(cfg), method="mcmc")
+    if newdyn.study.mcmc_runs(cfg):
+        runs = expand(results, parameter=newdyn.study.mcmc_runs(cfg), method="mcmc")
         figures["mcmc"] = [
             _figure(stem.format(kind="mcmc"), "mcmc", category("MCMC diagnostics"), variant, labels, runs)
         ]
