@@ -199,8 +199,8 @@ def grid_calibration_spec(wildcards):
 
 
 def mcmc_spec(wildcards):
-    """What the MCMC calibrations of one measurement depend on besides its input files: per run of newdyn.study.mcmc_runs (in that
-    order), a parameter's own or the joint one's settings."""
+    """What the MCMC calibrations of one measurement depend on besides its input files: per run of
+    newdyn.study.mcmc_runs (in that order), a parameter's own or the joint one's settings."""
     cfg = study(wildcards)
     calibration = cfg["calibration"]
     joint = calibration["joint"]
