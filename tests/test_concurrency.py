@@ -1,5 +1,8 @@
 """Tasks side by side in threads, and speculative ones stopped when their results are not wanted."""
 
+import os
+import subprocess
+import sys
 import threading
 
 import numba
@@ -30,6 +33,28 @@ def threads(request):
         pytest.skip(f"numba's {numba.threading_layer()} threading layer is not entered from two threads")
     yield request.param
     numba.set_num_threads(before)
+
+
+def test_tasks_run_side_by_side_before_anything_parallel_has_run():
+    """A process's first tasks (a machine's joint fits, before any simulation) run side by side, not in turn: two that
+    wait for each other both return.  In a process of its own, as numba's threading layer starts only once."""
+    script = """
+import threading, numba
+from newdyn import concurrency
+barrier = threading.Barrier(2, timeout=5)
+try:
+    concurrency.in_parallel({"a": barrier.wait, "b": barrier.wait})
+    side_by_side = True
+except threading.BrokenBarrierError:
+    side_by_side = False
+print(side_by_side, numba.threading_layer())
+"""
+    run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True,
+                         env={**os.environ, "NUMBA_NUM_THREADS": "2"})
+    side_by_side, layer = run.stdout.split()
+    if layer not in ("omp", "tbb"):
+        pytest.skip(f"numba's {layer} threading layer is not entered from two threads")
+    assert side_by_side == "True"
 
 
 def test_results_are_by_name_in_the_tasks_order(threads):

@@ -21,11 +21,8 @@ class Stopped(Exception):
 def _threads(n_tasks: int) -> int:
     """Threads for ``n_tasks`` side by side: as many as numba has, or 1 where its threading layer may not be entered
     from two threads (numba's own workqueue)."""
-    try:
-        layer = numba.threading_layer()
-    except ValueError:  # nothing parallel has run yet
-        layer = None
-    return min(n_tasks, numba.get_num_threads()) if layer in ("omp", "tbb") else 1
+    threads = numba.get_num_threads()  # first: it starts numba's threads, which chooses the layer
+    return min(n_tasks, threads) if numba.threading_layer() in ("omp", "tbb") else 1
 
 
 def in_parallel(tasks: Mapping[K, Callable[[], T]], speculative: Mapping[K, Callable[[threading.Event], T]] | None = None,
