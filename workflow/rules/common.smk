@@ -324,8 +324,9 @@ def _measurement_figures(variant, cfg, scenario, snr, seed):
             )
         ],
     }
-    if newdyn.study.mcmc_runs(cfg):
-        runs = expand(results, parameter=newdyn.study.mcmc_runs(cfg), method="mcmc")
+    mcmc_runs = newdyn.study.mcmc_runs(cfg)
+    if mcmc_runs:
+        runs = expand(results, parameter=mcmc_runs, method="mcmc")
         figures["mcmc"] = [
             _figure(stem.format(kind="mcmc"), "mcmc", category("MCMC diagnostics"), variant, labels, runs)
         ]
