@@ -236,6 +236,32 @@ def test_save_refuses_a_path_that_is_not_png(tmp_path):
         plots.save(Figure(), tmp_path / "figure.pdf")
 
 
+def _crowded_figure():
+    """A constrained-layout figure whose layout matters: long labels, a title, a legend and a colorbar."""
+    fig = Figure(figsize=(6.0, 4.0), layout="constrained")
+    line_ax, mesh_ax = fig.subplots(1, 2)
+    line_ax.plot([0.0, 1.0e6], [1.0e-9, 3.0e-9], label="a long legend entry")
+    line_ax.set(xlabel="stiffness kT1 [N·m/rad]", ylabel="displacement [m]", title="a title that needs room")
+    line_ax.legend()
+    fig.colorbar(mesh_ax.pcolormesh(np.arange(12.0).reshape(3, 4)), ax=mesh_ax, label="a colorbar's label")
+    return fig
+
+
+def test_save_lays_a_figure_out_as_its_layout_engine_does_and_keeps_that_layout_in_the_pdf(tmp_path):
+    plots.save(_crowded_figure(), tmp_path / "once.png")
+    reference = _crowded_figure()
+    reference.savefig(tmp_path / "engine.png", dpi=plots.PNG_DPI)
+    assert np.array_equal(matplotlib.image.imread(tmp_path / "once.png"), matplotlib.image.imread(tmp_path / "engine.png"))
+    reference.set_layout_engine("none")
+    reference.savefig(tmp_path / "engine.pdf", metadata={"CreationDate": None})
+    assert _pdf_drawing(tmp_path / "once.pdf") == _pdf_drawing(tmp_path / "engine.pdf")
+
+
+def _pdf_drawing(path):
+    """A PDF's objects but its metadata (plots.save stamps Creator and Subject) and the byte offsets that follow them."""
+    return [chunk for chunk in path.read_bytes().split(b"endobj")[:-1] if b"/Creator" not in chunk]
+
+
 def test_a_log_axis_over_many_decades_draws_no_minor_ticks_and_a_short_one_keeps_them(tmp_path):
     fig = Figure()
     short, long, subfigure_long = (*fig.subfigures(1, 2)[0].subplots(2, 1), fig.subfigs[1].subplots())

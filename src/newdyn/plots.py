@@ -48,10 +48,24 @@ def save(fig: Figure, png_path: PathLike, code_hash: str = "", sources: Sequence
     # CreationDate a rerun writes the same bytes.
     pdf_metadata = {"Creator": f"newdyn {stamp['newdyn_version']}", "Subject": json.dumps(stamp), "CreationDate": None}
     _thin_log_minor_ticks(fig)
+    _lay_out_once(fig)
     io.atomic_write(png_path, lambda tmp: fig.savefig(tmp, format="png", dpi=PNG_DPI, metadata=stamp))
-    # The PDF keeps the PNG's layout: laying the figure out again costs a third of drawing it.
-    fig.set_layout_engine("none")
     io.atomic_write(png_path.with_suffix(".pdf"), lambda tmp: fig.savefig(tmp, format="pdf", metadata=pdf_metadata))
+
+
+def _lay_out_once(fig: Figure) -> None:
+    """Run ``fig``'s layout engine once, at the PNG's resolution as savefig would, and keep that layout for both files.
+
+    With an engine set, savefig draws the whole figure once more before each file only to lay it out; without one it
+    draws each file once, and the files are the same bytes."""
+    engine = fig.get_layout_engine()
+    if engine is None:
+        return
+    dpi = fig.get_dpi()
+    fig.set_dpi(PNG_DPI)
+    engine.execute(fig)
+    fig.set_dpi(dpi)
+    fig.set_layout_engine(None)
 
 
 def _thin_log_minor_ticks(fig) -> None:
