@@ -33,7 +33,7 @@ rule all:
         figure_targets(),
         diagnosis_targets("results", list(MEASUREMENTS)),
         expand("results/diagnosis/{machine}/{file}", machine=MACHINES, file=MACHINE_FILES),
-        hidden_targets("demo"),
+        hidden_targets(STUDY_HIDDEN_SET),
 
 
 # Only the user's own files in measurements/: each file's verdict and figures, each machine folder's verdict.

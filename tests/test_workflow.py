@@ -493,6 +493,16 @@ def test_the_measurements_target_diagnoses_exactly_the_users_files_with_their_fi
     assert not rules & {"simulate", "add_noise", "calibrate_mcmc_default", "hidden_draw", "plot_summary"}
 
 
+def test_a_users_diagnosis_takes_both_cores_and_the_studys_demo_one_so_that_it_starts_beside_the_study(tmp_path):
+    write_users_measurements(tmp_path / "measurements")
+    run = snakemake(tmp_path, "--dry-run", "--printshellcmds")
+    assert run.returncode == 0, run.stderr[-3000:]
+    threads = {path: int(count) for count, path in
+               re.findall(r"NUMBA_NUM_THREADS=(\d+) .*newdyn diagnose --measurement (\S+)", run.stdout)}
+    assert threads == {"measurements/plain.csv": 2, "measurements/rig7/full_load.nc": 2, "measurements/rig7/part_load.nc": 2,
+                       "results/demo/measurements/demo_01.nc": 1}
+
+
 def test_a_hidden_set_of_machines_diagnoses_each_recording_then_each_machine_and_scores_both(tmp_path):
     def fleet(config):
         config["hidden"]["sets"] = {"fleet": {"cases": 3, "seed": 4, "recordings": [2, 3]}}

@@ -431,6 +431,13 @@ def figure_targets():
 
 # --- diagnosis of measurements: users' files in measurements/, and hidden-effect sets drawn from a seed
 HIDDEN_SETS = config["hidden"]["sets"]
+STUDY_HIDDEN_SET = "demo"  # the hidden set the default target diagnoses beside the study
+
+
+def diagnosis_threads(wildcards):
+    """Two threads for a diagnosis (its hypotheses' fits side by side), one for the study's own hidden set's: beside
+    the study's one-thread jobs a two-thread job waits until both cores are free, which is the study's end."""
+    return 1 if wildcards.root == f"results/{STUDY_HIDDEN_SET}" else 2
 
 
 # name -> file of every good measurement in measurements/; each bad one gets its one line on stderr and is

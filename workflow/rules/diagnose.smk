@@ -64,12 +64,11 @@ rule diagnose:
     # file): a machine's name is no file's, so Snakemake never asks this rule's input for one.
     wildcard_constraints:
         name=rf"(?!(?:{MACHINE_NAMES})/[^/]+$){MEASUREMENT_NAME}",
-    # Two threads: its hypotheses' fits, and each fit's starts, run side by side.  Its log's lines (each stage and fit
-    # as it ends) go to the terminal too, so that a long diagnosis can be watched.
+    # Its log's lines (each stage and fit as it ends) go to the terminal too, so that a long diagnosis can be watched.
     priority: 1
     conda:
         "../envs/newdyn.yaml"
-    threads: 2
+    threads: diagnosis_threads
     resources:
         mem_mb=per_attempt(2048),
         runtime=per_attempt(120),
