@@ -19,6 +19,7 @@ import matplotlib
 import numpy as np
 import scipy  # subpackages load on first use: most figures never need scipy.signal
 import xarray as xr
+from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.colors import LogNorm, Normalize
 from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
@@ -63,6 +64,7 @@ def _lay_out_once(fig: Figure) -> None:
         return
     dpi = fig.get_dpi()
     fig.set_dpi(PNG_DPI)
+    FigureCanvasAgg(fig)
     engine.execute(fig)
     fig.set_dpi(dpi)
     fig.set_layout_engine(None)
