@@ -58,7 +58,8 @@ def _lay_out_once(fig: Figure) -> None:
     """Run ``fig``'s layout engine once, at the PNG's resolution as savefig would, and keep that layout for both files.
 
     With an engine set, savefig draws the whole figure once more before each file only to lay it out; without one it
-    draws each file once, and the files are the same bytes."""
+    draws each file once, and the files are the same bytes.  The layout runs on the Agg canvas that then draws the PNG,
+    whose renderer keeps the text extents the layout measured."""
     engine = fig.get_layout_engine()
     if engine is None:
         return
