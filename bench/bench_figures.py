@@ -23,10 +23,11 @@ import tempfile
 import time
 from pathlib import Path
 
+from newdyn.cli import DIAGNOSIS_FIGURES
+
 ROOT = Path(__file__).resolve().parents[1]
-FIGURE_RULES = ("plot_posteriors", "plot_overlays", "plot_mcmc", "plot_signatures", "plot_summary", "plot_diagnosis")
-# The options of `newdyn plot-diagnosis` that name a figure it writes.
-DIAGNOSIS_OUTPUTS = ("--overlays", "--residuals", "--hypotheses", "--error-fall", "--discovery", "--effect-posterior")
+# The options of `newdyn plot-diagnosis` that name a figure it writes, as the command line spells them.
+DIAGNOSIS_OUTPUTS = tuple(f"--{name.replace('_', '-')}" for name in DIAGNOSIS_FIGURES)
 
 
 def commit(revision: str) -> str:
@@ -35,15 +36,22 @@ def commit(revision: str) -> str:
                           text=True).stdout.strip()
 
 
-def figure_commands(study: Path) -> dict[str, list[str]]:
-    """job -> the `newdyn` command (as arguments) that draws its figures, from a dry run of the study's figure rules."""
-    run = subprocess.run([sys.executable, "-m", "snakemake", "--dry-run", "--printshellcmds", "--cores", "1",
-                          "--forcerun", *FIGURE_RULES], cwd=study, capture_output=True, text=True, check=False,
-                         env={**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"})
+def snakemake(study: Path, *args: str) -> str:
+    """The output of Snakemake run with ``args`` in the study's folder."""
+    run = subprocess.run([sys.executable, "-m", "snakemake", *args], cwd=study, capture_output=True, text=True,
+                         check=False, env={**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"})
     if run.returncode != 0:
-        sys.exit(f"the dry run failed in {study}:\n{run.stderr[-3000:]}")
+        sys.exit(f"snakemake {' '.join(args)} failed in {study}:\n{run.stderr[-3000:]}")
+    return run.stdout
+
+
+def figure_commands(study: Path) -> dict[str, list[str]]:
+    """job -> the `newdyn` command (as arguments) that draws its figures, from a dry run of the study's figure rules
+    (the workflow's rules named plot_*)."""
+    rules = [name for name in snakemake(study, "--list-rules").split() if name.startswith("plot_")]
+    output = snakemake(study, "--dry-run", "--printshellcmds", "--cores", "1", "--forcerun", *rules)
     commands = {}
-    for line in run.stdout.splitlines():
+    for line in output.splitlines():
         words = shlex.split(line.split(" > ")[0]) if re.search(r"\bnewdyn plot(-diagnosis)? ", line) else []
         if words:
             words = words[words.index("newdyn"):]
