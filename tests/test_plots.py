@@ -257,6 +257,14 @@ def test_save_lays_a_figure_out_as_its_layout_engine_does_and_keeps_that_layout_
     assert _pdf_drawing(tmp_path / "once.pdf") == _pdf_drawing(tmp_path / "engine.pdf")
 
 
+def test_save_keeps_its_layout_under_a_matplotlibrc_that_asks_for_another_engine(tmp_path):
+    plots.save(_crowded_figure(), tmp_path / "default.png")
+    with matplotlib.rc_context({"figure.autolayout": True}):
+        plots.save(_crowded_figure(), tmp_path / "autolayout.png")
+    assert np.array_equal(matplotlib.image.imread(tmp_path / "default.png"), matplotlib.image.imread(tmp_path / "autolayout.png"))
+    assert _pdf_drawing(tmp_path / "default.pdf") == _pdf_drawing(tmp_path / "autolayout.pdf")
+
+
 def _pdf_drawing(path):
     """A PDF's objects but its metadata (plots.save stamps Creator and Subject) and the byte offsets that follow them."""
     return [chunk for chunk in path.read_bytes().split(b"endobj")[:-1] if b"/Creator" not in chunk]

@@ -49,9 +49,11 @@ def save(fig: Figure, png_path: PathLike, code_hash: str = "", sources: Sequence
     # CreationDate a rerun writes the same bytes.
     pdf_metadata = {"Creator": f"newdyn {stamp['newdyn_version']}", "Subject": json.dumps(stamp), "CreationDate": None}
     _thin_log_minor_ticks(fig)
-    _lay_out_once(fig)
-    io.atomic_write(png_path, lambda tmp: fig.savefig(tmp, format="png", dpi=PNG_DPI, metadata=stamp))
-    io.atomic_write(png_path.with_suffix(".pdf"), lambda tmp: fig.savefig(tmp, format="pdf", metadata=pdf_metadata))
+    # A figure keeps its own layout whatever engine a user's matplotlibrc asks for by default.
+    with matplotlib.rc_context({"figure.autolayout": False, "figure.constrained_layout.use": False}):
+        _lay_out_once(fig)
+        io.atomic_write(png_path, lambda tmp: fig.savefig(tmp, format="png", dpi=PNG_DPI, metadata=stamp))
+        io.atomic_write(png_path.with_suffix(".pdf"), lambda tmp: fig.savefig(tmp, format="pdf", metadata=pdf_metadata))
 
 
 def _lay_out_once(fig: Figure) -> None:
@@ -68,7 +70,7 @@ def _lay_out_once(fig: Figure) -> None:
     FigureCanvasAgg(fig)
     engine.execute(fig)
     fig.set_dpi(dpi)
-    fig.set_layout_engine(None)
+    fig.set_layout_engine(None)  # no engine: the rc that save() sets asks for none by default
 
 
 def _thin_log_minor_ticks(fig) -> None:
