@@ -23,17 +23,12 @@ import tempfile
 import time
 from pathlib import Path
 
+from bench_study import clone, commit  # this script's folder leads sys.path
+
 from newdyn.cli import DIAGNOSIS_FIGURES
 
-ROOT = Path(__file__).resolve().parents[1]
 # The options of `newdyn plot-diagnosis` that name a figure it writes, as the command line spells them.
 DIAGNOSIS_OUTPUTS = tuple(f"--{name.replace('_', '-')}" for name in DIAGNOSIS_FIGURES)
-
-
-def commit(revision: str) -> str:
-    """The short hash of ``revision`` in this repository."""
-    return subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", revision], check=True, capture_output=True,
-                          text=True).stdout.strip()
 
 
 def snakemake(study: Path, *args: str) -> str:
@@ -99,20 +94,20 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=3, help="times each job is drawn per revision (best kept)")
     args = parser.parse_args()
 
-    commands = figure_commands(args.study.resolve())
+    study = args.study.resolve()
+    commands = figure_commands(study)
     revisions = {"before": commit(args.before), "after": commit(args.after)}
     with tempfile.TemporaryDirectory() as scratch:
         sources = {}
         for label, revision in revisions.items():
-            subprocess.run(["git", "clone", "--quiet", str(ROOT), f"{scratch}/{label}"], check=True)
-            subprocess.run(["git", "-C", f"{scratch}/{label}", "checkout", "--quiet", revision], check=True)
+            clone(revision, Path(scratch, label))
             sources[label] = Path(scratch, label, "src")
         best = {(job, label): float("inf") for job in commands for label in revisions}
         for _ in range(args.repeat):  # in turns, so that the machine's drift falls on both alike
             for job, words in commands.items():
                 for label in revisions:
                     folder = Path(scratch, "figures", label, re.sub(r"\W", "_", job))
-                    best[job, label] = min(best[job, label], draw(words, args.study.resolve(), sources[label], folder))
+                    best[job, label] = min(best[job, label], draw(words, study, sources[label], folder))
 
         print(f"{args.study}, best of {args.repeat}, {time.strftime('%Y-%m-%d %H:%M')}")
         print(f"{'job':34s} {'before ' + revisions['before']:>16s} {'after ' + revisions['after']:>16s} {'ratio':>7s}")
