@@ -436,7 +436,7 @@ def _advance_alone(w, t, h):
         _events(w, R_TRIAL, lanes, t_next)
         hi = 1.0
         if w[_at(R_G, 0)] <= 0.0 and w[_at(R_G, 0)] > -math.inf:
-            hi = _first_interior_event(w, 0, t, step)
+            hi = _first_interior_event(w, lane, t, step)
             if hi < 1.0:  # bracket the event on the RK4 step that ends there
                 _rk4(w, t, hi * step, lanes, False)
                 _events(w, R_TRIAL, lanes, t + hi * step)
@@ -444,7 +444,7 @@ def _advance_alone(w, t, h):
         if g_end <= 0.0:
             if hi < 1.0:  # the interpolant saw an event that the step to there does not reach
                 _rk4(w, t, step, lanes, False)
-            _copy_lane_rows(w, 0, w, 0, R_TRIAL, R_Y, NY)
+            _copy_lane_rows(w, lane, w, lane, R_TRIAL, R_Y, NY)
             t = t_next
             continue
         # g(0) < 0 because we start inside the mode.
@@ -474,7 +474,7 @@ def _advance_alone(w, t, h):
                 break
         # Stop just on the far side of the event so the new mode starts at its own boundary.
         _rk4(w, t, hi * step, lanes, False)
-        _copy_lane_rows(w, 0, w, 0, R_TRIAL, R_Y, NY)
+        _copy_lane_rows(w, lane, w, lane, R_TRIAL, R_Y, NY)
         t = t + hi * step
         _switch(w, lane, which, t)
 
@@ -535,7 +535,9 @@ def _step(w, alone, fine, picked, group, t, h, n_lanes, events_possible):
     else:
         for lane in range(n_lanes):
             w[_at(R_G, lane)] = -math.inf
-    n_fine = 0
+    # Counters as run-time int64 from the start: numba types a literal 0 first and would compile the callees that
+    # take it (_pad, _copy_lane_rows) once more for Literal[int](0), as it would _step for a literal False.
+    n_fine = np.int64(0)
     for lane in range(n_lanes):
         event = not w[_at(R_G, lane)] <= 0.0
         if w[_at(R_FINE_STEPS, lane)] > 1.0 and (event or t < w[_at(R_FINE_UNTIL, lane)]):
@@ -545,7 +547,7 @@ def _step(w, alone, fine, picked, group, t, h, n_lanes, events_possible):
             _redo_alone(w, alone, lane, t, step)
     while n_fine > 0:  # the picked lanes, those of one step count at a time
         count = w[_at(R_FINE_STEPS, picked[0])]
-        n_group, rest = 0, 0
+        n_group, rest = np.int64(0), np.int64(0)
         for i in range(n_fine):
             lane = picked[i]
             if w[_at(R_FINE_STEPS, lane)] == count:
@@ -670,7 +672,7 @@ def _simulate_block(params, fine_steps, settle, sims, t_first, fs, n_samples, su
     picked = np.zeros(LANES, dtype=np.int64)
     group = np.zeros(LANES, dtype=np.int64)
     w[_at(R_TL_TIME, 0)] = math.nan
-    events_possible = False
+    events_possible = np.bool_(False)  # not a literal False: see _step's counters
     for lane in range(n_lanes):
         row = sims[lane]
         _setup_lane(w, lane, params[row], fine_steps[row], settle[row])
