@@ -708,3 +708,37 @@ def _simulate_batch(params, fine_steps, settle, order, starts, counts, substeps,
         rows = order[starts[b] : starts[b] + counts[b]]
         _simulate_block(params, fine_steps, settle, rows, t_first, fs, n_samples, substeps, codes, out)
     return out
+
+
+# --- the first compile, shared ------------------------------------------------------------------------
+# Two parts of the kernel that do not call each other, each compiled on its own into numba's cache by calling its
+# functions with the argument types their callers pass (lanes as run-time int64, rows as the literal constants):
+# processes that compile the kernel together (a study's first jobs, a process's helper on its second core) take one
+# part each, and the entry point then loads them from the cache (newdyn.kernels.compile_parts).
+@njit(**_JIT)
+def _compile_steps():
+    """The RK4 step, with the whole right-hand side inlined: the larger part."""
+    w = np.zeros(N_ROWS * LANES)
+    lanes, t = np.int64(1), 0.0
+    _rk4(w, t, t, lanes, False)
+    _rk4(w, t, t, lanes, True)
+
+
+@njit(**_JIT)
+def _compile_events():
+    """The event functions and switches, and the set-up and recording of lanes."""
+    w = np.zeros(N_ROWS * LANES)
+    lane, t = np.int64(0), 0.0
+    _, which = _lane_event(w, lane, R_Y, t)
+    _switch(w, lane, which, t)
+    _events(w, R_TRIAL, lane, t)
+    _events(w, R_Y, lane, t)
+    _interior_events(w, lane, t, t)
+    _first_interior_event(w, lane, t, t)
+    _setup_lane(w, lane, w, t, t)
+    _pad(w, lane)
+    sims = np.zeros(1, dtype=np.int64)
+    _record(w, sims, np.zeros((1, 1, 1)), sims, lane, lane, t)
+
+
+COMPILE_PARTS = (_compile_steps, _compile_events)

@@ -12,15 +12,18 @@ once, and an edit of an effect file compiles anew.
 from __future__ import annotations
 
 import ast
+import contextlib
 import fcntl
 import hashlib
 import importlib.util
 import inspect
 import itertools
 import os
+import subprocess
 import sys
 import tempfile
 import textwrap
+from collections.abc import Sequence
 from pathlib import Path
 from types import ModuleType
 
@@ -352,24 +355,9 @@ def module(active: dict[str, type[effects.Effect]] | None = None) -> ModuleType:
     if digest in _MODULES:
         _LOADED[key] = _MODULES[digest]
         return _MODULES[digest]
-    path = _path(digest)
-    folder = path.parent
-    folder.mkdir(parents=True, exist_ok=True)
-    if not path.exists():
-        # Written once and never rewritten: numba's cache is keyed on the file's time stamp.
-        with tempfile.NamedTemporaryFile("w", dir=folder, suffix=".tmp", delete=False, encoding="utf-8") as f:
-            f.write(source)
-        try:
-            os.link(f.name, path)
-        except FileExistsError:
-            pass  # another process wrote the same source first
-        finally:
-            os.unlink(f.name)
-    spec = importlib.util.spec_from_file_location(f"newdyn_kernel_{digest}", path)
-    compiled = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = compiled
-    spec.loader.exec_module(compiled)
-    _compile_once(compiled, path)
+    path = _written(source, digest)
+    compiled = _import(path)
+    _compile_once(compiled, path, active)
     _MODULES[digest] = _LOADED[key] = compiled
     return compiled
 
@@ -385,21 +373,96 @@ def _path(digest: str) -> Path:
     return cache.folder() / "kernels" / f"kernel_{digest}.py"
 
 
-def _compile_once(compiled: ModuleType, path: Path) -> None:
-    """Compile the kernel at ``path`` into numba's cache unless it is there, one process at a time.
+def _written(source: str, digest: str) -> Path:
+    """The file of the kernel module ``source`` named ``digest``, written unless it is there."""
+    path = _path(digest)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if not path.exists():
+        # Written once and never rewritten: numba's cache is keyed on the file's time stamp.
+        with tempfile.NamedTemporaryFile("w", dir=path.parent, suffix=".tmp", delete=False, encoding="utf-8") as f:
+            f.write(source)
+        try:
+            os.link(f.name, path)
+        except FileExistsError:
+            pass  # another process wrote the same source first
+        finally:
+            os.unlink(f.name)
+    return path
 
-    Processes that start together on an empty cache (a study's first jobs, test workers) would each
-    compile the same kernel, a minute of a core apiece; under the lock the first compiles and the
-    others wait, then load its machine code.  The call below compiles the kernel's one entry point
-    with the argument types that :func:`_run` passes, on a run of no steps."""
+
+def _import(path: Path) -> ModuleType:
+    """The kernel module written at ``path`` (its effects loaded in this process), imported without compiling it."""
+    spec = importlib.util.spec_from_file_location(f"newdyn_{path.stem}", path)
+    compiled = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = compiled
+    spec.loader.exec_module(compiled)
+    return compiled
+
+
+def _compile_once(compiled: ModuleType, path: Path, active: dict[str, type[effects.Effect]]) -> None:
+    """Compile the kernel at ``path`` into numba's cache unless it is there, sharing the work with other processes.
+
+    Processes that start together on an empty cache (a study's first jobs, test workers) would each compile the same
+    kernel, half a minute of a core apiece.  Instead each compiles the parts of it that no other has taken
+    (:func:`compile_parts`), and then one compiles the entry point, loading the parts from numba's cache, while the
+    others wait and load its machine code.  A process that may use a second core (numba's thread count) starts a
+    helper on it that takes a part.  The entry point is compiled with the argument types :func:`_run` passes, on a
+    run of no steps."""
     ready = path.with_suffix(".ready")
     if ready.exists():
         return
-    with open(path.with_suffix(".lock"), "w") as lock:
+    helper = None
+    if get_num_threads() > 1:
+        sources = [effect.source for effect in active.values()]
+        helper = subprocess.Popen([sys.executable, "-c", _HELPER, str(path), *sources], env={**os.environ,
+                                  "NUMBA_NUM_THREADS": "1"}, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        compile_parts(compiled, path)
+        with _locked(path.with_suffix(".lock")):
+            if not ready.exists():
+                _run(compiled, np.zeros((1, compiled.N_PAR)), 0.0, 1.0, 1, 1, np.zeros(1, dtype=np.int64), {})
+                ready.touch()
+    finally:
+        if helper is not None:  # it may still be loading a part this process compiled
+            helper.kill()
+            helper.wait()
+
+
+def help_compile(path: str, sources: Sequence[str]) -> None:
+    """What a helper process does: the kernel module at ``path`` imported with its effects loaded from their files
+    ``sources``, then the parts of it that no other process has taken compiled (:func:`compile_parts`)."""
+    for source in sources:
+        effects.load_file(source)
+    compile_parts(_import(Path(path)), Path(path))
+
+
+_HELPER = "import sys; from newdyn import kernels; kernels.help_compile(sys.argv[1], sys.argv[2:])"
+
+
+def compile_parts(compiled: ModuleType, path: Path) -> None:
+    """Compile into numba's cache each part of the kernel (``COMPILE_PARTS``) that no other process is compiling,
+    then wait until the others have compiled theirs."""
+    others = []
+    for n, part in enumerate(compiled.COMPILE_PARTS):
+        lock = open(path.with_suffix(f".part{n}.lock"), "w")  # noqa: SIM115 - held until the part is compiled
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            others.append(lock)
+            continue
+        with lock:
+            part.compile(())
+    for lock in others:
+        with lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+
+
+@contextlib.contextmanager
+def _locked(path: Path):
+    """An exclusive lock on the file ``path``, held for the ``with`` block."""
+    with open(path, "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
-        if not ready.exists():
-            _run(compiled, np.zeros((1, compiled.N_PAR)), 0.0, 1.0, 1, 1, np.zeros(1, dtype=np.int64), {})
-            ready.touch()
+        yield
 
 
 def output_code(name: str, active: dict[str, type[effects.Effect]] | None = None) -> int | None:
