@@ -12,7 +12,6 @@ once, and an edit of an effect file compiles anew.
 from __future__ import annotations
 
 import ast
-import contextlib
 import fcntl
 import hashlib
 import importlib.util
@@ -418,7 +417,8 @@ def _compile_once(compiled: ModuleType, path: Path, active: dict[str, type[effec
                                   "NUMBA_NUM_THREADS": "1"}, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         compile_parts(compiled, path)
-        with _locked(path.with_suffix(".lock")):
+        with open(path.with_suffix(".lock"), "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
             if not ready.exists():
                 _run(compiled, np.zeros((1, compiled.N_PAR)), 0.0, 1.0, 1, 1, np.zeros(1, dtype=np.int64), {})
                 ready.touch()
@@ -444,10 +444,10 @@ def compile_parts(compiled: ModuleType, path: Path) -> None:
     then wait until the others have compiled theirs."""
     others = []
     for n, part in enumerate(compiled.COMPILE_PARTS):
-        lock = open(path.with_suffix(f".part{n}.lock"), "w")  # noqa: SIM115 - held until the part is compiled
+        lock = open(path.with_suffix(f".part{n}.lock"), "w")  # noqa: SIM115 - closed once the part is compiled
         try:
             fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
+        except BlockingIOError:  # another process is compiling it
             others.append(lock)
             continue
         with lock:
@@ -455,14 +455,6 @@ def compile_parts(compiled: ModuleType, path: Path) -> None:
     for lock in others:
         with lock:
             fcntl.flock(lock, fcntl.LOCK_EX)
-
-
-@contextlib.contextmanager
-def _locked(path: Path):
-    """An exclusive lock on the file ``path``, held for the ``with`` block."""
-    with open(path, "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        yield
 
 
 def output_code(name: str, active: dict[str, type[effects.Effect]] | None = None) -> int | None:
