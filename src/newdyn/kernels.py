@@ -6,7 +6,8 @@ mode rows, and straight-line code that adds each effect's force at its place, ev
 function and applies its switch.  The rendered module is written under the cache folder
 (``NEWDYN_CACHE``, default ``~/.cache/newdyn``) with a name that hashes the template, the effects'
 files and numba's version, so numba caches its machine code beside it: an effect set compiles
-once, and an edit of an effect file compiles anew.
+once, and an edit of an effect file compiles anew.  Processes that need a kernel not compiled yet share
+its compile, part by part (:func:`compile_parts`).
 """
 
 from __future__ import annotations
