@@ -122,23 +122,22 @@ def test_the_rendered_kernel_writes_every_flat_index_out_as_the_index_it_stands_
     assert calls and not [call for call in calls if isinstance(call.func, ast.Name) and call.func.id == "_at"]
 
 
-# Run in a fresh process (numba's compiled functions are per process), on the kernel file argv[2] of the effect file
-# argv[3]: its parts compiled as a helper process compiles them (argv[1] "helper"), or the whole kernel as a
-# simulation compiles it (argv[1] "entry"); printed are the parts' names and each kernel function's signatures
-# compiled in this process and loaded from numba's cache.
+# Run in a fresh process (numba's compiled functions are per process), on the kernel file argv[2]: its parts
+# compiled as a helper process compiles them (argv[1] "helper"), or the whole kernel as a simulation compiles it
+# (argv[1] "entry"); printed are the parts' names and each kernel function's signatures compiled in this process and
+# loaded from numba's cache.
 _COMPILE_IN_A_PROCESS = """
 import json, sys
 from pathlib import Path
 import numba
-from newdyn import effects, kernels
-what, path, source = sys.argv[1:]
+from newdyn import kernels
+what, path = sys.argv[1:]
 if what == "helper":
-    kernels.help_compile(path, [source])
+    kernels.help_compile(path, [])
     compiled = sys.modules["newdyn_" + Path(path).stem]
 else:
-    effect = effects.load_file(source)
     compiled = kernels._import(Path(path))
-    kernels._compile_once(compiled, Path(path), {effect.name: effect})
+    kernels._compile_once(compiled, Path(path), {})
 functions = {name: f for name, f in vars(compiled).items() if isinstance(f, numba.core.registry.CPUDispatcher)}
 found = {kind: {name: sorted(map(str, getattr(f.stats, kind))) for name, f in functions.items() if getattr(f.stats, kind)}
          for kind in ("cache_misses", "cache_hits")}
@@ -147,20 +146,19 @@ print(json.dumps({"parts": [part.py_func.__name__ for part in compiled.COMPILE_P
 
 
 def test_a_helper_compiles_the_parts_of_a_kernel_that_the_compiling_process_then_loads_and_no_more(tmp_path, monkeypatch):
-    """Processes share a first compile by compiling parts of the kernel apart (a helper on a second core loads the
-    kernel's effects from their files): the process that compiles the entry point must find each function a part
-    calls in numba's cache, with the argument types the part called it with, and compile nothing a part compiled
-    again (else a part's work is lost and the shared compile is no shorter than one process's)."""
+    """Processes share a first compile by compiling parts of the kernel apart (a helper process on a second core):
+    the process that compiles the entry point must find each function a part calls in numba's cache, with the
+    argument types the part called it with, and compile nothing a part compiled again (else a part's work is lost and
+    the shared compile is no shorter than one process's).  The kernel of no effects, the cheapest to compile: the
+    parts' argument types are the template's."""
     monkeypatch.setenv("NEWDYN_CACHE", str(tmp_path))
     monkeypatch.setenv("NUMBA_NUM_THREADS", "1")
-    effect = effects.active()["loose_bearing"]  # a switching effect: the event part is the kernel's own
-    active = {effect.name: effect}
-    rendered = kernels.render(active)
-    path = kernels._written(rendered, kernels.kernel_digest(active, rendered))
+    rendered = kernels.render({})
+    path = kernels._written(rendered, kernels.kernel_digest({}, rendered))
 
     def compile_in_a_process(what: str) -> dict:
-        run = subprocess.run([sys.executable, "-c", _COMPILE_IN_A_PROCESS, what, str(path), effect.source],
-                             capture_output=True, text=True, check=True)
+        run = subprocess.run([sys.executable, "-c", _COMPILE_IN_A_PROCESS, what, str(path)], capture_output=True,
+                             text=True, check=True)
         return json.loads(run.stdout)
 
     parts = compile_in_a_process("helper")
