@@ -57,11 +57,16 @@ print(json.dumps({"compile": compile_s, "batch": best(batch, repeat), "lone": be
 """
 
 
+def environment(folder: Path, cache: Path, threads: int) -> dict[str, str]:
+    """The environment of a process that runs the clone ``folder``'s newdyn on ``threads`` threads and the cache folder
+    ``cache``."""
+    return {**os.environ, "PYTHONPATH": str(folder / "src"), "NEWDYN_CACHE": str(cache), "NUMBA_NUM_THREADS": str(threads)}
+
+
 def measure(folder: Path, cache: Path, outputs: Path, repeat: int) -> dict[str, float]:
     """The kernel's compile or load time [s] (``compile``) and the best batch and lone simulation times [s] of the
     clone ``folder``, measured in a new process on the cache folder ``cache``."""
-    environment = {**os.environ, "PYTHONPATH": str(folder / "src"), "NEWDYN_CACHE": str(cache), "NUMBA_NUM_THREADS": "1"}
-    run = subprocess.run([sys.executable, "-c", MEASURE, str(outputs), str(repeat)], env=environment,
+    run = subprocess.run([sys.executable, "-c", MEASURE, str(outputs), str(repeat)], env=environment(folder, cache, 1),
                          capture_output=True, text=True, check=False)
     if run.returncode != 0:
         sys.exit(f"the measurement failed in {folder}:\n{run.stderr[-3000:]}")
@@ -75,10 +80,9 @@ COMPILE = "from newdyn import kernels; kernels.module()"
 def compile_together(folder: Path, cache: Path, processes: int, threads: int) -> float:
     """Wall time [s] until ``processes`` processes of ``threads`` threads each, started together on the empty cache
     folder ``cache``, all have the clone ``folder``'s built-in kernel."""
-    environment = {**os.environ, "PYTHONPATH": str(folder / "src"), "NEWDYN_CACHE": str(cache),
-                   "NUMBA_NUM_THREADS": str(threads)}
     start = time.perf_counter()
-    runs = [subprocess.Popen([sys.executable, "-c", COMPILE], env=environment, stderr=subprocess.PIPE, text=True)
+    runs = [subprocess.Popen([sys.executable, "-c", COMPILE], env=environment(folder, cache, threads), stderr=subprocess.PIPE,
+                             text=True)
             for _ in range(processes)]
     for run in runs:
         _, errors = run.communicate()
