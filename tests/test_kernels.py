@@ -133,8 +133,7 @@ import numba
 from newdyn import kernels
 what, path = sys.argv[1:]
 if what == "helper":
-    kernels.help_compile(path, [])
-    compiled = sys.modules["newdyn_" + Path(path).stem]
+    compiled = kernels.help_compile(path, [])
 else:
     compiled = kernels._import(Path(path))
     kernels._compile_once(compiled, Path(path), {})

@@ -429,12 +429,15 @@ def _compile_once(compiled: ModuleType, path: Path, active: dict[str, type[effec
             helper.wait()
 
 
-def help_compile(path: str, sources: Sequence[str]) -> None:
+def help_compile(path: str, sources: Sequence[str]) -> ModuleType:
     """What a helper process does: the kernel module at ``path`` imported with its effects loaded from their files
-    ``sources``, then the parts of it that no other process has taken compiled (:func:`compile_parts`)."""
+    ``sources``, then the parts of it that no other process has taken compiled (:func:`compile_parts`); returns the
+    module."""
     for source in sources:
         effects.load_file(source)
-    compile_parts(_import(Path(path)), Path(path))
+    compiled = _import(Path(path))
+    compile_parts(compiled, Path(path))
+    return compiled
 
 
 _HELPER = "import sys; from newdyn import kernels; kernels.help_compile(sys.argv[1], sys.argv[2:])"
