@@ -76,8 +76,24 @@ def test_lanes_are_filled_by_fine_step_count_then_by_the_slip_joint_parameters()
     params = np.array([slots.parameter_vector(v) for v in [{}, *rows, {"kT1": 2.9e6}]])
     steps, _ = kernels.fine_steps(params)
     order = kernels.lane_order(params, steps)
-    assert steps[0] == steps[-1] == 1 and steps[2] < steps[1]  # a larger J2a has a slower open mode
+    assert (steps[[0, -1]] == 1).all() and steps[2, 0] < steps[1, 0]  # a larger J2a has a slower fastest mode
     assert order.tolist() == [0, 5, 2, 4, 3, 1]  # rigs without a slip joint first, as given; then by count, then T_max
+
+
+def test_an_open_joint_once_settled_steps_to_resolve_the_body_it_frees():
+    """Once the modes a switch kicked have rung down, an open joint's lane steps to resolve its fastest mode: here J2a
+    freed on the motor shaft against the motor, sqrt(kT1 (1/J1 + 1/J2a)) in closed form (the other side, J2b on the
+    coupling, is slower at these splits); a search takes half as many steps."""
+    params = np.array([slots.parameter_vector(faults.scenario_values(
+        {"fault": {"kind": "stick_slip", "parameters": {"T_max": 1900.0, "J2a_share": share}}}, model.DEFAULTS)) for share in (0.1, 0.3, 0.5)])
+    index = slots.slot_index()
+    kT1, J1, J2a = (params[:, index[name]] for name in ("kT1", "J1", "J2a"))
+    freed = np.sqrt(kT1 * (1.0 / J1 + 1.0 / J2a))
+    steps, _ = kernels.fine_steps(params)
+    np.testing.assert_array_equal(steps[:, 1], np.ceil(freed / kernels.OPEN_OMEGA_RATE))
+    assert steps[:, 1].max() > 1  # the lightest J2a needs more than the plain step
+    searched, _ = kernels.fine_steps(params, search=True)
+    np.testing.assert_array_equal(searched[:, 1], np.maximum(1, np.ceil(freed / (kernels.SEARCH_STEP_FACTOR * kernels.OPEN_OMEGA_RATE))))
 
 
 def test_an_effect_file_is_compiled_once_wherever_it_lies_and_anew_when_edited(tmp_path):

@@ -234,7 +234,7 @@ def test_stick_slip_steps_finely_only_from_its_first_slip_on():
 
 
 def test_a_search_steps_a_slipping_joint_more_coarsely_and_nothing_else():
-    """A global search simulates with longer steps while the slip joint is open or settling: a rig whose joint never
+    """A global search simulates with longer steps while the slip joint settles or is open: a rig whose joint never
     opens is the exact one bit for bit, and a slipping one differs from it, at r_k 0.95 by well under the noise at
     40 dB."""
     never, slipping = (with_effect("stick_slip", T_max=2300.0), with_effect("stick_slip", T_max=1855.0, r_k=0.95))

@@ -14,10 +14,10 @@ indexed ``row * LANES + lane``, and the hot loops run over lanes with bodies tha
 no data-dependent branches (mode switches are selects, sin/cos is the inline :func:`sincos`), so
 LLVM turns them into AVX lanes.  After each step the event functions of all lanes are checked
 together; a lane whose step crosses an event is redone by the event-locating path, which runs the
-same RK4 and RHS code on a one-lane scratch block.  A lane whose slip joint is open, or settling after it
-locked, takes several shorter steps for each step instead (``kernels.fine_steps``): such lanes are copied into a
-second scratch block, stepped there side by side in its SIMD lanes, and copied back, so a slipping rig pays for the
-fine steps only while it slips.  The arithmetic is that of the scalar original,
+same RK4 and RHS code on a one-lane scratch block.  A lane whose slip joint settles after a switch, or is open,
+takes several shorter steps for each step instead (``kernels.fine_steps``): such lanes are copied into a second
+scratch block, stepped there side by side in its SIMD lanes, and copied back, so a slipping rig pays for the finer
+steps only while its joint rings or slips.  The arithmetic is that of the scalar original,
 operation for operation (no fast-math), so results do not depend on how simulations are grouped
 into lanes; only sin/cos of the disk angles may differ from libm's by an ulp.  Blocks run in
 parallel threads (``NUMBA_NUM_THREADS``).
@@ -82,18 +82,20 @@ R_KLAT = R_INVM + 8  # 7 lateral spring stiffnesses
 R_JRED1 = R_KLAT + 7  # J1 - u1² / m1: the disk-1 inertia left by the imbalance coupling
 R_JRED4 = R_JRED1 + 1  # J4 - u4² / m4
 R_SAME_LOAD = R_JRED4 + 1  # 1 if the load parameters equal those of the lane to the left, else 0
-R_FINE_STEPS = R_SAME_LOAD + 1  # RK4 steps per step while the lane's slip joint is open or settling (1: never finer)
-R_SETTLE = R_FINE_STEPS + 1  # how long after its joint locks the lane keeps the finer steps [s]
+R_FINE_STEPS = R_SAME_LOAD + 1  # RK4 steps per step while the lane's slip joint settles after a switch (1: never finer)
+R_OPEN_STEPS = R_FINE_STEPS + 1  # RK4 steps per step while its joint is open once settled (1: the plain step)
+R_SETTLE = R_OPEN_STEPS + 1  # how long after a switch of its joint the lane keeps the finest steps [s]
 N_CONST = R_SETTLE + 1
 R_MODES = N_CONST  # mode of each switching effect (0 at t = 0)
 R_ONSETS = R_MODES + N_SWITCHING  # number of its switches out of mode 0 so far
-R_FINE_UNTIL = R_ONSETS + N_SWITCHING  # the lane steps finely until this time (inf while its joint is open)
+R_FINE_UNTIL = R_ONSETS + N_SWITCHING  # the lane takes the finest steps until this time
 N_MODES = 2 * N_SWITCHING + 1  # the rows the event path hands back: modes, onsets and R_FINE_UNTIL
 R_TL = R_MODES + N_MODES  # load torque T_l at the stage time
 R_TL_TIME = R_TL + 1  # lane 0 only: the time of the values in row R_TL (NaN: none)
 R_G = R_TL_TIME + 1  # event function value (> 0: an event lies inside the step)
 R_WHICH = R_G + 1  # whose event: 0 none, j + 1 switching effect j
-R_Y = R_WHICH + 1  # state at the step start
+R_COUNT = R_WHICH + 1  # the RK4 steps the lane takes for this step
+R_Y = R_COUNT + 1  # state at the step start
 R_TRIAL = R_Y + NY  # state at the step end while events are checked
 R_STAGE = R_TRIAL + NY  # RK4 stage state
 R_ACC = R_STAGE + NY  # RHS output: the 21 accelerations (dq/dt is the stage velocity itself)
@@ -406,14 +408,13 @@ def _events(w, src, n_lanes, t):
 @njit(**_JIT)
 def _switch(w, lane, which, t):
     """Apply the mode change of event ``which`` at the located state (rows R_Y) of ``lane``, then any
-    that the new modes call for at once; the lane steps finely while its slip joint is open and for its settling
-    time after the joint locks."""
+    that the new modes call for at once; the lane takes the finest steps for its settling time after it."""
     for _ in range(MAX_IMMEDIATE_SWITCHES):
         _switch_effect(w, lane, which, t)
         g, which = _lane_event(w, lane, R_Y, t)
         if not g > 0.0:
             break
-    w[_at(R_FINE_UNTIL, lane)] = math.inf if _joint_open(w, lane) != 0.0 else t + w[_at(R_SETTLE, lane)]
+    w[_at(R_FINE_UNTIL, lane)] = t + w[_at(R_SETTLE, lane)]
 
 
 @njit(**_JIT)
@@ -515,11 +516,11 @@ def _redo_alone(w, alone, lane, t, h):
 
 @njit(**_JIT)
 def _step(w, alone, fine, picked, group, t, h, n_lanes, events_possible):
-    """Advance all lanes of block ``w`` from t by h.  A lane whose slip joint is open or settling, or whose step
-    crosses an event while it may step finely, takes R_FINE_STEPS steps instead, side by side with the other such
-    lanes of its step count in the block ``fine`` (``picked`` and ``group`` are scratch for their lane numbers); any
-    other lane whose step crosses an event is redone on the event path; when every lane steps finely, none takes the
-    plain step.  Each lane's steps depend on its own state only, so results do not depend on how simulations are
+    """Advance all lanes of block ``w`` from t by h.  A lane whose slip joint settles after a switch, or whose step
+    crosses an event while it may step finely, takes R_FINE_STEPS steps instead, and one whose joint is open once
+    settled R_OPEN_STEPS, side by side with the other lanes of its step count in the block ``fine`` (``picked`` and
+    ``group`` are scratch for their lane numbers); any other lane whose step crosses an event is redone on the event
+    path; when every lane steps finely, none takes the plain step.  Each lane's steps depend on its own state only, so results do not depend on how simulations are
     grouped.  Returns the new time."""
     t_end = t + h
     step = t_end - t
@@ -540,17 +541,19 @@ def _step(w, alone, fine, picked, group, t, h, n_lanes, events_possible):
     n_fine = np.int64(0)
     for lane in range(n_lanes):
         event = not w[_at(R_G, lane)] <= 0.0
-        if w[_at(R_FINE_STEPS, lane)] > 1.0 and (event or t < w[_at(R_FINE_UNTIL, lane)]):
+        count = _step_count(w, lane, t, event)
+        if count > 1.0:
+            w[_at(R_COUNT, lane)] = count
             picked[n_fine] = lane
             n_fine += 1
         elif event:
             _redo_alone(w, alone, lane, t, step)
     while n_fine > 0:  # the picked lanes, those of one step count at a time
-        count = w[_at(R_FINE_STEPS, picked[0])]
+        count = w[_at(R_COUNT, picked[0])]
         n_group, rest = np.int64(0), np.int64(0)
         for i in range(n_fine):
             lane = picked[i]
-            if w[_at(R_FINE_STEPS, lane)] == count:
+            if w[_at(R_COUNT, lane)] == count:
                 group[n_group] = lane
                 _copy_lane_rows(w, lane, fine, n_group, 0, 0, N_CONST + N_MODES)
                 _copy_lane_rows(w, lane, fine, n_group, R_Y, R_Y, NY)
@@ -574,10 +577,24 @@ def _step(w, alone, fine, picked, group, t, h, n_lanes, events_possible):
 
 
 @njit(**_JIT)
+def _step_count(w, lane, t, event):
+    """The RK4 steps ``lane`` takes for the step from t: R_FINE_STEPS while its slip joint settles after a switch,
+    R_OPEN_STEPS while the joint is open once settled, and else 1, or R_FINE_STEPS where its plain step crossed an
+    ``event`` (only a lane that takes the plain step looks at it: others may not have taken one).  A switch of the
+    joint rings the chain's fastest modes, whose phase error would move the next event; once they have rung down, an
+    open joint's smooth motion needs only its own fastest mode resolved."""
+    if t < w[_at(R_FINE_UNTIL, lane)]:
+        return w[_at(R_FINE_STEPS, lane)]
+    if w[_at(R_OPEN_STEPS, lane)] > 1.0 and _joint_open(w, lane) != 0.0:
+        return w[_at(R_OPEN_STEPS, lane)]
+    return w[_at(R_FINE_STEPS, lane)] if event else 1.0
+
+
+@njit(**_JIT)
 def _any_plain(w, n_lanes, t):
     """Whether a lane of the block may take the plain step from t: one that does not step finely there."""
     for lane in range(n_lanes):
-        if not (w[_at(R_FINE_STEPS, lane)] > 1.0 and t < w[_at(R_FINE_UNTIL, lane)]):
+        if not _step_count(w, lane, t, False) > 1.0:
             return True
     return False
 
@@ -594,6 +611,7 @@ def _pad(w, n_lanes):
         for slot in SWITCHING_ON:
             w[_at(slot, lane)] = 0.0
         w[_at(R_FINE_STEPS, lane)] = 1.0
+        w[_at(R_OPEN_STEPS, lane)] = 1.0
     for lane in range(n_run):
         same = lane > 0
         for k in (T0, LOAD_AMP, LOAD_FREQ, LOAD_HARM):
@@ -603,9 +621,9 @@ def _pad(w, n_lanes):
 
 
 @njit(**_JIT)
-def _setup_lane(w, lane, p, fine_steps, settle):
-    """Parameters, derived quantities, modes and the rig.md initial state of one lane, which takes ``fine_steps``
-    steps per step while its slip joint is open and for ``settle`` seconds after it locks."""
+def _setup_lane(w, lane, p, steps, settle):
+    """Parameters, derived quantities, modes and the rig.md initial state of one lane, which takes ``steps[0]`` steps
+    per step for ``settle`` seconds after its slip joint switches and ``steps[1]`` while the joint is open after that."""
     for k in range(N_PAR):
         w[_at(k, lane)] = p[k]
     omega = 2.0 * math.pi * p[SPEED] / 60.0
@@ -622,11 +640,12 @@ def _setup_lane(w, lane, p, fine_steps, settle):
         w[_at(R_KLAT + i, lane)] = springs[i]
     w[_at(R_JRED1, lane)] = p[J1] - p[U1] * p[U1] * w[_at(R_INVM + 1, lane)]
     w[_at(R_JRED4, lane)] = p[J4] - p[U4] * p[U4] * w[_at(R_INVM + 6, lane)]
-    w[_at(R_FINE_STEPS, lane)] = fine_steps
+    w[_at(R_FINE_STEPS, lane)] = steps[0]
+    w[_at(R_OPEN_STEPS, lane)] = steps[1]
     w[_at(R_SETTLE, lane)] = settle
     for k in range(N_MODES):
         w[_at(R_MODES + k, lane)] = 0.0
-    w[_at(R_FINE_UNTIL, lane)] = math.inf if _joint_open(w, lane) != 0.0 else -math.inf
+    w[_at(R_FINE_UNTIL, lane)] = settle if _joint_open(w, lane) != 0.0 else -math.inf  # a joint open at t = 0 settles
     for i in range(NY):
         w[_at(R_Y + i, lane)] = 0.0
     theta3 = p[T0] / p[KT3]
@@ -663,7 +682,7 @@ def _record(w, codes, out, sims, k, n_lanes, t):
 @njit(**_JIT)
 def _simulate_block(params, fine_steps, settle, sims, t_first, fs, n_samples, substeps, codes, out):
     """Simulate rows ``sims`` of ``params`` together, one per lane, with ``substeps`` RK4 steps per
-    sample interval (and each row's ``fine_steps`` times as many while its slip joint is open or its ``settle``)."""
+    sample interval (and each row's ``fine_steps`` times as many while its slip joint settles or is open)."""
     n_lanes = sims.shape[0]
     h_target = 1.0 / (fs * substeps)
     w = np.zeros(N_ROWS * LANES)  # unused lanes stay finite: the flat copy in _step reads them
@@ -701,8 +720,8 @@ def _simulate_block(params, fine_steps, settle, sims, t_first, fs, n_samples, su
 @njit(cache=True, error_model="numpy", parallel=True, nogil=True)
 def _simulate_batch(params, fine_steps, settle, order, starts, counts, substeps, t_first, fs, n_samples, codes):
     """Simulate the blocks of rows order[starts[b] : starts[b] + counts[b]] of ``params`` in parallel, with
-    ``substeps`` RK4 steps per sample interval (each row's ``fine_steps`` times as many while its joint is open or
-    settling)."""
+    ``substeps`` RK4 steps per sample interval (each row's ``fine_steps`` times as many while its joint settles or is
+    open)."""
     out = np.empty((params.shape[0], codes.shape[0], n_samples))
     for b in prange(starts.shape[0]):
         rows = order[starts[b] : starts[b] + counts[b]]
@@ -735,7 +754,7 @@ def _compile_events():
     _events(w, R_Y, lane, t)
     _interior_events(w, lane, t, t)
     _first_interior_event(w, lane, t, t)
-    _setup_lane(w, lane, w, t, t)
+    _setup_lane(w, lane, w, w, t)
     _pad(w, lane)
     sims = np.zeros(1, dtype=np.int64)
     _record(w, sims, np.zeros((1, 1, 1)), sims, lane, lane, t)

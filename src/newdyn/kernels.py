@@ -483,15 +483,18 @@ def diagnostics(active: dict[str, type[effects.Effect]] | None = None) -> tuple[
 
 
 
-# A rig whose slip joint opens needs finer steps than the healthy rig: an open joint frees the light bodies 2a and 2b
-# (J2a alone on the motor shaft vibrates at ~1.2 kHz), and every slip onset (a torque drop when r_k < 1) and re-stick
-# kicks the chain's fastest torsional modes, whose RK4 phase error then moves the next event.  Such a lane steps
-# with ω_max·h at most JOINT_OMEGA_RATE·h (0.18 at the default step of 1e-4 s), ω_max the fastest torsional mode
-# with the joint locked or open, while its joint is open and until the modes a re-stick kicked have rung down:
+# A rig whose slip joint opens needs finer steps than the healthy rig: every slip onset (a torque drop when r_k < 1)
+# and re-stick kicks the chain's fastest torsional modes, whose RK4 phase error then moves the next event.  After a
+# switch of its joint a lane steps with ω_max·h at most JOINT_OMEGA_RATE·h (0.18 at the default step of 1e-4 s),
+# ω_max the fastest torsional mode with the joint locked or open, until the modes the switch kicked have rung down:
 # SETTLE_E_FOLDS e-folding times of the fastest mode's amplitude under the rig's stiffness-proportional damping,
-# 2 / (β ω_max²) (for ever without damping).  Both depend on the lane's own parameters only, so halving the step
-# halves it on every lane.
+# 2 / (β ω_max²) (for ever without damping).  An open joint frees the light bodies 2a and 2b (J2a alone on the motor
+# shaft vibrates at ~1.2 kHz); once rung down, their motion is smooth and the lane steps with ω_open·h at most
+# OPEN_OMEGA_RATE·h (0.8), ω_open the fastest mode with the joint open, for as long as it stays open: the default rig's
+# slipping joint then takes the plain step once settled.  All depend on the lane's own parameters only, so halving the
+# step halves it on every lane.
 JOINT_OMEGA_RATE = 1800.0  # rad/s
+OPEN_OMEGA_RATE = 8000.0  # rad/s
 # A global search only chooses where least squares on the exact simulator starts: its slipping lanes step twice as
 # long (ω_max·h ≤ 0.36), which keeps its searches in the truth's basin on the blind stick-slip cases where the plain
 # step does not (CHANGELOG.md, 2026-11-25).
@@ -515,24 +518,26 @@ def _fastest_torsional_mode(inertias: np.ndarray, stiffnesses: np.ndarray) -> np
 
 def fine_steps(params: np.ndarray, active: dict[str, type[effects.Effect]] | None = None,
                search: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """(RK4 steps per step while a row's slip joint is open or settling, how long it settles [s]) per row of
-    ``params``: ceil(ω_max / JOINT_OMEGA_RATE) (for a ``search``, SEARCH_STEP_FACTOR times fewer) and
-    SETTLE_E_FOLDS · 2 / (β ω_max²) where an effect on the slip joint is present, else 1 and 0."""
+    """(RK4 steps per step (n, 2): while a row's slip joint settles after a switch, and while it is open after that;
+    how long it settles [s]) per row of ``params``: ceil(ω_max / JOINT_OMEGA_RATE) and ceil(ω_open / OPEN_OMEGA_RATE)
+    (for a ``search``, SEARCH_STEP_FACTOR times fewer) and SETTLE_E_FOLDS · 2 / (β ω_max²) where an effect on the slip
+    joint is present, else 1, 1 and 0."""
     active = dict(active if active is not None else effects.active())
     index = slots.slot_index()
     joint = np.zeros(params.shape[0], dtype=bool)
     for kind, effect in active.items():
         if effect.acts_on == "slip_joint":
             joint |= params[:, index[slots.effect_slot(kind)]] != 0.0
-    steps, settle = np.ones(params.shape[0]), np.zeros(params.shape[0])
+    steps, settle = np.ones((params.shape[0], 2)), np.zeros(params.shape[0])
     if joint.any():
         p = {name: params[joint, index[name]] for name in ("J1", "J2a", "J2b", "J3", "J4", "kT1", "kT2", "kT3", "beta")}
-        fastest = np.maximum.reduce([
-            _fastest_torsional_mode(np.stack([p["J1"], p["J2a"] + p["J2b"], p["J3"], p["J4"]], 1), np.stack([p["kT1"], p["kT2"], p["kT3"]], 1)),
-            _fastest_torsional_mode(np.stack([p["J1"], p["J2a"]], 1), p["kT1"][:, None]),
-            _fastest_torsional_mode(np.stack([p["J2b"], p["J3"], p["J4"]], 1), np.stack([p["kT2"], p["kT3"]], 1)),
-        ])
-        steps[joint] = np.maximum(1, np.ceil(fastest / (JOINT_OMEGA_RATE * (SEARCH_STEP_FACTOR if search else 1.0))))
+        locked = _fastest_torsional_mode(np.stack([p["J1"], p["J2a"] + p["J2b"], p["J3"], p["J4"]], 1),
+                                         np.stack([p["kT1"], p["kT2"], p["kT3"]], 1))
+        opened = np.maximum(_fastest_torsional_mode(np.stack([p["J1"], p["J2a"]], 1), p["kT1"][:, None]),
+                            _fastest_torsional_mode(np.stack([p["J2b"], p["J3"], p["J4"]], 1), np.stack([p["kT2"], p["kT3"]], 1)))
+        fastest = np.maximum(locked, opened)
+        factor = SEARCH_STEP_FACTOR if search else 1.0
+        steps[joint] = np.maximum(1, np.ceil(np.stack([fastest / JOINT_OMEGA_RATE, opened / OPEN_OMEGA_RATE], 1) / factor))
         with np.errstate(divide="ignore"):
             settle[joint] = SETTLE_E_FOLDS * 2.0 / (p["beta"] * fastest**2)
     return steps, settle
@@ -553,7 +558,7 @@ def blocks(n: int, n_threads: int, lanes: int, vector: int) -> tuple[np.ndarray,
 
 
 def lane_order(params: np.ndarray, steps: np.ndarray, active: dict[str, type[effects.Effect]] | None = None) -> np.ndarray:
-    """The order in which the rows of ``params`` fill the blocks' lanes: by their :func:`fine_steps` count, then by
+    """The order in which the rows of ``params`` fill the blocks' lanes: by their :func:`fine_steps` counts, then by
     the parameters of the effects on the slip joint, the given order kept among equals.  A block steps its finely
     stepping lanes side by side, one step count at a time, so lanes of one count whose joints open at the same times
     (alike parameters) share blocks; a lane's result does not depend on its block."""
@@ -561,7 +566,7 @@ def lane_order(params: np.ndarray, steps: np.ndarray, active: dict[str, type[eff
     index = slots.slot_index()
     joint = [params[:, index[slots.effect_slot(kind, p.name)]] for kind, effect in active.items() if effect.acts_on == "slip_joint"
              for p in effect.kernel_parameters()]
-    return np.lexsort((*reversed(joint), steps)).astype(np.int64)  # lexsort's last key is its first
+    return np.lexsort((*reversed(joint), steps[:, 1], steps[:, 0])).astype(np.int64)  # lexsort's last key is its first
 
 
 def _run(kernel: ModuleType, params: np.ndarray, t_first, fs, n_samples, substeps, codes, active=None,
@@ -581,6 +586,6 @@ def simulate_batch(params: np.ndarray, t_first, fs, n_samples, substeps, codes, 
 
     Samples lie at t_first + k/fs; the model starts from the rig.md initial state at t = 0.  Each
     sample interval takes ``substeps`` RK4 steps, times the row's :func:`fine_steps` while its slip joint is
-    open or settling (fewer for a ``search``); the warm-up up to t_first takes steps of the same length or less.
+    settling or open (fewer for a ``search``); the warm-up up to t_first takes steps of the same length or less.
     """
     return _run(module(), params, t_first, fs, n_samples, substeps, codes, search=search)
