@@ -1,6 +1,6 @@
 """Speed of the kernel with effects as files, side by side with the kernel before (a git revision).
 
-Run: python bench/bench_effects.py [--before 4e27334] [--batch 64] [--repeat 5]
+Run: python bench/bench_effects.py [--before 4e27334] [--batch 64] [--repeat 5] [--rounds 2]
 
 Prints, for the healthy rig and each built-in effect (stick-slip at several points, and 64 stick-slip rigs spread over
 its prior in one batch, as a fit's search simulates them), the time per simulation batched on one core and alone, now
@@ -131,16 +131,24 @@ def main() -> None:
                         "record rerun at the fine step; b893f81: effects written into the kernel by hand)")
     parser.add_argument("--batch", type=int, default=64)
     parser.add_argument("--repeat", type=int, default=5)
+    parser.add_argument("--rounds", type=int, default=2, help="measure each revision this many times, in turns, the "
+                        "order reversed each round; every figure is the best of all (the machine's speed drifts)")
     args = parser.parse_args()
     common = (json.dumps(CASES), str(args.batch), str(args.repeat))
 
-    now = run(MEASURE, *common, src=ROOT / "src")
     with tempfile.TemporaryDirectory() as tree:
         subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", tree, args.before], check=True, capture_output=True)
         try:
-            before = run(MEASURE, *common, src=Path(tree) / "src", env={"NUMBA_CACHE_DIR": str(Path(tree) / ".numba")})
+            revisions = {"now": (ROOT / "src", None), "before": (Path(tree) / "src", {"NUMBA_CACHE_DIR": str(Path(tree) / ".numba")})}
+            measured = {which: [] for which in revisions}
+            for round_ in range(args.rounds):
+                for which in list(revisions)[:: 1 if round_ % 2 == 0 else -1]:
+                    src, env = revisions[which]
+                    measured[which].append(run(MEASURE, *common, src=src, env=env))
         finally:
             subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", tree], check=True, capture_output=True)
+    now, before = ({name: [min(rounds[name][i] for rounds in measured[which]) for i in (0, 1)] for name in CASES}
+                   for which in ("now", "before"))
 
     with tempfile.TemporaryDirectory() as folder:
         (Path(folder) / "user_cubic.py").write_text(USER_EFFECT)
@@ -148,7 +156,8 @@ def main() -> None:
         user = run(USER, folder, str(args.batch), str(args.repeat), src=ROOT / "src", env=fresh)
         cached = run(USER, folder, str(args.batch), str(args.repeat), src=ROOT / "src", env=fresh)
 
-    print(f"1.5-s simulation, 11 channels, one core; batch of {args.batch}; best of {args.repeat}; before = {args.before}")
+    print(f"1.5-s simulation, 11 channels, one core; batch of {args.batch}; best of {args.repeat} in each of {args.rounds} "
+          f"rounds, the revisions in turns; before = {args.before}")
     print(f"{'':19s} {'batched now':>12s} {'before':>9s} {'ratio':>6s} {'x healthy':>13s}   {'alone now':>10s} {'before':>9s} "
           f"{'ratio':>6s} {'x healthy':>13s}")
     for name in CASES:
