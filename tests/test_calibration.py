@@ -138,8 +138,8 @@ def test_posterior_cut_by_the_grid_bound_is_resolved_there(coarse_models):
 def test_mcmc_of_a_posterior_cut_by_the_grid_bound_folds_back_into_the_range():
     """Stick-slip piles kT1 against the grid's upper bound (an exponential tail): the mirrored sampler
     keeps every draw in the range, centres on the grid posterior, and a run that calls itself
-    converged also has its spread.  On a quarter-second record: each chain step is a stick-slip
-    simulation, which costs several healthy ones."""
+    converged also has its spread.  On a quarter-second record: every walker's step is a simulation of
+    the rig with its kT1, three runs of 16 × 300."""
     record = model.Sampling(fs=5000.0, t_first=0.25, n_samples=1250)
     clean = simulate(STICK_SLIP, record, CHANNELS)
     data, sigma = noise.add_noise(clean, CHANNELS, 40.0, 1)
