@@ -520,8 +520,8 @@ def _step(w, alone, fine, picked, group, t, h, n_lanes, events_possible):
     crosses an event while it may step finely, takes R_FINE_STEPS steps instead, and one whose joint is open once
     settled R_OPEN_STEPS, side by side with the other lanes of its step count in the block ``fine`` (``picked`` and
     ``group`` are scratch for their lane numbers); any other lane whose step crosses an event is redone on the event
-    path; when every lane steps finely, none takes the plain step.  Each lane's steps depend on its own state only, so results do not depend on how simulations are
-    grouped.  Returns the new time."""
+    path; when every lane steps finely, none takes the plain step.  Each lane's steps depend on its own state only,
+    so results do not depend on how simulations are grouped.  Returns the new time."""
     t_end = t + h
     step = t_end - t
     if step <= 0.0:
@@ -623,7 +623,8 @@ def _pad(w, n_lanes):
 @njit(**_JIT)
 def _setup_lane(w, lane, p, steps, settle):
     """Parameters, derived quantities, modes and the rig.md initial state of one lane, which takes ``steps[0]`` steps
-    per step for ``settle`` seconds after its slip joint switches and ``steps[1]`` while the joint is open after that."""
+    per step for ``settle`` seconds after its slip joint switches and ``steps[1]`` while the joint is open after
+    that."""
     for k in range(N_PAR):
         w[_at(k, lane)] = p[k]
     omega = 2.0 * math.pi * p[SPEED] / 60.0
