@@ -496,8 +496,8 @@ def diagnostics(active: dict[str, type[effects.Effect]] | None = None) -> tuple[
 JOINT_OMEGA_RATE = 1800.0  # rad/s
 OPEN_OMEGA_RATE = 8000.0  # rad/s
 # A global search only chooses where least squares on the exact simulator starts: its slipping lanes step twice as
-# long (ω_max·h ≤ 0.36), which keeps its searches in the truth's basin on the blind stick-slip cases where the plain
-# step does not (CHANGELOG.md, 2026-11-25).
+# long (ω_max·h ≤ 0.36 while settling, ω_open·h ≤ 1.6 while open), which keeps its searches in the truth's basin on the
+# blind stick-slip cases where the plain step does not (CHANGELOG.md, 2026-11-25; re-verified 2026-11-29).
 SEARCH_STEP_FACTOR = 2.0
 SETTLE_E_FOLDS = 6.0
 
