@@ -452,14 +452,15 @@ def discovered_force(verdict: dict, result: xr.Dataset, png_path: PathLike, code
     """The missing force that discovery estimated where its best candidate acts, over the record: in time
     (posterior mean ± 2 sd), as a spectrum, against the disk's angle and against the load-cycle phase; a
     note instead when discovery did not run."""
-    fig = Figure(figsize=(15, 7.5), layout="constrained")
     discovery = verdict.get("discovery") or {}
     if "force_mean" not in result or not discovery.get("candidates"):
+        fig = Figure(figsize=(15, 7.5))  # a note alone: no axes for a layout engine to place (it would warn)
         fig.text(0.5, 0.5, f"{verdict['measurement']}: verdict {verdict['verdict']}, no discovery "
                  "(it runs when nothing of the library explains the data, or with diagnosis.discovery: always)",
                  ha="center", va="center")
         save(fig, png_path, code_hash, sources)
         return fig
+    fig = Figure(figsize=(15, 7.5), layout="constrained")
     best = discovery["candidates"][0]
     place = best["acts_on"]
     times = result["pulse_time"].values
