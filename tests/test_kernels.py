@@ -96,6 +96,23 @@ def test_an_open_joint_once_settled_steps_to_resolve_the_body_it_frees():
     np.testing.assert_array_equal(searched[:, 1], np.maximum(1, np.ceil(freed / (kernels.SEARCH_STEP_FACTOR * kernels.OPEN_OMEGA_RATE))))
 
 
+def test_a_contact_steps_finely_from_its_first_switch_on_and_a_search_plainly():
+    """A loose bearing's lanes take CONTACT_STEPS steps per step for ever after a switch (its contacts recur every
+    vibration cycle); with no clearance it never switches, so it takes the healthy rig's steps and gives its bits."""
+    sets = [faults.scenario_values({"fault": {"kind": "loose_bearing", "parameters": {"gap": gap}}}, model.DEFAULTS)
+            for gap in (0.0, 3e-8)]
+    params = np.array([slots.parameter_vector(v) for v in [{}, *sets]])
+    steps, settle = kernels.fine_steps(params)
+    np.testing.assert_array_equal(steps[:, 0], [1, kernels.CONTACT_STEPS, kernels.CONTACT_STEPS])
+    assert settle[0] == 0 and np.isinf(settle[1:]).all()
+    searched, _ = kernels.fine_steps(params, search=True)
+    np.testing.assert_array_equal(searched, 1)
+    sampling = model.Sampling(fs=5000.0, t_first=0.1, n_samples=300)
+    healthy, closed, loose = simulate_batch([{}, *sets], sampling, [*model.CHANNELS, "loose_bearing.onsets"])
+    np.testing.assert_array_equal(closed, healthy)
+    assert loose[-1, -1] > 10  # the 30-nm clearance is crossed many times
+
+
 def test_an_effect_file_is_compiled_once_wherever_it_lies_and_anew_when_edited(tmp_path):
     """numba caches machine code by the rendered file: an edit of an effect must change the kernel's
     name, or the old effect's code would run; the same file in another study's folder must not."""

@@ -14,10 +14,10 @@ indexed ``row * LANES + lane``, and the hot loops run over lanes with bodies tha
 no data-dependent branches (mode switches are selects, sin/cos is the inline :func:`sincos`), so
 LLVM turns them into AVX lanes.  After each step the event functions of all lanes are checked
 together; a lane whose step crosses an event is redone by the event-locating path, which runs the
-same RK4 and RHS code on a one-lane scratch block.  A lane whose slip joint settles after a switch, or is open,
-takes several shorter steps for each step instead (``kernels.fine_steps``): such lanes are copied into a second
-scratch block, stepped there side by side in its SIMD lanes, and copied back, so a slipping rig pays for the finer
-steps only while its joint rings or slips.  The arithmetic is that of the scalar original,
+same RK4 and RHS code on a one-lane scratch block.  A lane that settles after a switch of its effects, or whose
+slip joint is open, takes several shorter steps for each step instead (``kernels.fine_steps``): such lanes are copied
+into a second scratch block, stepped there side by side in its SIMD lanes, and copied back, so a slipping rig pays for
+the finer steps only while its joint rings or slips.  The arithmetic is that of the scalar original,
 operation for operation (no fast-math), so results do not depend on how simulations are grouped
 into lanes; only sin/cos of the disk angles may differ from libm's by an ulp.  Blocks run in
 parallel threads (``NUMBA_NUM_THREADS``).
@@ -82,9 +82,9 @@ R_KLAT = R_INVM + 8  # 7 lateral spring stiffnesses
 R_JRED1 = R_KLAT + 7  # J1 - u1² / m1: the disk-1 inertia left by the imbalance coupling
 R_JRED4 = R_JRED1 + 1  # J4 - u4² / m4
 R_SAME_LOAD = R_JRED4 + 1  # 1 if the load parameters equal those of the lane to the left, else 0
-R_FINE_STEPS = R_SAME_LOAD + 1  # RK4 steps per step while the lane's slip joint settles after a switch (1: never finer)
+R_FINE_STEPS = R_SAME_LOAD + 1  # RK4 steps per step while the lane settles after a switch (1: never finer)
 R_OPEN_STEPS = R_FINE_STEPS + 1  # RK4 steps per step while its joint is open once settled (1: the plain step)
-R_SETTLE = R_OPEN_STEPS + 1  # how long after a switch of its joint the lane keeps the finest steps [s]
+R_SETTLE = R_OPEN_STEPS + 1  # how long after a switch of its effects the lane keeps the finest steps [s]
 N_CONST = R_SETTLE + 1
 R_MODES = N_CONST  # mode of each switching effect (0 at t = 0)
 R_ONSETS = R_MODES + N_SWITCHING  # number of its switches out of mode 0 so far
@@ -516,7 +516,7 @@ def _redo_alone(w, alone, lane, t, h):
 
 @njit(**_JIT)
 def _step(w, alone, fine, picked, group, t, h, n_lanes, events_possible):
-    """Advance all lanes of block ``w`` from t by h.  A lane whose slip joint settles after a switch, or whose step
+    """Advance all lanes of block ``w`` from t by h.  A lane that settles after a switch of its effects, or whose step
     crosses an event while it may step finely, takes R_FINE_STEPS steps instead, and one whose joint is open once
     settled R_OPEN_STEPS, side by side with the other lanes of its step count in the block ``fine`` (``picked`` and
     ``group`` are scratch for their lane numbers); any other lane whose step crosses an event is redone on the event
@@ -578,7 +578,7 @@ def _step(w, alone, fine, picked, group, t, h, n_lanes, events_possible):
 
 @njit(**_JIT)
 def _step_count(w, lane, t, event):
-    """The RK4 steps ``lane`` takes for the step from t: R_FINE_STEPS while its slip joint settles after a switch,
+    """The RK4 steps ``lane`` takes for the step from t: R_FINE_STEPS while it settles after a switch of its effects,
     R_OPEN_STEPS while the joint is open once settled, and else 1, or R_FINE_STEPS where its plain step crossed an
     ``event`` (only a lane that takes the plain step looks at it: others may not have taken one).  A switch of the
     joint rings the chain's fastest modes, whose phase error would move the next event; once they have rung down, an
@@ -623,7 +623,7 @@ def _pad(w, n_lanes):
 @njit(**_JIT)
 def _setup_lane(w, lane, p, steps, settle):
     """Parameters, derived quantities, modes and the rig.md initial state of one lane, which takes ``steps[0]`` steps
-    per step for ``settle`` seconds after its slip joint switches and ``steps[1]`` while the joint is open after
+    per step for ``settle`` seconds after a switch of its effects and ``steps[1]`` while its slip joint is open after
     that."""
     for k in range(N_PAR):
         w[_at(k, lane)] = p[k]

@@ -500,6 +500,12 @@ OPEN_OMEGA_RATE = 8000.0  # rad/s
 # blind stick-slip cases where the plain step does not (CHANGELOG.md, 2026-11-25; re-verified 2026-11-29).
 SEARCH_STEP_FACTOR = 2.0
 SETTLE_E_FOLDS = 6.0
+# Any other switching effect switches a contact (a wall reached or left), which kicks the rig's lateral modes with a
+# jump of the contact's damping force; the lightly damped ones ring for tens of milliseconds and contacts recur at
+# every vibration cycle, so such a lane takes CONTACT_STEPS steps per step from its first switch on: ω_max·h 0.28 on the
+# default rig instead of the plain step's 0.57, at which a loose bearing's step halving misses rig.md's bound over part
+# of its prior (docs/validation.md).
+CONTACT_STEPS = 2.0
 
 
 def _fastest_torsional_mode(inertias: np.ndarray, stiffnesses: np.ndarray) -> np.ndarray:
@@ -518,16 +524,22 @@ def _fastest_torsional_mode(inertias: np.ndarray, stiffnesses: np.ndarray) -> np
 
 def fine_steps(params: np.ndarray, active: dict[str, type[effects.Effect]] | None = None,
                search: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """(RK4 steps per step (n, 2): while a row's slip joint settles after a switch, and while it is open after that;
-    how long it settles [s]) per row of ``params``: ceil(ω_max / JOINT_OMEGA_RATE) and ceil(ω_open / OPEN_OMEGA_RATE)
-    (for a ``search``, SEARCH_STEP_FACTOR times fewer) and SETTLE_E_FOLDS · 2 / (β ω_max²) where an effect on the slip
-    joint is present, else 1, 1 and 0."""
+    """(RK4 steps per step (n, 2): after a switch of a row's effects for as long as it settles, and while its slip
+    joint is open after that; how long it settles [s]) per row of ``params``: ceil(ω_max / JOINT_OMEGA_RATE),
+    ceil(ω_open / OPEN_OMEGA_RATE) and SETTLE_E_FOLDS · 2 / (β ω_max²) where an effect on the slip joint is present,
+    CONTACT_STEPS, 1 and for ever where another switching effect is (the largest where both are), else 1, 1 and 0;
+    for a ``search``, SEARCH_STEP_FACTOR times fewer steps."""
     active = dict(active if active is not None else effects.active())
     index = slots.slot_index()
     joint = np.zeros(params.shape[0], dtype=bool)
+    contact = np.zeros(params.shape[0], dtype=bool)
     for kind, effect in active.items():
+        present = params[:, index[slots.effect_slot(kind)]] != 0.0
         if effect.acts_on == "slip_joint":
-            joint |= params[:, index[slots.effect_slot(kind)]] != 0.0
+            joint |= present
+        elif effect.switching():
+            contact |= present
+    factor = SEARCH_STEP_FACTOR if search else 1.0
     steps, settle = np.ones((params.shape[0], 2)), np.zeros(params.shape[0])
     if joint.any():
         p = {name: params[joint, index[name]] for name in ("J1", "J2a", "J2b", "J3", "J4", "kT1", "kT2", "kT3", "beta")}
@@ -536,10 +548,11 @@ def fine_steps(params: np.ndarray, active: dict[str, type[effects.Effect]] | Non
         opened = np.maximum(_fastest_torsional_mode(np.stack([p["J1"], p["J2a"]], 1), p["kT1"][:, None]),
                             _fastest_torsional_mode(np.stack([p["J2b"], p["J3"], p["J4"]], 1), np.stack([p["kT2"], p["kT3"]], 1)))
         fastest = np.maximum(locked, opened)
-        factor = SEARCH_STEP_FACTOR if search else 1.0
         steps[joint] = np.maximum(1, np.ceil(np.stack([fastest / JOINT_OMEGA_RATE, opened / OPEN_OMEGA_RATE], 1) / factor))
         with np.errstate(divide="ignore"):
             settle[joint] = SETTLE_E_FOLDS * 2.0 / (p["beta"] * fastest**2)
+    steps[contact, 0] = np.maximum(steps[contact, 0], max(1.0, np.ceil(CONTACT_STEPS / factor)))
+    settle[contact] = np.inf
     return steps, settle
 
 
@@ -585,7 +598,7 @@ def simulate_batch(params: np.ndarray, t_first, fs, n_samples, substeps, codes, 
     """Simulate each row of ``params`` (n, len(slots.slot_names())); returns (n, len(codes), n_samples).
 
     Samples lie at t_first + k/fs; the model starts from the rig.md initial state at t = 0.  Each
-    sample interval takes ``substeps`` RK4 steps, times the row's :func:`fine_steps` while its slip joint is
-    settling or open (fewer for a ``search``); the warm-up up to t_first takes steps of the same length or less.
+    sample interval takes ``substeps`` RK4 steps, times the row's :func:`fine_steps` while it settles after a switch
+    or its slip joint is open (fewer for a ``search``); the warm-up up to t_first takes steps of the same length or less.
     """
     return _run(module(), params, t_first, fs, n_samples, substeps, codes, search=search)

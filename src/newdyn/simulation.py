@@ -14,7 +14,8 @@ import numpy as np
 from . import kernels, model, slots
 
 # Longest RK4 step [s]: step halving stays within rig.md's bounds at it (tests/test_physics.py); a rig
-# whose slip joint switches steps finer while the modes it kicks ring down, and while it is open (kernels.fine_steps).
+# whose slip joint switches steps finer while the modes it kicks ring down, and while it is open, and one whose
+# contact switches from its first switch on (kernels.fine_steps).
 DEFAULT_MAX_STEP = 1.0e-4
 DEFAULT_SAMPLING = model.Sampling()  # rig.md's record
 
@@ -55,7 +56,7 @@ def simulate_batch(
 
     ``values`` is a sequence of parameter mappings or an array of parameter vectors
     (rows laid out as ``slots.slot_names()``).  Each sample interval is split into the fewest
-    equal RK4 steps no longer than ``max_step``, and finer while a slip joint settles after a switch or is open.  For a
+    equal RK4 steps no longer than ``max_step``, and finer where an effect has switched (``kernels.fine_steps``).  For a
     ``search`` those finer steps are twice as long (``kernels.SEARCH_STEP_FACTOR``): cheaper where the joint slips, and
     less accurate where kinetic friction is well below static — for a global search that only chooses where least
     squares on the exact simulator starts, never for a result.
