@@ -515,26 +515,27 @@ def _redo_alone(w, alone, lane, t, h):
 
 
 @njit(**_JIT)
-def _step(w, alone, fine, picked, group, t, h, n_lanes, events_possible):
-    """Advance all lanes of block ``w`` from t by h.  A lane that settles after a switch of its effects, or whose step
-    crosses an event while it may step finely, takes R_FINE_STEPS steps instead, and one whose joint is open once
-    settled R_OPEN_STEPS, side by side with the other lanes of its step count in the block ``fine`` (``picked`` and
-    ``group`` are scratch for their lane numbers); any other lane whose step crosses an event is redone on the event
-    path; when every lane steps finely, none takes the plain step.  Each lane's steps depend on its own state only,
-    so results do not depend on how simulations are grouped.  Returns the new time."""
+def _step(w, alone, fine, picked, group, t, h, n_lanes, n_run, events_possible):
+    """Advance the ``n_lanes`` lanes of block ``w`` (run as ``n_run`` with its padding) from t by h.  A lane that
+    settles after a switch of its effects, or whose step crosses an event while it may step finely, takes R_FINE_STEPS
+    steps instead, and one whose joint is open once settled R_OPEN_STEPS, side by side with the other lanes of its step
+    count in the block ``fine`` (``picked`` and ``group`` are scratch for their lane numbers), or in ``w`` itself when
+    all its lanes take that count; any other lane whose step crosses an event is redone on the event path; when every
+    lane steps finely, none takes the plain step.  Each lane's steps depend on its own state only, so results do not
+    depend on how simulations are grouped.  Returns the new time."""
     t_end = t + h
     step = t_end - t
     if step <= 0.0:
         return t_end
     if not events_possible:
-        _rk4(w, t, step, n_lanes, True)
+        _rk4(w, t, step, n_run, True)
         return t_end
     if _any_plain(w, n_lanes, t):  # else every lane steps finely whatever its plain step finds
-        _rk4(w, t, step, n_lanes, False)
-        _events(w, R_TRIAL, n_lanes, t_end)
-        _interior_events(w, n_lanes, t, step)
+        _rk4(w, t, step, n_run, False)
+        _events(w, R_TRIAL, n_run, t_end)
+        _interior_events(w, n_run, t, step)
     else:
-        for lane in range(n_lanes):
+        for lane in range(n_run):
             w[_at(R_G, lane)] = -math.inf
     # Counters as run-time int64 from the start: numba types a literal 0 first and would compile the callees that
     # take it (_pad, _copy_lane_rows) once more for Literal[int](0), as it would _step for a literal False.
@@ -548,6 +549,9 @@ def _step(w, alone, fine, picked, group, t, h, n_lanes, events_possible):
             n_fine += 1
         elif event:
             _redo_alone(w, alone, lane, t, step)
+    if n_fine == n_lanes and _one_count(w, n_lanes):  # the whole block steps finely in place, its padding too
+        _fine_steps(w, alone, t, step, int(w[_at(R_COUNT, 0)]), n_run)
+        return t_end
     while n_fine > 0:  # the picked lanes, those of one step count at a time
         count = w[_at(R_COUNT, picked[0])]
         n_group, rest = np.int64(0), np.int64(0)
@@ -561,12 +565,9 @@ def _step(w, alone, fine, picked, group, t, h, n_lanes, events_possible):
             else:
                 picked[rest] = lane
                 rest += 1
-        n_run = _pad(fine, n_group)
+        n_group_run = _pad(fine, n_group)
         fine[_at(R_TL_TIME, 0)] = math.nan  # other lanes' load torques
-        substeps = int(count)
-        for k in range(substeps):
-            t_k = t + k * step / substeps
-            _step_with_events(fine, alone, t_k, t + (k + 1) * step / substeps - t_k, n_run)
+        _fine_steps(fine, alone, t, step, int(count), n_group_run)
         for i in range(n_group):
             _copy_lane_rows(fine, i, w, group[i], R_MODES, R_MODES, N_MODES)
             _copy_lane_rows(fine, i, w, group[i], R_Y, R_TRIAL, NY)
@@ -574,6 +575,23 @@ def _step(w, alone, fine, picked, group, t, h, n_lanes, events_possible):
     for j in range(NY * LANES):
         w[_at(R_Y, j)] = w[_at(R_TRIAL, j)]
     return t_end
+
+
+@njit(**_JIT)
+def _fine_steps(w, alone, t, h, substeps, n_run):
+    """Advance the ``n_run`` lanes of block ``w`` from t by h in ``substeps`` equal steps, each with its events."""
+    for k in range(substeps):
+        t_k = t + k * h / substeps
+        _step_with_events(w, alone, t_k, t + (k + 1) * h / substeps - t_k, n_run)
+
+
+@njit(**_JIT)
+def _one_count(w, n_lanes):
+    """Whether the first ``n_lanes`` lanes of block ``w`` take the same number of steps (rows R_COUNT)."""
+    for lane in range(1, n_lanes):
+        if w[_at(R_COUNT, lane)] != w[_at(R_COUNT, 0)]:
+            return False
+    return True
 
 
 @njit(**_JIT)
@@ -683,7 +701,8 @@ def _record(w, codes, out, sims, k, n_lanes, t):
 @njit(**_JIT)
 def _simulate_block(params, fine_steps, settle, sims, t_first, fs, n_samples, substeps, codes, out):
     """Simulate rows ``sims`` of ``params`` together, one per lane, with ``substeps`` RK4 steps per
-    sample interval (and each row's ``fine_steps`` times as many while its slip joint settles or is open)."""
+    sample interval (and each row's ``fine_steps`` times as many while it settles after a switch or its slip joint is
+    open)."""
     n_lanes = sims.shape[0]
     h_target = 1.0 / (fs * substeps)
     w = np.zeros(N_ROWS * LANES)  # unused lanes stay finite: the flat copy in _step reads them
@@ -706,14 +725,14 @@ def _simulate_block(params, fine_steps, settle, sims, t_first, fs, n_samples, su
     t = 0.0
     n_warm = math.ceil(t_first / h_target - 1e-9)
     for k in range(n_warm):
-        t = _step(w, alone, fine, picked, group, t, (k + 1) * t_first / n_warm - t, n_run, events_possible)
+        t = _step(w, alone, fine, picked, group, t, (k + 1) * t_first / n_warm - t, n_lanes, n_run, events_possible)
     t = t_first
     for k in range(n_samples):
         if k > 0:
             t_sample = t_first + k / fs
             for s in range(substeps):
                 t_next = t_first + (k - 1 + (s + 1) / substeps) / fs
-                t = _step(w, alone, fine, picked, group, t, t_next - t, n_run, events_possible)
+                t = _step(w, alone, fine, picked, group, t, t_next - t, n_lanes, n_run, events_possible)
             t = t_sample
         _record(w, codes, out, sims, k, n_lanes, t)
 
