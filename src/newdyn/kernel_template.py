@@ -534,7 +534,7 @@ def _step(w, alone, fine, picked, group, t, h, n_lanes, n_run, events_possible):
         _rk4(w, t, step, n_run, False)
         _events(w, R_TRIAL, n_run, t_end)
         _interior_events(w, n_run, t, step)
-    else:
+    else:  # the padding lanes, which nothing reads, may then stay behind
         for lane in range(n_run):
             w[_at(R_G, lane)] = -math.inf
     # Counters as run-time int64 from the start: numba types a literal 0 first and would compile the callees that
