@@ -9,7 +9,6 @@ switching effect's prior box; docs/benchmarks.md and docs/validation.md quote th
 from __future__ import annotations
 
 import argparse
-import itertools
 import os
 import platform
 import time
@@ -43,11 +42,8 @@ def switching_accuracy(points: int) -> None:
     for kind, effect in effects.active().items():
         if not effect.switching():
             continue
-        rows = []
-        for point in itertools.product(*[np.linspace(*p.prior, points) for p in effect.parameters]):
-            parameters = dict(zip(effect.parameter_names(), map(float, point)))
-            if not faults.fault_problems(kind, parameters, model.DEFAULTS):
-                rows.append(slots.parameter_vector(faults.scenario_values({"fault": {"kind": kind, "parameters": parameters}}, model.DEFAULTS)))
+        rows = [slots.parameter_vector(faults.scenario_values({"fault": {"kind": kind, "parameters": parameters}}, model.DEFAULTS))
+                for parameters in faults.prior_grid(kind, points)]
         coarse, fine = (simulate_batch(np.array(rows), SAMPLING, max_step=h) for h in (DEFAULT_MAX_STEP, DEFAULT_MAX_STEP / 2))
         errors = np.sort(relative_rms(coarse, fine))[::-1]
         print(f"step halving over {kind}'s prior, {points} points an axis ({len(rows)} admissible): largest "

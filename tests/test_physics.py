@@ -1,6 +1,5 @@
 """The simulator against physics: eigen-analysis, conservation laws, equilibria, convergence, switching."""
 
-import itertools
 import os
 from pathlib import Path
 
@@ -48,13 +47,8 @@ PRIOR_GRID_POINTS = 27  # about as many points on every effect's prior box, howe
 def prior_grid(kind):
     """Admissible parameter sets on a grid spanning the effect's prior box, corners included: about
     PRIOR_GRID_POINTS of them, at least three an axis."""
-    effect = effects.active()[kind]
-    names = effect.parameter_names()
-    points = max(3, round(PRIOR_GRID_POINTS ** (1 / len(names))))
-    for point in itertools.product(*[np.linspace(*p.prior, points) for p in effect.parameters]):
-        parameters = dict(zip(names, map(float, point)))
-        if not faults.fault_problems(kind, parameters, model.DEFAULTS):
-            yield parameters
+    points = max(3, round(PRIOR_GRID_POINTS ** (1 / len(effects.active()[kind].parameters))))
+    return faults.prior_grid(kind, points)
 
 
 def relative_rms(y, ref):

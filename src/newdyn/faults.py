@@ -9,7 +9,10 @@ defaults, and the rig values it sets (:meth:`~newdyn.effects.Effect.rig_values`)
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+import itertools
+from collections.abc import Iterator, Mapping
+
+import numpy as np
 
 from . import effects, model, slots
 
@@ -81,6 +84,16 @@ def fault_problems(
                 problems.append(("", f"resulting {name} {problem}"))
         problems += [(f"parameters.{name}", problem) for name, problem in effect.problems(values, base)]
     return problems
+
+
+def prior_grid(kind: str, points: int, base: Mapping[str, float] | None = None) -> Iterator[dict[str, float]]:
+    """The admissible parameter sets of effect ``kind`` on a grid of ``points`` an axis spanning its prior box,
+    corners included (for checks of the simulator over the range a diagnosis fits it over)."""
+    effect = effects.active()[kind]
+    for point in itertools.product(*[np.linspace(*p.prior, points) for p in effect.parameters]):
+        parameters = dict(zip(effect.parameter_names(), map(float, point)))
+        if not fault_problems(kind, parameters, model.DEFAULTS if base is None else base):
+            yield parameters
 
 
 def scenario_values(scenario: Mapping[str, object], base: Mapping[str, float]) -> dict[str, float]:
