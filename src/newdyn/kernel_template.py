@@ -419,7 +419,8 @@ def _switch(w, lane, which, t):
 
 @njit(**_JIT)
 def _advance_alone(w, t, h):
-    """Advance lane 0 of block ``w`` from (t, rows R_Y) by h, locating and applying every event.
+    """Advance lane 0 of block ``w`` from (t, rows R_Y) by h, locating and applying every event; its RK4 step from
+    t by h is in rows R_TRIAL.. already (the block's plain step, the same bits).
 
     The event path, for a lane whose plain step crosses an event: Illinois regula falsi on the step
     fraction, a stop just past the event, the mode switch, and on with the rest of the step.
@@ -428,12 +429,15 @@ def _advance_alone(w, t, h):
     # with the whole right-hand side inlined, the switches) a second time, for those literals.
     lanes, lane = np.int64(1), np.int64(0)
     t_end = t + h
+    step_taken = True
     while True:
         step = t_end - t
         if step <= 0.0:
             return
         t_next = t_end
-        _rk4(w, t, step, lanes, False)
+        if not step_taken:
+            _rk4(w, t, step, lanes, False)
+        step_taken = False
         _events(w, R_TRIAL, lanes, t_next)
         hi = 1.0
         if w[_at(R_G, 0)] <= 0.0 and w[_at(R_G, 0)] > -math.inf:
@@ -452,6 +456,7 @@ def _advance_alone(w, t, h):
         _events(w, R_Y, lanes, t)
         g0 = min(w[_at(R_G, 0)], 0.0)
         lo, g_lo, g_hi, side = 0.0, g0, g_end, 0
+        trial_at_hi = False
         for _ in range(60):
             frac = (lo * g_hi - hi * g_lo) / (g_hi - g_lo) if g_hi != g_lo else 0.5 * (lo + hi)
             if not lo < frac < hi:
@@ -459,6 +464,7 @@ def _advance_alone(w, t, h):
             _rk4(w, t, frac * step, lanes, False)
             _events(w, R_TRIAL, lanes, t + frac * step)
             g = w[_at(R_G, 0)]
+            trial_at_hi = g > 0.0
             if g > 0.0:
                 hi, g_hi = frac, g
                 which = w[_at(R_WHICH, 0)]
@@ -474,7 +480,8 @@ def _advance_alone(w, t, h):
             if g_hi < 1e-13 or (hi - lo) * step < 1e-13:
                 break
         # Stop just on the far side of the event so the new mode starts at its own boundary.
-        _rk4(w, t, hi * step, lanes, False)
+        if not trial_at_hi:
+            _rk4(w, t, hi * step, lanes, False)
         _copy_lane_rows(w, lane, w, lane, R_TRIAL, R_Y, NY)
         t = t + hi * step
         _switch(w, lane, which, t)
@@ -505,9 +512,10 @@ def _step_with_events(w, alone, t, h, n_lanes):
 
 @njit(**_JIT)
 def _redo_alone(w, alone, lane, t, h):
-    """Rows R_TRIAL of ``lane`` ← its step from t by h on the event path, its modes updated."""
+    """Rows R_TRIAL of ``lane`` ← its step from t by h on the event path, its modes updated; its plain step from t
+    by h is in rows R_TRIAL.. (with the stages that the interpolant reads)."""
     _copy_lane_rows(w, lane, alone, 0, 0, 0, N_CONST + N_MODES)
-    _copy_lane_rows(w, lane, alone, 0, R_Y, R_Y, NY)
+    _copy_lane_rows(w, lane, alone, 0, R_Y, R_Y, R_DENSE - R_Y)
     alone[_at(R_TL_TIME, 0)] = math.nan  # another lane's load torque
     _advance_alone(alone, t, h)
     _copy_lane_rows(alone, 0, w, lane, R_MODES, R_MODES, N_MODES)
