@@ -417,13 +417,60 @@ def _switch(w, lane, which, t):
     w[_at(R_FINE_UNTIL, lane)] = t + w[_at(R_SETTLE, lane)]
 
 
+# Events are located just past their boundary, the event function (in its own units) below EVENT_TOL there or the
+# boundary pinned within EVENT_TOL seconds.  The root on the step's interpolant costs no right-hand side; Newton
+# steps with its slope on RK4 partial steps then meet the tolerance in one or two, Illinois where they do not.
+EVENT_TOL = 1e-13
+NEWTON_STEPS = 3
+
+
+@njit(**_JIT, inline="always")
+def _regula_falsi(lo, hi, g_lo, g_hi):
+    """The secant root of the bracket, or its middle where that does not lie strictly inside."""
+    x = (lo * g_hi - hi * g_lo) / (g_hi - g_lo) if g_hi != g_lo else 0.5 * (lo + hi)
+    return x if lo < x < hi else 0.5 * (lo + hi)
+
+
+@njit(**_JIT, inline="always")
+def _illinois(x, g, lo, hi, g_lo, g_hi, side):
+    """The bracket (lo, hi, g_lo, g_hi, side) after the value g at x: the end on g's side moves to x, and the other
+    end's value is halved when it stays for the second time in a row (Illinois); side 0 halves nothing."""
+    if g > 0.0:
+        return lo, x, 0.5 * g_lo if side == 1 else g_lo, g, 1
+    return x, hi, g, 0.5 * g_hi if side == -1 else g_hi, -1
+
+
+@njit(**_JIT)
+def _interpolant_event(w, lane, t, h, theta):
+    """The event function at t + θh on the interpolant of the step just taken from t by h."""
+    _dense(w, lane, theta, h)
+    return _lane_event(w, lane, R_DENSE, t + theta * h)[0]
+
+
+@njit(**_JIT)
+def _interpolant_root(w, lane, t, h, g0, g1):
+    """Where the event function crosses zero on the interpolant of the step just taken from t by h (g0 ≤ 0 at its
+    start, g1 > 0 at its end), as a fraction of h, and the function's slope there per unit fraction."""
+    lo, hi, g_lo, g_hi, side = 0.0, 1.0, g0, g1, 0
+    theta = 1.0
+    for _ in range(60):
+        theta = _regula_falsi(lo, hi, g_lo, g_hi)
+        g = _interpolant_event(w, lane, t, h, theta)
+        lo, hi, g_lo, g_hi, side = _illinois(theta, g, lo, hi, g_lo, g_hi, side)
+        if abs(g) < EVENT_TOL or (hi - lo) * h < EVENT_TOL:
+            break
+    eta = 1e-6
+    slope = (_interpolant_event(w, lane, t, h, theta + eta) - _interpolant_event(w, lane, t, h, theta - eta)) / (2.0 * eta)
+    return theta, slope
+
+
 @njit(**_JIT)
 def _advance_alone(w, t, h):
     """Advance lane 0 of block ``w`` from (t, rows R_Y) by h, locating and applying every event; its RK4 step from
     t by h is in rows R_TRIAL.. already (the block's plain step, the same bits).
 
-    The event path, for a lane whose plain step crosses an event: Illinois regula falsi on the step
-    fraction, a stop just past the event, the mode switch, and on with the rest of the step.
+    The event path, for a lane whose plain step crosses an event: the event's root on the step's interpolant,
+    refined on RK4 partial steps to a stop just past it, the mode switch, and on with the rest of the step.
     """
     # Lane 0 of one, as run-time values: literals would make numba compile the callees (the RK4 stages
     # with the whole right-hand side inlined, the switches) a second time, for those literals.
@@ -455,30 +502,26 @@ def _advance_alone(w, t, h):
         # g(0) < 0 because we start inside the mode.
         _events(w, R_Y, lanes, t)
         g0 = min(w[_at(R_G, 0)], 0.0)
+        theta, slope = _interpolant_root(w, lane, t, hi * step, g0, g_end)  # on the step that ends at hi
+        frac, slope = theta * hi, slope / hi
+        target = 0.5 * EVENT_TOL * min(1.0, slope / step)  # Newton aims just past the root, within both tolerances
         lo, g_lo, g_hi, side = 0.0, g0, g_end, 0
         trial_at_hi = False
-        for _ in range(60):
-            frac = (lo * g_hi - hi * g_lo) / (g_hi - g_lo) if g_hi != g_lo else 0.5 * (lo + hi)
-            if not lo < frac < hi:
-                frac = 0.5 * (lo + hi)
+        for k in range(60):
+            newton = k < NEWTON_STEPS and lo < frac < hi  # (a slope that is not positive puts frac outside)
+            if not newton:
+                frac = _regula_falsi(lo, hi, g_lo, g_hi)
             _rk4(w, t, frac * step, lanes, False)
             _events(w, R_TRIAL, lanes, t + frac * step)
             g = w[_at(R_G, 0)]
             trial_at_hi = g > 0.0
-            if g > 0.0:
-                hi, g_hi = frac, g
+            if trial_at_hi:
                 which = w[_at(R_WHICH, 0)]
-                if side == 1:
-                    g_lo *= 0.5
-                side = 1
-            else:
-                lo, g_lo = frac, g
-                if side == -1:
-                    g_hi *= 0.5
-                side = -1
+            lo, hi, g_lo, g_hi, side = _illinois(frac, g, lo, hi, g_lo, g_hi, side if not newton else 0)
             # The switch is applied at hi, so converge there: just past the boundary, or pinned in time.
-            if g_hi < 1e-13 or (hi - lo) * step < 1e-13:
+            if g_hi < EVENT_TOL or (hi - lo) * step < EVENT_TOL or (trial_at_hi and g * step < EVENT_TOL * slope):
                 break
+            frac -= (g - target) / slope
         # Stop just on the far side of the event so the new mode starts at its own boundary.
         if not trial_at_hi:
             _rk4(w, t, hi * step, lanes, False)
