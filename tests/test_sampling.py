@@ -2,6 +2,7 @@
 
 import json
 import logging
+import warnings
 
 import arviz as az
 import emcee
@@ -120,6 +121,21 @@ def test_too_short_run_is_reported_not_converged():
     assert "ess_bulk" in diag["reason"]
     assert idata.attrs["converged"] == 0
     assert idata.attrs["reason"] == diag["reason"]
+
+
+def test_a_walker_that_never_moves_gives_a_nan_autocorrelation_time_without_a_warning_and_no_convergence():
+    # A single point of high density: the walker that starts on it rejects every proposal, the others move freely.
+    def spike(theta):
+        return np.where(theta[:, 0] == 0.3, 0.0, -1e3)
+
+    settings = sampling.MCMCSettings(n_walkers=8, n_steps=40, n_burn=0, seed=4)
+    start = np.concatenate([[0.3], np.linspace(-0.5, 0.5, 7)])[:, None]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        idata = sampling.run(spike, lambda theta: np.zeros(len(theta)), ["theta"], start, settings)
+    assert np.all(draws(idata, "theta")[0] == 0.3) and np.ptp(draws(idata, "theta")[1:], axis=1).min() > 0
+    assert np.isnan(idata.sample_stats["tau"].values[0])
+    assert not sampling.diagnostics(idata, settings)["converged"]
 
 
 def test_a_run_that_misses_its_thresholds_goes_on_in_rounds_and_keeps_its_first_steps():

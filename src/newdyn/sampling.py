@@ -211,7 +211,8 @@ def _inference_data(sampler, names, settings, to_values, prior_samples, observed
         chain = np.asarray(to_values(chain.reshape(-1, len(names))), dtype=np.float64).reshape(chain.shape)
     lp = sampler.get_log_prob(**kept).T  # (walker, draw)
     ll = sampler.get_blobs(**kept).T
-    tau = sampler.get_autocorr_time(quiet=True, **kept)  # in steps; emcee logs if the run is < 50 tau
+    with np.errstate(invalid="ignore"):  # a walker that never moved has no autocorrelation: that parameter's tau is NaN
+        tau = sampler.get_autocorr_time(quiet=True, **kept)  # in steps; emcee logs if the run is < 50 tau
 
     def draws(data):  # (chain, draw, ...) arrays
         return az.dict_to_dataset(data, library=emcee)
