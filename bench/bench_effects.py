@@ -1,6 +1,6 @@
 """Speed of the kernel with effects as files, side by side with the kernel before (a git revision).
 
-Run: python bench/bench_effects.py [--before 4e27334] [--batch 64] [--repeat 5] [--rounds 2]
+Run: python bench/bench_effects.py [--before 4e27334] [--batch 64] [--rounds 15]
 
 Prints, for the healthy rig and each built-in effect (stick-slip at several points, and 64 stick-slip rigs spread over
 its prior in one batch, as a fit's search simulates them), the time per simulation batched on one core and alone, now
@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import subprocess
 import sys
@@ -26,28 +27,28 @@ from newdyn import effects, model
 
 ROOT = Path(__file__).resolve().parents[1]
 
-# Runs in a subprocess against either revision (both read a scenario through faults.scenario_values):
-# prints {case: [batched ms per simulation, lone ms]}.
+# A worker per revision (both read a scenario through faults.scenario_values): it prepares every case, then answers
+# each line [case, "batched" | "alone"] on stdin with one timing in ms per simulation, so that the two revisions are
+# timed in alternation, one simulation run apart (the machine's speed drifts within seconds).
 MEASURE = textwrap.dedent("""
     import json, sys, time
     import numba
     from newdyn import faults, model
     from newdyn.simulation import simulate, simulate_batch
-    cases, batch, repeat = json.loads(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3])
-    def best(run):
-        times = []
-        for _ in range(repeat):
-            start = time.perf_counter(); run(); times.append(time.perf_counter() - start)
-        return min(times)
+    cases, batch = json.loads(sys.argv[1]), int(sys.argv[2])
     simulate({})
     numba.set_num_threads(1)
-    out = {}
+    runs = {}
     for name, scenarios in cases.items():  # a case is one scenario, or a spread of them (batched in turn)
         spread = [faults.scenario_values(s, model.DEFAULTS) for s in (scenarios if isinstance(scenarios, list) else [scenarios])]
         rows = (spread * batch)[:batch]
         simulate(spread[0])  # compile or load outside the timing
-        out[name] = [1e3 * best(lambda: simulate_batch(rows)) / batch, 1e3 * best(lambda: simulate(spread[0]))]
-    print(json.dumps(out))
+        runs[name] = {"batched": (lambda rows=rows: simulate_batch(rows), batch), "alone": (lambda one=spread[0]: simulate(one), 1)}
+    print("ready", flush=True)
+    for line in sys.stdin:
+        name, how = json.loads(line)
+        run, count = runs[name][how]
+        start = time.perf_counter(); run(); print(1e3 * (time.perf_counter() - start) / count, flush=True)
 """)
 
 USER_EFFECT = textwrap.dedent('''
@@ -70,7 +71,9 @@ USER_EFFECT = textwrap.dedent('''
             return rig.kT2 * p.gamma * s.x * (ratio * ratio)
 ''')
 
-# Runs in a subprocess with a fresh cache: compile time of a kernel with a new effect, then its cost.
+# Runs in a subprocess with a fresh cache: compile time of a kernel with a new effect, then its cost and the built-in's
+# (best of REPEAT runs each, in one process).
+REPEAT = 5
 USER = textwrap.dedent("""
     import json, sys, time
     import numba
@@ -125,39 +128,57 @@ def run(code: str, *args: str, src: Path, env: dict | None = None) -> dict:
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
+def start_worker(src: Path, env: dict | None, batch: int) -> subprocess.Popen:
+    worker = subprocess.Popen([sys.executable, "-c", MEASURE, json.dumps(CASES), str(batch)], stdin=subprocess.PIPE,
+                              stdout=subprocess.PIPE, text=True, env={**os.environ, "PYTHONPATH": str(src), **(env or {})})
+    if worker.stdout.readline().strip() != "ready":
+        raise RuntimeError(f"the worker for {src} failed to start")
+    return worker
+
+
+def timed(worker: subprocess.Popen, name: str, how: str) -> float:
+    worker.stdin.write(json.dumps([name, how]) + "\n")
+    worker.stdin.flush()
+    return float(worker.stdout.readline())
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--before", default="4e27334", help="git revision to compare with (4e27334: a slipping joint's whole "
                         "record rerun at the fine step; b893f81: effects written into the kernel by hand)")
     parser.add_argument("--batch", type=int, default=64)
-    parser.add_argument("--repeat", type=int, default=5)
-    parser.add_argument("--rounds", type=int, default=2, help="measure each revision this many times, in turns, the "
-                        "order reversed each round; every figure is the best of all (the machine's speed drifts)")
+    parser.add_argument("--rounds", type=int, default=15, help="times each case is run, batched and alone, by each revision "
+                        "in alternation, the order reversed each round; every figure is the best of them")
     args = parser.parse_args()
-    common = (json.dumps(CASES), str(args.batch), str(args.repeat))
 
+    best: dict[tuple[str, str, str], float] = {}
     with tempfile.TemporaryDirectory() as tree:
         subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", tree, args.before], check=True, capture_output=True)
+        workers = {}
         try:
-            revisions = {"now": (ROOT / "src", None), "before": (Path(tree) / "src", {"NUMBA_CACHE_DIR": str(Path(tree) / ".numba")})}
-            measured = {which: [] for which in revisions}
+            workers = {"now": start_worker(ROOT / "src", None, args.batch),
+                       "before": start_worker(Path(tree) / "src", {"NUMBA_CACHE_DIR": str(Path(tree) / ".numba")}, args.batch)}
             for round_ in range(args.rounds):
-                for which in list(revisions)[:: 1 if round_ % 2 == 0 else -1]:
-                    src, env = revisions[which]
-                    measured[which].append(run(MEASURE, *common, src=src, env=env))
+                for name in CASES:
+                    for how in ("batched", "alone"):
+                        for which in list(workers)[:: 1 if round_ % 2 == 0 else -1]:
+                            key = (which, name, how)
+                            best[key] = min(best.get(key, math.inf), timed(workers[which], name, how))
         finally:
+            for worker in workers.values():
+                worker.stdin.close()
+                worker.wait()
             subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", tree], check=True, capture_output=True)
-    now, before = ({name: [min(rounds[name][i] for rounds in measured[which]) for i in (0, 1)] for name in CASES}
-                   for which in ("now", "before"))
+    now, before = ({name: [best[which, name, how] for how in ("batched", "alone")] for name in CASES} for which in ("now", "before"))
 
     with tempfile.TemporaryDirectory() as folder:
         (Path(folder) / "user_cubic.py").write_text(USER_EFFECT)
         fresh = {"NEWDYN_CACHE": str(Path(folder) / "cache")}
-        user = run(USER, folder, str(args.batch), str(args.repeat), src=ROOT / "src", env=fresh)
-        cached = run(USER, folder, str(args.batch), str(args.repeat), src=ROOT / "src", env=fresh)
+        user = run(USER, folder, str(args.batch), str(REPEAT), src=ROOT / "src", env=fresh)
+        cached = run(USER, folder, str(args.batch), str(REPEAT), src=ROOT / "src", env=fresh)
 
-    print(f"1.5-s simulation, 11 channels, one core; batch of {args.batch}; best of {args.repeat} in each of {args.rounds} "
-          f"rounds, the revisions in turns; before = {args.before}")
+    print(f"1.5-s simulation, 11 channels, one core; batch of {args.batch}; best of {args.rounds} runs, the revisions in "
+          f"alternation; before = {args.before}")
     print(f"{'':19s} {'batched now':>12s} {'before':>9s} {'ratio':>6s} {'x healthy':>13s}   {'alone now':>10s} {'before':>9s} "
           f"{'ratio':>6s} {'x healthy':>13s}")
     for name in CASES:
