@@ -51,11 +51,6 @@ def prior_grid(kind):
     return faults.prior_grid(kind, points)
 
 
-def relative_rms(y, ref):
-    """Per-channel RMS difference relative to the channel's std (the scale the noise is set on)."""
-    return np.sqrt(np.mean((y - ref) ** 2, axis=-1)) / np.std(ref, axis=-1)
-
-
 def peak_frequencies(signal, fs, near, window_hz):
     """Spectral peak within ±window_hz of each predicted frequency, refined by a parabola through log |FFT|.
 
@@ -182,9 +177,9 @@ def test_step_halving_converges(kind):
     values = visible_values(kind) if kind else {}
     coarse = simulate(values, DEFAULT_SAMPLING, model.CHANNELS, DEFAULT_MAX_STEP)
     fine = simulate(values, DEFAULT_SAMPLING, model.CHANNELS, DEFAULT_MAX_STEP / 2)
-    assert relative_rms(coarse, fine).max() < bound(kind)
+    assert reference.relative_rms(coarse, fine).max() < bound(kind)
     finer = simulate(values, DEFAULT_SAMPLING, model.CHANNELS, DEFAULT_MAX_STEP / 4)
-    ratio = relative_rms(coarse, fine).max() / relative_rms(fine, finer).max()
+    ratio = reference.relative_rms(coarse, fine).max() / reference.relative_rms(fine, finer).max()
     assert ratio > 8  # about fourth order (16x per halving), even through switching events
 
 
@@ -204,10 +199,10 @@ def test_every_effect_is_accurate_at_the_default_step_over_its_whole_prior(kind)
     grid = list(prior_grid(kind))
     values = [with_effect(kind, **parameters) for parameters in grid]
     coarse, fine = (simulate_batch(values, DEFAULT_SAMPLING, model.CHANNELS, h) for h in (DEFAULT_MAX_STEP, DEFAULT_MAX_STEP / 2))
-    for parameters, error, halved in zip(grid, relative_rms(coarse, fine).max(axis=1), fine):
+    for parameters, error, halved in zip(grid, reference.relative_rms(coarse, fine).max(axis=1), fine):
         if error >= bound(kind):
             shifted = with_effect(kind, **{name: value * (1.0 - PARAMETER_SHIFT) for name, value in parameters.items()})
-            sensitivity = relative_rms(simulate(shifted, DEFAULT_SAMPLING, model.CHANNELS, DEFAULT_MAX_STEP / 2), halved).max()
+            sensitivity = reference.relative_rms(simulate(shifted, DEFAULT_SAMPLING, model.CHANNELS, DEFAULT_MAX_STEP / 2), halved).max()
             assert error < sensitivity, (parameters, error, sensitivity)
 
 
@@ -240,8 +235,7 @@ def test_a_search_steps_a_slipping_joint_more_coarsely_and_nothing_else():
     exact = simulate_batch([never, slipping])
     rough = simulate_batch([never, slipping], search=True)
     np.testing.assert_array_equal(rough[0], exact[0])
-    error = np.sqrt(np.mean((rough[1] - exact[1]) ** 2, axis=1)) / np.std(exact[1], axis=1)
-    assert 1e-8 < error.max() < 1e-3
+    assert 1e-8 < reference.relative_rms(rough[1], exact[1]).max() < 1e-3
 
 
 @pytest.mark.parametrize("r_k", [1.0, 0.85])
@@ -277,7 +271,7 @@ def test_kernel_agrees_with_independent_scipy_implementation(kind):
     """
     values = visible_values(kind) if kind else {}
     ref = reference.simulate_reference(values, DEFAULT_SAMPLING)
-    coarse = relative_rms(simulate(values, DEFAULT_SAMPLING, model.CHANNELS, DEFAULT_MAX_STEP), ref).max()
-    fine = relative_rms(simulate(values, DEFAULT_SAMPLING, model.CHANNELS, DEFAULT_MAX_STEP / 2), ref).max()
+    coarse = reference.relative_rms(simulate(values, DEFAULT_SAMPLING, model.CHANNELS, DEFAULT_MAX_STEP), ref).max()
+    fine = reference.relative_rms(simulate(values, DEFAULT_SAMPLING, model.CHANNELS, DEFAULT_MAX_STEP / 2), ref).max()
     assert coarse < bound(kind)
     assert coarse / fine > 8

@@ -87,6 +87,12 @@ class Rig:
         return tuple(e for e in self.effects if e[0].switching())
 
 
+def relative_rms(record: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """Per channel (the last axis is time), the RMS difference of ``record`` from ``reference`` over the reference
+    channel's std: the scale the noise is set on, and the one rig.md's accuracy goals are stated on."""
+    return np.sqrt(np.mean((record - reference) ** 2, axis=-1)) / np.std(reference, axis=-1)
+
+
 def prepare(values: Mapping[str, float] | None = None) -> Rig:
     """The :class:`Rig` constants for ``values`` (missing names take their defaults)."""
     v = slots.complete(values)
