@@ -86,13 +86,13 @@ def fault_problems(
     return problems
 
 
-def prior_grid(kind: str, points: int, base: Mapping[str, float] | None = None) -> Iterator[dict[str, float]]:
-    """The admissible parameter sets of effect ``kind`` on a grid of ``points`` an axis spanning its prior box,
-    corners included (for checks of the simulator over the range a diagnosis fits it over)."""
+def prior_grid(kind: str, points: int) -> Iterator[dict[str, float]]:
+    """The parameter sets of effect ``kind`` admissible on the default rig, on a grid of ``points`` an axis spanning its
+    prior box, corners included (for checks of the simulator over the range a diagnosis fits it over)."""
     effect = effects.active()[kind]
     for point in itertools.product(*[np.linspace(*p.prior, points) for p in effect.parameters]):
         parameters = dict(zip(effect.parameter_names(), map(float, point)))
-        if not fault_problems(kind, parameters, model.DEFAULTS if base is None else base):
+        if not fault_problems(kind, parameters, model.DEFAULTS):
             yield parameters
 
 

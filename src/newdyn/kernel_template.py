@@ -371,13 +371,19 @@ def _lane_event(w, lane, src, t):
 
 
 @njit(**_JIT)
+def _interpolant_event(w, lane, t, h, theta):
+    """:func:`_lane_event` at t + θh on the interpolant of the step just taken from t by h."""
+    _dense(w, lane, theta, h)
+    return _lane_event(w, lane, R_DENSE, t + theta * h)
+
+
+@njit(**_JIT)
 def _first_interior_event(w, lane, t, h):
     """The first interior check point θ of the step just taken where an event function is positive
     (its value in row R_G, whose in R_WHICH), or 1.0 if there is none."""
     for k in range(1, INTERIOR_CHECKS):
         theta = k / INTERIOR_CHECKS
-        _dense(w, lane, theta, h)
-        g, which = _lane_event(w, lane, R_DENSE, t + theta * h)
+        g, which = _interpolant_event(w, lane, t, h, theta)
         if g > 0.0:
             w[_at(R_G, lane)] = g
             w[_at(R_WHICH, lane)] = which
@@ -441,13 +447,6 @@ def _illinois(x, g, lo, hi, g_lo, g_hi, side):
 
 
 @njit(**_JIT)
-def _interpolant_event(w, lane, t, h, theta):
-    """The event function at t + θh on the interpolant of the step just taken from t by h."""
-    _dense(w, lane, theta, h)
-    return _lane_event(w, lane, R_DENSE, t + theta * h)[0]
-
-
-@njit(**_JIT)
 def _interpolant_root(w, lane, t, h, g0, g1):
     """Where the event function crosses zero on the interpolant of the step just taken from t by h (g0 ≤ 0 at its
     start, g1 > 0 at its end), as a fraction of h, and the function's slope there per unit fraction."""
@@ -455,12 +454,12 @@ def _interpolant_root(w, lane, t, h, g0, g1):
     theta = 1.0
     for _ in range(60):
         theta = _regula_falsi(lo, hi, g_lo, g_hi)
-        g = _interpolant_event(w, lane, t, h, theta)
+        g = _interpolant_event(w, lane, t, h, theta)[0]
         lo, hi, g_lo, g_hi, side = _illinois(theta, g, lo, hi, g_lo, g_hi, side)
         if abs(g) < EVENT_TOL or (hi - lo) * h < EVENT_TOL:
             break
     eta = 1e-6
-    slope = (_interpolant_event(w, lane, t, h, theta + eta) - _interpolant_event(w, lane, t, h, theta - eta)) / (2.0 * eta)
+    slope = (_interpolant_event(w, lane, t, h, theta + eta)[0] - _interpolant_event(w, lane, t, h, theta - eta)[0]) / (2.0 * eta)
     return theta, slope
 
 
