@@ -106,6 +106,31 @@ def test_a_window_of_the_record_gives_the_bits_of_the_same_samples_copied():
         assert np.array_equal(function(window, models, SIGMA, instruments), function(copied, models, SIGMA, instruments))
 
 
+@pytest.mark.parametrize("late", [0.0, 0.37, -1.6, 2.5, 11.2, -75.0])
+def test_the_delayed_model_is_the_cubic_through_its_four_nearest_samples_also_at_the_record_ends(late):
+    """The sums the likelihood is made of, and the residuals least squares sees, against the delayed model built sample
+    by sample here: the cubic through the four samples around k − late, or the four at the record's end beyond it (the
+    compiled code takes the samples inside the record in a loop of their own and the ends in another)."""
+    n = N
+    signal, data = MODEL[0] / 3e-6, MODEL[1] / 50.0 + 1e-3 * RNG.standard_normal(N)
+    value, slope = np.empty(n), np.empty(n)
+    for k in range(n):
+        first = min(max(k + int(np.floor(-late)), 1), n - 3)
+        cubic = np.polynomial.Polynomial.fit(np.arange(first - 1, first + 3), signal[first - 1:first + 3], 3)
+        value[k], slope[k] = cubic(k - late), cubic.deriv()(k - late)
+    d = -slope
+    r = data - value + late * d
+    u = np.stack([np.ones(n), value, d])
+    gram, projection, squares = sensors._moments(data[None], signal[None, None], np.array([[late]]))
+    np.testing.assert_allclose(gram[0, 0], u @ u.T, rtol=1e-9, atol=1e-9 * n)
+    np.testing.assert_allclose(projection[0, 0], u @ r, rtol=1e-9, atol=1e-9 * n)
+    np.testing.assert_allclose(squares[0, 0], r @ r, rtol=1e-9)
+    fitted = np.array([0.1, 0.02, 0.3])
+    left = sensors._left(data[None], signal[None, None], np.array([[late]]), fitted[None, None])
+    expected = data - fitted[0] - (1 + fitted[1]) * value - (late - fitted[2]) * slope
+    np.testing.assert_allclose(left[0, 0], expected, rtol=1e-9, atol=1e-9)
+
+
 def test_the_delay_is_integrated_out_as_quadrature_over_it_does():
     n, delay_sd = 1000, 0.5e-3
     t = np.arange(n) / FS

@@ -108,6 +108,23 @@ def _cubic(u):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
+def _cubic_at(signal, first, weights):
+    """(m, dm/dk) of ``signal`` by ``weights`` (:func:`_cubic`) on its four samples first − 1 .. first + 2."""
+    (wa, wb, wc, wd), (sa, sb, sc, sd) = weights
+    a, b, c, d = signal[first - 1], signal[first], signal[first + 1], signal[first + 2]
+    return wa * a + wb * b + wc * c + wd * d, sa * a + sb * b + sc * c + sd * d
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _inner(n, inside):
+    """range(start, stop) of the k whose four samples k + inside − 1 .. k + inside + 2 lie in a record of n samples:
+    they share one set of weights, so their loop has no branch and runs in SIMD lanes; the few others (the ends) take
+    :func:`_delayed_at`'s extrapolation."""
+    start = min(max(1 - inside, 0), n)
+    return start, max(min(n - 2 - inside, n), start)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
 def _delayed_at(signal, k, late, inside, weights):
     """(m, dm/dk) of ``signal`` at k − ``late``: the cubic through the four samples around it, or the four
     nearest an end of the record beyond it.  ``inside`` (the first of the four for k = 0) and ``weights``
@@ -117,41 +134,51 @@ def _delayed_at(signal, k, late, inside, weights):
     if first < 1 or first > n - 3:
         first = min(max(first, 1), n - 3)
         weights = _cubic(k - late - first)
-    (wa, wb, wc, wd), (sa, sb, sc, sd) = weights
-    a, b, c, d = signal[first - 1], signal[first], signal[first + 1], signal[first + 2]
-    return wa * a + wb * b + wc * c + wd * d, sa * a + sb * b + sc * c + sd * d
+    return _cubic_at(signal, first, weights)
 
 
-@njit(cache=True, error_model="numpy", parallel=True, nogil=True, fastmath={"reassoc", "contract"})
+@njit(cache=True, error_model="numpy", inline="always")
+def _summed(sums, y, m, slope, late):
+    """``sums`` (Σm, Σm², Σd, Σmd, Σd², Σr, Σmr, Σdr, Σr²) with one sample's d = −ṁ and r = y − m + late·d added."""
+    s_m, s_mm, s_d, s_md, s_dd, s_r, s_mr, s_dr, s_rr = sums
+    d = -slope
+    r = y - m + late * d
+    return s_m + m, s_mm + m * m, s_d + d, s_md + m * d, s_dd + d * d, s_r + r, s_mr + m * r, s_dr + d * r, s_rr + r * r
+
+
+@njit(cache=True, error_model="numpy", fastmath={"reassoc", "contract"})
+def _channel_moments(data, signal, late):
+    """:func:`_moments`' sums over time of one channel of one model delayed by ``late`` samples, the inner samples
+    (:func:`_inner`) first; the sums may be reassociated so that they run in SIMD lanes, their rounding no worse
+    than a sequential sum's."""
+    n = signal.size
+    inside = math.floor(-late)
+    weights = _cubic(-late - inside)
+    start, stop = _inner(n, inside)
+    sums = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    for k in range(start, stop):
+        m, slope = _cubic_at(signal, k + inside, weights)
+        sums = _summed(sums, data[k], m, slope, late)
+    for i in range(n - (stop - start)):
+        k = i if i < start else i + stop - start
+        m, slope = _delayed_at(signal, k, late, inside, weights)
+        sums = _summed(sums, data[k], m, slope, late)
+    return sums
+
+
+@njit(cache=True, error_model="numpy", parallel=True, nogil=True)
 def _moments(data, model, shift):
     """Sums over time of each (model, channel)'s delayed design, unscaled, u = [1, m(k − shift), −ṁ(k − shift)],
     and of its residual r = y − m(k − shift) − shift·ṁ(k − shift): (Σ u uᵀ (B, C, 3, 3), Σ u r (B, C, 3), Σ r² (B, C)).
     One pass over the samples, nothing of length n kept; the (model, channel) pairs in parallel, each summed by one
-    thread, so the sums do not depend on the number of threads.  They may be reassociated so that this, the
-    likelihood's costliest loop, runs in SIMD lanes; their rounding is no worse than a sequential sum's."""
+    thread (:func:`_channel_moments`), so the sums do not depend on the number of threads."""
     n_models, n_channels, n = model.shape
     gram = np.zeros((n_models, n_channels, 3, 3))
     projection = np.zeros((n_models, n_channels, 3))
     squares = np.zeros((n_models, n_channels))
     for bc in prange(n_models * n_channels):
         b, c = bc // n_channels, bc % n_channels
-        signal, late = model[b, c], shift[b, c]
-        inside = math.floor(-late)
-        weights = _cubic(-late - inside)
-        s_m = s_mm = s_d = s_md = s_dd = s_r = s_mr = s_dr = s_rr = 0.0
-        for k in range(n):
-            m, slope = _delayed_at(signal, k, late, inside, weights)
-            d = -slope
-            r = data[c, k] - m + late * d
-            s_m += m
-            s_mm += m * m
-            s_d += d
-            s_md += m * d
-            s_dd += d * d
-            s_r += r
-            s_mr += m * r
-            s_dr += d * r
-            s_rr += r * r
+        s_m, s_mm, s_d, s_md, s_dd, s_r, s_mr, s_dr, s_rr = _channel_moments(data[c], model[b, c], shift[b, c])
         g = gram[b, c]
         g[0, 0], g[0, 1], g[0, 2], g[1, 1], g[1, 2], g[2, 2] = n, s_m, s_d, s_mm, s_md, s_dd
         g[1, 0], g[2, 0], g[2, 1] = s_m, s_d, s_md
@@ -164,18 +191,29 @@ def _moments(data, model, shift):
 def _left(data, model, shift, fitted):
     """r − Bĉ per sample (B, C, n), as :func:`_moments` linearizes: y − m(k − τ̂) − τ̂·ṁ(k − τ̂) − (o + (g − 1)·m(k − τ̂)
     − τ·ṁ(k − τ̂)), with ``fitted`` (B, C, 3) the posterior means (o, g − 1, τ) in the scale's units."""
-    n_models, n_channels, n = model.shape
+    n_models, n_channels = model.shape[:2]
     left = np.empty(model.shape)
     for bc in prange(n_models * n_channels):
         b, c = bc // n_channels, bc % n_channels
-        signal, late = model[b, c], shift[b, c]
-        inside = math.floor(-late)
-        weights = _cubic(-late - inside)
-        offset, gain, delay = fitted[b, c, 0], fitted[b, c, 1], fitted[b, c, 2]
-        for k in range(n):
-            m, slope = _delayed_at(signal, k, late, inside, weights)
-            left[b, c, k] = data[c, k] - offset - (1.0 + gain) * m - (late - delay) * slope
+        _channel_left(left[b, c], data[c], model[b, c], shift[b, c], fitted[b, c])
     return left
+
+
+@njit(cache=True, error_model="numpy")
+def _channel_left(out, data, signal, late, fitted):
+    """:func:`_left` of one channel of one model delayed by ``late`` samples into ``out``, the inner samples first."""
+    n = signal.size
+    inside = math.floor(-late)
+    weights = _cubic(-late - inside)
+    offset, gain, shift = fitted[0], 1.0 + fitted[1], late - fitted[2]
+    start, stop = _inner(n, inside)
+    for k in range(start, stop):
+        m, slope = _cubic_at(signal, k + inside, weights)
+        out[k] = data[k] - offset - gain * m - shift * slope
+    for i in range(n - (stop - start)):
+        k = i if i < start else i + stop - start
+        m, slope = _delayed_at(signal, k, late, inside, weights)
+        out[k] = data[k] - offset - gain * m - shift * slope
 
 
 @dataclass(frozen=True)
