@@ -53,6 +53,25 @@ def test_the_best_fit_is_the_most_likely_model_of_every_pass(coarse_models):
     np.testing.assert_array_equal(result.best_fit, calibration.simulate_grid({}, "kT1", [best_value], SAMPLING, CHANNELS)[0])
 
 
+def test_calibrations_run_together_give_each_its_result_alone_to_the_bit(coarse_models, monkeypatch):
+    """Several measurements on both grids, their refinements simulated in shared batches (small ones here, so that
+    cells of different tasks share a batch and a task's cells span two), give what each gets alone."""
+    measurements = [noise.add_noise(simulate(truth, SAMPLING, CHANNELS), CHANNELS, 40.0, seed)
+                    for seed, truth in enumerate([{}, {"kT1": 3.13e6}, STICK_SLIP], start=1)]
+    sigma = measurements[0][1]
+    tasks = [calibration.Task(data, GRIDS[p], PRIORS[p], coarse_models[p]) for data, _ in measurements for p in GRIDS]
+    alone = [calibration.calibrate(t.data, sigma, t.spec, t.prior, t.coarse_models, {}, SAMPLING, CHANNELS, 41, 1.1)
+             for t in tasks]
+    monkeypatch.setattr(calibration, "REFINE_BATCH", 100)
+    together = calibration.calibrate_many(tasks, sigma, {}, SAMPLING, CHANNELS, 41, 1.1)
+    for one, many in zip(alone, together, strict=True):
+        for name in ("grid", "log_likelihood", "density"):
+            np.testing.assert_array_equal(getattr(one.posterior, name), getattr(many.posterior, name))
+        np.testing.assert_array_equal(one.best_fit, many.best_fit)
+        np.testing.assert_array_equal(one.channel_log_likelihood, many.channel_log_likelihood)
+        assert one.chi2_red == many.chi2_red
+
+
 @pytest.mark.parametrize("parameter", ["kT1", "kT3"])
 def test_stick_slip_is_not_explained_by_a_stiffness(coarse_models, parameter):
     """The paper's Fig. 4: calibrating kT1 or kT3 cannot absorb the stick-slip's new dynamics."""

@@ -112,9 +112,14 @@ def simulate_points(
 ) -> np.ndarray:
     """Model outputs (n, len(channels), n_samples) with ``parameters`` set to each row of ``points``
     (n, len(parameters)) and the others to ``values`` (missing names: the rig.md defaults)."""
+    return simulation.simulate_batch(parameter_rows(values, parameters, points), sampling, channels, max_step)
+
+
+def parameter_rows(values: Mapping[str, float], parameters: Sequence[str], points: np.ndarray) -> np.ndarray:
+    """The kernel's parameter rows of :func:`simulate_points`."""
     params = np.tile(slots.parameter_vector(values), (len(points), 1))
     params[:, [model.PARAMETER_INDEX[p] for p in parameters]] = points
-    return simulation.simulate_batch(params, sampling, channels, max_step)
+    return params
 
 
 def grid_files(paths: Sequence[str]) -> dict[str, str]:
@@ -154,6 +159,22 @@ def coarse_models(
     return simulate_grid(values, spec.parameter, spec.axis, sampling, channels, max_step)
 
 
+@dataclass(frozen=True)
+class Task:
+    """One grid calibration among several run together (:func:`calibrate_many`): ``data`` (channel, time) on the grid
+    ``spec`` under ``prior``, its coarse model runs ``coarse_models`` (:func:`simulate_grid` on ``spec.axis``)."""
+
+    data: np.ndarray
+    spec: GridSpec
+    prior: NormalPrior
+    coarse_models: np.ndarray
+
+
+# A refinement pass simulates the points of every task's cells at once, in batches of at most this many simulations
+# (their outputs are scored and dropped batch by batch, so memory stays bounded however many tasks run together).
+REFINE_BATCH = 512
+
+
 def calibrate(
     data: np.ndarray,
     sigma: np.ndarray,
@@ -174,37 +195,68 @@ def calibrate(
     ``coarse_models`` are :func:`simulate_grid`'s outputs on ``spec.axis`` for the model ``values``
     (the healthy rig at the measurement's operating condition and sampling).
     """
-    def scored(models):  # each channel's log-likelihood, and their sum
-        per_channel = likelihood.log_likelihood(data, models, sigma, per_channel=True, instruments=instruments)
+    return calibrate_many([Task(data, spec, prior, coarse_models)], sigma, values, sampling, channels, refine_points, chi2_max,
+                          max_step, instruments)[0]
+
+
+def calibrate_many(tasks: Sequence[Task], sigma: np.ndarray, values: Mapping[str, float], sampling: model.Sampling,
+                   channels: Sequence[str], refine_points: int, chi2_max: float, max_step: float = simulation.DEFAULT_MAX_STEP,
+                   instruments: sensors.Instruments | None = None) -> list[Calibration]:
+    """:func:`calibrate` of each of ``tasks`` (all with noise ``sigma`` through ``instruments``), each refinement pass
+    of them all simulated together: the kernel fills its lanes and both cores, where one task's cells of
+    ``refine_points`` would not.  Each task's result is the one it gets alone, to the bit."""
+    def scored(task, models):  # each channel's log-likelihood, and their sum
+        per_channel = likelihood.log_likelihood(task.data, models, sigma, per_channel=True, instruments=instruments)
         return per_channel, per_channel.sum(axis=-1)
 
-    def run(points):
-        models = simulate_grid(values, spec.parameter, points, sampling, channels, max_step)
-        return (models, *scored(models))
+    def refined(cells):  # [(task number, points)] -> each cell's (per-channel, log-likelihood, best row, its model)
+        found, per_batch = [], max(1, REFINE_BATCH // refine_points)
+        for start in range(0, len(cells), per_batch):
+            batch = cells[start:start + per_batch]
+            models = simulation.simulate_batch(
+                np.vstack([parameter_rows(values, [tasks[k].spec.parameter], points[:, None]) for k, points in batch]),
+                sampling, channels, max_step)
+            for (k, points), cell_models in zip(batch, np.split(models, np.cumsum([len(p) for _, p in batch])[:-1])):
+                per_channel, ll = scored(tasks[k], cell_models)
+                found.append((per_channel, ll, int(np.argmax(ll)), cell_models[np.argmax(ll)].copy()))
+        return found
 
-    coarse = spec.axis
-    coarse_per_channel, coarse_ll = scored(coarse_models)
-    grids, all_models, all_per_channel, all_ll = [coarse], [coarse_models], [coarse_per_channel], [coarse_ll]
-    for i in _highest_maxima(coarse_ll):
-        # Pass 1 finds the peak inside its coarse cells; pass 2 covers ±SPAN_SD widths of it, so that
-        # quadrature sees the whole peak and not a linear interpolation across a coarse cell.
-        cell = np.linspace(coarse[max(i - 1, 0)], coarse[min(i + 1, coarse.size - 1)], refine_points)
-        cell_models, cell_per_channel, cell_ll = run(cell)
-        center, width = _peak_and_width(cell, cell_ll)
-        span = np.linspace(max(center - SPAN_SD * width, spec.low), min(center + SPAN_SD * width, spec.high), refine_points)
-        span_models, span_per_channel, span_ll = run(span)
-        grids += [cell, span]
-        all_models += [cell_models, span_models]
-        all_per_channel += [cell_per_channel, span_per_channel]
-        all_ll += [cell_ll, span_ll]
-    grid, unique = np.unique(np.concatenate(grids), return_index=True)
-    ll = np.concatenate(all_ll)[unique]
-    posterior = likelihood.grid_posterior(grid, ll, prior.log_pdf(grid))
-    # Only the best model is kept: the passes' outputs (tens of MB) are not copied together for it.
-    part, row = _part_and_row([len(m) for m in all_models], int(unique[np.argmax(ll)]))
-    best = all_models[part][row]
-    chi2 = float(likelihood.reduced_chi2(data, best, sigma, n_fitted=1, instruments=instruments))
-    return Calibration(posterior, prior.sd, chi2, best, chi2_max, np.concatenate(all_per_channel)[unique])
+    coarse_runs = []  # per task (grid, per-channel, log-likelihood, best row, its model)
+    for task in tasks:
+        per_channel, ll = scored(task, task.coarse_models)
+        coarse_runs.append((task.spec.axis, per_channel, ll, int(np.argmax(ll)), task.coarse_models[np.argmax(ll)]))
+    # Pass 1 finds each peak inside its coarse cells; pass 2 covers ±SPAN_SD widths of it, so that quadrature sees the
+    # whole peak and not a linear interpolation across a coarse cell.
+    cells = []
+    for k, task in enumerate(tasks):
+        coarse = task.spec.axis
+        cells += [(k, np.linspace(coarse[max(i - 1, 0)], coarse[min(i + 1, coarse.size - 1)], refine_points))
+                  for i in _highest_maxima(coarse_runs[k][2])]
+    cell_runs = [(cell, *found) for (_, cell), found in zip(cells, refined(cells))]
+    spans = []
+    for (k, _), (cell, _, ll, _, _) in zip(cells, cell_runs):
+        center, width = _peak_and_width(cell, ll)
+        spec = tasks[k].spec
+        spans.append((k, np.linspace(max(center - SPAN_SD * width, spec.low), min(center + SPAN_SD * width, spec.high), refine_points)))
+    span_runs = [(span, *found) for (_, span), found in zip(spans, refined(spans))]
+    runs = [[run] for run in coarse_runs]  # each task's coarse grid, then each peak's cell and span
+    for (k, _), cell_run, span_run in zip(cells, cell_runs, span_runs):
+        runs[k] += [cell_run, span_run]
+    return [_calibration(task, task_runs, sigma, chi2_max, instruments) for task, task_runs in zip(tasks, runs)]
+
+
+def _calibration(task: Task, runs, sigma, chi2_max, instruments) -> Calibration:
+    """A task's posterior on all its runs' points, and the reduced χ² of its best model."""
+    grid, unique = np.unique(np.concatenate([run[0] for run in runs]), return_index=True)
+    ll = np.concatenate([run[2] for run in runs])[unique]
+    posterior = likelihood.grid_posterior(grid, ll, task.prior.log_pdf(grid))
+    # Only each run's best model was kept (the passes' outputs are tens of MB).  It is the best of all: every run's grid
+    # ascends, and np.argmax over the sorted points and over the run both take the lowest of tied maxima.
+    part, row = _part_and_row([len(run[0]) for run in runs], int(unique[np.argmax(ll)]))
+    best = runs[part][4]
+    assert runs[part][3] == row
+    chi2 = float(likelihood.reduced_chi2(task.data, best, sigma, n_fitted=1, instruments=instruments))
+    return Calibration(posterior, task.prior.sd, chi2, best, chi2_max, np.concatenate([run[1] for run in runs])[unique])
 
 
 def _part_and_row(sizes: Sequence[int], index: int) -> tuple[int, int]:

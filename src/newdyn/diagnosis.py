@@ -131,13 +131,9 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
     instruments = settings.instruments(sampling.fs, colour)  # as the datasheets say; out-of-spec ones are found per fit
 
     def calibrate_all(y, refine_points):
-        return {
-            p: calibration.calibrate(
-                y, sigma, spec, settings.priors[p], coarse[p], values, sampling, channels, refine_points,
-                settings.chi2_max, settings.max_step, instruments,
-            )
-            for p, spec in settings.grids.items()
-        }
+        tasks = [calibration.Task(y, spec, settings.priors[p], coarse[p]) for p, spec in settings.grids.items()]
+        return dict(zip(settings.grids, calibration.calibrate_many(tasks, sigma, values, sampling, channels, refine_points,
+                                                                   settings.chi2_max, settings.max_step, instruments)))
 
     coarse = {
         p: calibration.coarse_models((grid_paths or {}).get(p), spec, values, sampling, channels, settings.max_step)

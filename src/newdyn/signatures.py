@@ -86,10 +86,9 @@ def build(hyps: Mapping[str, hypotheses.Hypothesis], signature_entries, values: 
         sampling, channels, max_step,
     )
     sigma = np.std(clean[0], axis=-1) * 10 ** (-REFERENCE_SNR_DB / 20)  # the first signature is the healthy rig
-    calibrated = [{p: calibration.calibrate(signal, sigma, spec_, priors[p], coarse[p], values, sampling, channels, REFINE_POINTS,
-                                            np.inf, max_step, instruments)
-                   for p, spec_ in grids.items()}
-                  for signal in clean]
+    tasks = [calibration.Task(signal, spec_, priors[p], coarse[p]) for signal in clean for p, spec_ in grids.items()]
+    found = iter(calibration.calibrate_many(tasks, sigma, values, sampling, channels, REFINE_POINTS, np.inf, max_step, instruments))
+    calibrated = [{p: next(found) for p in grids} for _ in clean]
     points = max(len(c[p].posterior.grid) for c in calibrated for p in grids)
     grid = np.full((len(clean), len(grids), points), np.nan)
     per_channel = np.full((len(clean), len(grids), points, len(channels)), np.nan)
