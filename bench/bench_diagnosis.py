@@ -7,6 +7,9 @@ seconds).  The old revision runs first, then the new, in one run of this script:
 days, so only ratios measured side by side count.  The open-world cases are drawn by this checkout's generator
 (``bench/open_world/run.py``), written into each revision's ``measurements/`` and diagnosed as a user's files.
 
+A machine set (``--sets machines``) prints each recording's diagnosis and each machine's own job, and what a machine
+costs in all (its recordings' diagnoses and its own job) per recording.
+
 Run: python bench/bench_diagnosis.py [--before 4e27334] [--after HEAD] [--sets blind instruments] [--open-world]
                                      [--keep DIR]   (an hour and more: the old pipeline takes 1-10 min a diagnosis)
 With ``--keep DIR`` the worktrees and their results stay in DIR, and a revision whose results are there already is
@@ -64,21 +67,24 @@ def job_seconds(tsv: Path) -> float:
 
 
 def cases(repo: Path, sets: list[str], open_world: bool) -> dict[str, dict]:
-    """Per case: its set, class, job time and verdict."""
+    """Per case: its set, class, job time and verdict.  A machine set's cases are its recordings
+    (``<machine>/<recording>``, set ``<set> recordings``) and its machines, whose time is their own job's, on top of
+    their recordings'."""
     found = {}
+
+    def add(name, group, case_class, root, job):
+        found[name] = {"set": group, "class": case_class, "seconds": job_seconds(root / f"benchmarks/{job}/{name}.tsv"),
+                       "verdict": json.loads((root / f"diagnosis/{name}/verdict.json").read_text())}
+
     for name in sets:
-        truth = json.loads((repo / f"results/{name}/truth.json").read_text())["cases"]
-        for case in truth:
-            root = repo / f"results/{name}"
-            found[case["name"]] = {"set": name, "class": case["class"],
-                                   "seconds": job_seconds(root / f"benchmarks/diagnose/{case['name']}.tsv"),
-                                   "verdict": json.loads((root / f"diagnosis/{case['name']}/verdict.json").read_text())}
+        root = repo / f"results/{name}"
+        for case in json.loads((root / "truth.json").read_text())["cases"]:
+            for recording in case.get("recordings", []):
+                add(f"{case['name']}/{recording['name']}", f"{name} recordings", case["class"], root, "diagnose")
+            add(case["name"], name, case["class"], root, "diagnose_machine" if "recordings" in case else "diagnose")
     if open_world:
         for case in json.loads((repo / "open_world_truth.json").read_text()):
-            root = repo / "results"
-            found[case["name"]] = {"set": "open world", "class": case["class"],
-                                   "seconds": job_seconds(root / f"benchmarks/diagnose/{case['name']}.tsv"),
-                                   "verdict": json.loads((root / f"diagnosis/{case['name']}/verdict.json").read_text())}
+            add(case["name"], "open world", case["class"], repo / "results", "diagnose")
     return found
 
 
@@ -95,7 +101,9 @@ def scores(repo: Path, sets: list[str], open_world: bool) -> dict[str, str]:
         found[name] = (f"{s['correct']}/{s['cases']} right, truth in 94 % HDI {s['hdi_coverage']:.0%}, "
                        f"fault fits explaining {s['fault_fit']['explained']}/{s['fault_fit']['cases']}"
                        + (f", out of spec named {inst['named']}/{inst['out_of_spec']}, false alarms {inst['false_alarms']}"
-                          if inst["cases"] else ""))
+                          if inst["cases"] else "")
+                       + (f"; the recordings alone {s['single_recordings']['correct']}/{s['single_recordings']['recordings']} right"
+                          if "single_recordings" in s else ""))
     if open_world:
         out = subprocess.run([sys.executable, OPEN_WORLD, "score", repo / "open_world_truth.json", repo / "results" / "diagnosis"],
                              capture_output=True, text=True, check=True).stdout.strip().splitlines()
@@ -137,6 +145,14 @@ def main() -> None:
         n = [row["seconds"] for row in new.values() if row["set"] == group]
         print(f"{group}: median {statistics.median(o):.1f} s -> {statistics.median(n):.1f} s, worst {max(o):.1f} s -> {max(n):.1f} s, "
               f"total {sum(o):.0f} s -> {sum(n):.0f} s ({sum(o) / sum(n):.1f}x)")
+    for name in args.sets:  # a machine's whole cost: its recordings' diagnoses and its own
+        machines = [c for c, row in new.items() if row["set"] == name and any(r.startswith(f"{c}/") for r in new)]
+        for revision, times in ((args.before, old), (args.after, new)):
+            whole = [sum(row["seconds"] for r, row in times.items() if r == m or r.startswith(f"{m}/")) for m in machines]
+            per = [w / sum(r.startswith(f"{m}/") for r in times) for m, w in zip(machines, whole)]
+            if machines:
+                print(f"{name} at {revision}: a machine with its recordings median {statistics.median(whole):.1f} s, worst "
+                      f"{max(whole):.1f} s; per recording median {statistics.median(per):.1f} s, worst {max(per):.1f} s")
     print(f"verdicts (class and effect) the same in {agree} of {len(new)} cases")
     for name, repo in (("old", old_repo), ("new", new_repo)):
         for group, line in scores(repo, args.sets, args.open_world).items():

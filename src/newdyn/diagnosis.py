@@ -130,11 +130,6 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
     searched = searched or {}
     instruments = settings.instruments(sampling.fs, colour)  # as the datasheets say; out-of-spec ones are found per fit
 
-    def calibrate_all(y, refine_points):
-        tasks = [calibration.Task(y, spec, settings.priors[p], coarse[p]) for p, spec in settings.grids.items()]
-        return dict(zip(settings.grids, calibration.calibrate_many(tasks, sigma, values, sampling, channels, refine_points,
-                                                                   settings.chi2_max, settings.max_step, instruments)))
-
     coarse = {
         p: calibration.coarse_models((grid_paths or {}).get(p), spec, values, sampling, channels, settings.max_step)
         for p, spec in settings.grids.items()
@@ -146,7 +141,9 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
         log.info("%s: %s in %.1f s", measurement.name, what, time.perf_counter() - clock)
         clock = time.perf_counter()
 
-    calibrations = calibrate_all(data, settings.refine_points)
+    tasks = [calibration.Task(data, spec, settings.priors[p], coarse[p]) for p, spec in settings.grids.items()]
+    calibrations = dict(zip(settings.grids, calibration.calibrate_many(tasks, sigma, values, sampling, channels, settings.refine_points,
+                                                                       settings.chi2_max, settings.max_step, instruments)))
     stage(f"noise level from {noise_source}, grid calibrations of {', '.join(settings.grids)}")
 
     bank = study_bank(bank_path, settings, hyps, values, sampling, coarse)
