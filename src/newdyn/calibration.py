@@ -16,6 +16,7 @@ import json
 import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import xarray as xr
@@ -199,64 +200,73 @@ def calibrate(
                           max_step, instruments)[0]
 
 
+class _Run(NamedTuple):
+    """One set of a calibration's points (its coarse grid, or a peak's cell or span): each channel's log-likelihood
+    there and their sum, and the row and model of its best point, the only model kept (the passes' outputs are tens
+    of MB)."""
+
+    grid: np.ndarray
+    per_channel: np.ndarray
+    log_likelihood: np.ndarray
+    best: int
+    best_model: np.ndarray
+
+
 def calibrate_many(tasks: Sequence[Task], sigma: np.ndarray, values: Mapping[str, float], sampling: model.Sampling,
                    channels: Sequence[str], refine_points: int, chi2_max: float, max_step: float = simulation.DEFAULT_MAX_STEP,
                    instruments: sensors.Instruments | None = None) -> list[Calibration]:
     """:func:`calibrate` of each of ``tasks`` (all with noise ``sigma`` through ``instruments``), each refinement pass
     of them all simulated together: the kernel fills its lanes and both cores, where one task's cells of
     ``refine_points`` would not.  Each task's result is the one it gets alone, to the bit."""
-    def scored(task, models):  # each channel's log-likelihood, and their sum
+    def run(task, grid, models):
         per_channel = likelihood.log_likelihood(task.data, models, sigma, per_channel=True, instruments=instruments)
-        return per_channel, per_channel.sum(axis=-1)
+        ll = per_channel.sum(axis=-1)
+        best = int(np.argmax(ll))
+        return _Run(grid, per_channel, ll, best, models[best].copy())
 
-    def refined(cells):  # [(task number, points)] -> each cell's (per-channel, log-likelihood, best row, its model)
+    def refined(cells):  # [(task number, points)] -> each cell's run
         found, per_batch = [], max(1, REFINE_BATCH // refine_points)
         for start in range(0, len(cells), per_batch):
             batch = cells[start:start + per_batch]
             models = simulation.simulate_batch(
                 np.vstack([parameter_rows(values, [tasks[k].spec.parameter], points[:, None]) for k, points in batch]),
                 sampling, channels, max_step)
-            for (k, points), cell_models in zip(batch, np.split(models, np.cumsum([len(p) for _, p in batch])[:-1])):
-                per_channel, ll = scored(tasks[k], cell_models)
-                found.append((per_channel, ll, int(np.argmax(ll)), cell_models[np.argmax(ll)].copy()))
+            found += [run(tasks[k], points, cell_models)
+                      for (k, points), cell_models in zip(batch, np.split(models, np.cumsum([len(p) for _, p in batch])[:-1]))]
         return found
 
-    coarse_runs = []  # per task (grid, per-channel, log-likelihood, best row, its model)
-    for task in tasks:
-        per_channel, ll = scored(task, task.coarse_models)
-        coarse_runs.append((task.spec.axis, per_channel, ll, int(np.argmax(ll)), task.coarse_models[np.argmax(ll)]))
+    coarse_runs = [run(task, task.spec.axis, task.coarse_models) for task in tasks]
     # Pass 1 finds each peak inside its coarse cells; pass 2 covers ±SPAN_SD widths of it, so that quadrature sees the
     # whole peak and not a linear interpolation across a coarse cell.
     cells = []
     for k, task in enumerate(tasks):
         coarse = task.spec.axis
         cells += [(k, np.linspace(coarse[max(i - 1, 0)], coarse[min(i + 1, coarse.size - 1)], refine_points))
-                  for i in _highest_maxima(coarse_runs[k][2])]
-    cell_runs = [(cell, *found) for (_, cell), found in zip(cells, refined(cells))]
+                  for i in _highest_maxima(coarse_runs[k].log_likelihood)]
+    cell_runs = refined(cells)
     spans = []
-    for (k, _), (cell, _, ll, _, _) in zip(cells, cell_runs):
-        center, width = _peak_and_width(cell, ll)
+    for (k, _), cell in zip(cells, cell_runs):
+        center, width = _peak_and_width(cell.grid, cell.log_likelihood)
         spec = tasks[k].spec
         spans.append((k, np.linspace(max(center - SPAN_SD * width, spec.low), min(center + SPAN_SD * width, spec.high), refine_points)))
-    span_runs = [(span, *found) for (_, span), found in zip(spans, refined(spans))]
-    runs = [[run] for run in coarse_runs]  # each task's coarse grid, then each peak's cell and span
-    for (k, _), cell_run, span_run in zip(cells, cell_runs, span_runs):
+    runs = [[coarse_run] for coarse_run in coarse_runs]  # each task's coarse grid, then each peak's cell and span
+    for (k, _), cell_run, span_run in zip(cells, cell_runs, refined(spans)):
         runs[k] += [cell_run, span_run]
     return [_calibration(task, task_runs, sigma, chi2_max, instruments) for task, task_runs in zip(tasks, runs)]
 
 
-def _calibration(task: Task, runs, sigma, chi2_max, instruments) -> Calibration:
+def _calibration(task: Task, runs: Sequence[_Run], sigma, chi2_max, instruments) -> Calibration:
     """A task's posterior on all its runs' points, and the reduced χ² of its best model."""
-    grid, unique = np.unique(np.concatenate([run[0] for run in runs]), return_index=True)
-    ll = np.concatenate([run[2] for run in runs])[unique]
+    grid, unique = np.unique(np.concatenate([r.grid for r in runs]), return_index=True)
+    ll = np.concatenate([r.log_likelihood for r in runs])[unique]
     posterior = likelihood.grid_posterior(grid, ll, task.prior.log_pdf(grid))
-    # Only each run's best model was kept (the passes' outputs are tens of MB).  It is the best of all: every run's grid
-    # ascends, and np.argmax over the sorted points and over the run both take the lowest of tied maxima.
-    part, row = _part_and_row([len(run[0]) for run in runs], int(unique[np.argmax(ll)]))
-    best = runs[part][4]
-    assert runs[part][3] == row
-    chi2 = float(likelihood.reduced_chi2(task.data, best, sigma, n_fitted=1, instruments=instruments))
-    return Calibration(posterior, task.prior.sd, chi2, best, chi2_max, np.concatenate([run[1] for run in runs])[unique])
+    # The best of all points is its run's best: every run's grid ascends, and np.argmax over the sorted points and over
+    # the run both take the lowest of tied maxima.
+    part, row = _part_and_row([len(r.grid) for r in runs], int(unique[np.argmax(ll)]))
+    assert runs[part].best == row
+    chi2 = float(likelihood.reduced_chi2(task.data, runs[part].best_model, sigma, n_fitted=1, instruments=instruments))
+    return Calibration(posterior, task.prior.sd, chi2, runs[part].best_model, chi2_max,
+                       np.concatenate([r.per_channel for r in runs])[unique])
 
 
 def _part_and_row(sizes: Sequence[int], index: int) -> tuple[int, int]:
