@@ -26,10 +26,11 @@ HEALTHY = faults.HEALTHY
 PARAMETER_CHANGE = faults.PARAMETER_CHANGE
 UNIFORM_UNIT_VARIANCE = 1.0 / 12.0  # variance of a uniform prior in unit coordinates
 FIT_MAX_EVALUATIONS = 60
-# Finite-difference steps of the least squares' Jacobian, in prior-box units, used one after the
-# other on each window: the coarse step sees the broad valley of a switching effect's misfit (a fine
-# one is led off by its ripples), the fine one the narrow trough at the valley's floor, which the
-# coarse step straddles; both far above the simulator's rounding.
+# Finite-difference steps of the least squares' Jacobian, in prior-box units: the coarse step sees the broad valley
+# of a switching effect's misfit (a fine one is led off by its ripples), the fine one the narrow trough at the valley's
+# floor, which the coarse step straddles; both far above the simulator's rounding.  A fit follows the valley through
+# its windows with the coarse step alone and looks for the trough's floor on the whole record only: a shorter
+# window's floor is not the record's, and the next window's coarse step starts from anywhere in its valley.
 JACOBIAN_STEPS = (1e-3, 1e-5)
 # Global search before least squares: differential evolution over the prior box, each generation one
 # batched simulation with a search's longer steps at a slipping joint (simulation.simulate_batch's search): it
@@ -344,7 +345,7 @@ def fit(
 
     def follow(u0, from_window):  # least squares through the windows from the from_window-th to the whole record
         for n_samples in windows[from_window:]:
-            for step in JACOBIAN_STEPS:
+            for step in JACOBIAN_STEPS if n_samples == windows[-1] else JACOBIAN_STEPS[:1]:
                 result = _least_squares(lambda rows, n=n_samples: residuals(rows, n), u0, step)
                 u0 = result.x
         return result
