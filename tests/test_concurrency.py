@@ -92,3 +92,16 @@ def test_a_failing_task_stops_the_speculative_ones_and_is_raised(threads):
     with pytest.raises(RuntimeError, match="a fit failed"):
         concurrency.in_parallel({"small": fails}, {"large": lambda stop: waits_for(stop, ran)}, lambda done: True)
     assert ran == (["told to stop"] if threads == "threads" else [])
+
+
+def test_a_module_imported_beside_is_imported_once_in_its_thread_and_a_later_import_waits_for_it(tmp_path, monkeypatch):
+    (tmp_path / "slow_to_import.py").write_text(
+        "import threading, time\nimporters = [threading.current_thread().name]\ntime.sleep(0.3)\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.delitem(sys.modules, "slow_to_import", raising=False)
+    thread = concurrency.import_beside("slow_to_import")
+    import slow_to_import  # while the thread sleeps in the module's body: waits for it, not a second import
+
+    assert slow_to_import.importers == ["import slow_to_import"]
+    assert sys.modules["slow_to_import"] is slow_to_import
+    thread.join()

@@ -3,6 +3,7 @@ instruments' closed form) that runs without the GIL, so a lone diagnosis uses ev
 
 from __future__ import annotations
 
+import importlib
 import threading
 from collections.abc import Callable, Hashable, Mapping
 from concurrent.futures import ThreadPoolExecutor
@@ -16,6 +17,16 @@ T = TypeVar("T")
 
 class Stopped(Exception):
     """Raised by a speculative task that was told to stop (:func:`in_parallel`'s ``speculative``)."""
+
+
+def import_beside(module: str) -> threading.Thread:
+    """Start importing ``module`` in a thread of its own, for a later import of it to find it done: a slow import
+    (ArviZ's, which compiles a numba function and imports Matplotlib) then runs while the compiled code, which runs
+    without the GIL, leaves a core free.  An import of the module meanwhile waits for this one (Python's import lock),
+    and the module is the same whoever imported it."""
+    thread = threading.Thread(target=importlib.import_module, args=(module,), name=f"import {module}", daemon=True)
+    thread.start()
+    return thread
 
 
 def _threads(n_tasks: int) -> int:

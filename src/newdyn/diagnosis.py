@@ -150,6 +150,9 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
     signatures = signature_module.distances(bank, calibrations, sigma, settings.priors)
     stage(f"{signatures.sizes['signature']} signatures")
 
+    # The posterior and the comparison of model versions need ArviZ: imported beside the fits, whose least squares
+    # often leave a core free.
+    concurrency.import_beside("arviz")
     # Fits: healthy as it is, drifts from their grids (exact), faults from their closest signature and from the bank's
     # members, or a global search where members are too sparse and the fit may decide the verdict.
     fits = {HEALTHY: hypotheses.fit(hyps[HEALTHY], data, sigma, values, sampling, channels, max_step=settings.max_step,
