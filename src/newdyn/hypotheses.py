@@ -26,12 +26,15 @@ HEALTHY = faults.HEALTHY
 PARAMETER_CHANGE = faults.PARAMETER_CHANGE
 UNIFORM_UNIT_VARIANCE = 1.0 / 12.0  # variance of a uniform prior in unit coordinates
 FIT_MAX_EVALUATIONS = 60
-# Finite-difference steps of the least squares' Jacobian, in prior-box units: the coarse step sees the broad valley
-# of a switching effect's misfit (a fine one is led off by its ripples), the fine one the narrow trough at the valley's
-# floor, which the coarse step straddles; both far above the simulator's rounding.  A fit follows the valley through
-# its windows with the coarse step alone and looks for the trough's floor on the whole record only: a shorter
-# window's floor is not the record's, and the next window's coarse step starts from anywhere in its valley.
-JACOBIAN_STEPS = (1e-3, 1e-5)
+# The least squares' passes, coarse then fine: each one's finite-difference step of the Jacobian, in prior-box units,
+# and where it stops (scipy's ftol and xtol: gains in cost and steps in u below this fraction).  The coarse step sees
+# the broad valley of a switching effect's misfit (a fine one is led off by its ripples), the fine one the narrow
+# trough at the valley's floor, which the coarse step straddles; both far above the simulator's rounding.  A fit
+# follows the valley through its windows with the coarse pass alone and looks for the trough's floor on the whole
+# record only: a shorter window's floor is not the record's, and the next window's coarse pass starts from anywhere in
+# its valley.  So the coarse pass stops once its steps are a tenth of its own difference step (at scipy's default it
+# spent most of its simulations on gains in cost far below one), the fine one at scipy's default.
+JACOBIAN_STEPS = ((1e-3, 1e-4), (1e-5, 1e-8))
 # Global search before least squares: differential evolution over the prior box, each generation one
 # batched simulation with a search's longer steps at a slipping joint (simulation.simulate_batch's search): it
 # only chooses where least squares starts, which then runs on the exact simulator.  Measured on stick-slip
@@ -345,8 +348,8 @@ def fit(
 
     def follow(u0, from_window):  # least squares through the windows from the from_window-th to the whole record
         for n_samples in windows[from_window:]:
-            for step in JACOBIAN_STEPS if n_samples == windows[-1] else JACOBIAN_STEPS[:1]:
-                result = _least_squares(lambda rows, n=n_samples: residuals(rows, n), u0, step)
+            for step, tolerance in JACOBIAN_STEPS if n_samples == windows[-1] else JACOBIAN_STEPS[:1]:
+                result = _least_squares(lambda rows, n=n_samples: residuals(rows, n), u0, step, tolerance)
                 u0 = result.x
         return result
 
@@ -380,9 +383,10 @@ def fit(
     )
 
 
-def _least_squares(residuals, u0: np.ndarray, step: float) -> optimize.OptimizeResult:
+def _least_squares(residuals, u0: np.ndarray, step: float, tolerance: float) -> optimize.OptimizeResult:
     """Bounded least squares (scipy's TRF) of ``residuals`` (rows (m, k) of unit coordinates -> (m, n)) from ``u0``
-    in the unit box, with one-sided difference Jacobians of ``step`` pointing into the box.  The residual at a point is
+    in the unit box, with one-sided difference Jacobians of ``step`` pointing into the box, until its gains in cost
+    and its steps fall below ``tolerance`` (scipy's ftol and xtol).  The residual at a point is
     computed in one batch with its Jacobian's differences: k + 1 simulations side by side in the kernel's lanes cost
     little more than one alone, and the Jacobian the optimizer asks for after accepting the point is then at hand."""
     last = {}
@@ -399,7 +403,7 @@ def _least_squares(residuals, u0: np.ndarray, step: float) -> optimize.OptimizeR
         return last["jacobian"]
 
     return optimize.least_squares(residual, np.clip(u0, 1e-6, 1 - 1e-6), jac=jacobian, bounds=(0.0, 1.0), method="trf",
-                                  x_scale="jac", max_nfev=FIT_MAX_EVALUATIONS)
+                                  x_scale="jac", ftol=tolerance, xtol=tolerance, max_nfev=FIT_MAX_EVALUATIONS)
 
 
 def _laplace(priors: Sequence[Prior], best: optimize.OptimizeResult, theta_star: np.ndarray, ll: float):
@@ -519,8 +523,8 @@ def fit_joint(hypothesis: Hypothesis, recordings: Sequence[Recording], starts: S
         return np.concatenate([*misfits, ((theta - mean) / sd)[:, normal]], axis=1)
 
     def follow(u0):
-        for step in JACOBIAN_STEPS:
-            result = _least_squares(residuals, u0, step)
+        for step, tolerance in JACOBIAN_STEPS:
+            result = _least_squares(residuals, u0, step, tolerance)
             u0 = result.x
         return result
 
