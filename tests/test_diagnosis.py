@@ -348,6 +348,25 @@ def test_a_two_parameter_fit_from_the_banks_members_reaches_the_searchs_optimum_
     assert one_chain.n_simulations < started.n_simulations < searched.n_simulations / 3
 
 
+def test_a_fit_whose_coarse_passes_stop_at_their_own_tolerance_ends_where_passes_to_scipys_default_end(monkeypatch):
+    """The coarse least-squares pass only follows the misfit's valley from window to window; stopped once its steps are
+    a tenth of its difference step, the fit still ends, after the fine pass on the whole record, where it ends with
+    every pass run to scipy's default tolerance, in fewer simulations."""
+    m = measurement("crack", fault("breathing_crack", alpha=0.35, kT3=2.5e6), seed=6)
+    crack = next(h for h in SETTINGS.hypotheses() if h.name == "breathing_crack")
+    values, channels = slots.complete({}), CHANNELS[:2]
+
+    def fitted():
+        return hypotheses.fit(crack, m.y[:2], m.sigma[:2], values, SAMPLING, channels, [{"alpha": 0.1}], search=False)
+
+    coarse = fitted()
+    monkeypatch.setattr(hypotheses, "JACOBIAN_STEPS", tuple((step, 1e-8) for step, _ in hypotheses.JACOBIAN_STEPS))
+    tight = fitted()
+    assert coarse.log_likelihood == pytest.approx(tight.log_likelihood, abs=0.05)
+    assert coarse.values == pytest.approx(tight.values, rel=1e-3)
+    assert coarse.n_simulations < tight.n_simulations
+
+
 def test_a_bank_is_reused_only_at_the_condition_and_settings_it_was_made_for(tmp_path):
     hyps = {h.name: h for h in SETTINGS.hypotheses()}
     values = slots.complete({})
