@@ -288,7 +288,8 @@ def fit(
     ``search`` is False, on each of the first :data:`SEARCHES` windows of :func:`fit_windows` the best of the
     bank's ``members`` when given, else the best member of a differential evolution (``seed``) over the prior box, simulated
     with a search's longer steps at a slipping joint.  Each start is fitted on its
-    window, then on the longer ones up to the whole record, each from the last one's optimum:
+    window, then on the longer ones up to the whole record, each from the last one's optimum (the coarse pass of
+    :data:`JACOBIAN_STEPS` on each, the fine one on the whole record):
     stick-slip's misfit has many local minima, and only a short window shows the truth's basin wide.  With ``chains``,
     only that many starts are followed: those that fit the longest search window best.  Once ``stop`` is set, the next
     simulation raises :class:`newdyn.concurrency.Stopped` instead (a fit run on speculation that is no longer wanted).
