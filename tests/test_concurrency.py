@@ -95,12 +95,18 @@ def test_a_failing_task_stops_the_speculative_ones_and_is_raised(threads):
 
 
 def test_a_module_imported_beside_is_imported_once_in_its_thread_and_a_later_import_waits_for_it(tmp_path, monkeypatch):
+    (tmp_path / "import_gate.py").write_text("import threading\nentered = threading.Event()\n")
     (tmp_path / "slow_to_import.py").write_text(
-        "import threading, time\nimporters = [threading.current_thread().name]\ntime.sleep(0.3)\n")
+        "import threading, time\nimport import_gate\nimporters = [threading.current_thread().name]\n"
+        "import_gate.entered.set()\ntime.sleep(0.3)\n")
     monkeypatch.syspath_prepend(str(tmp_path))
-    monkeypatch.delitem(sys.modules, "slow_to_import", raising=False)
+    for name in ("import_gate", "slow_to_import"):
+        monkeypatch.delitem(sys.modules, name, raising=False)
+    import import_gate
+
     thread = concurrency.import_beside("slow_to_import")
-    import slow_to_import  # while the thread sleeps in the module's body: waits for it, not a second import
+    assert import_gate.entered.wait(10)  # the thread is inside the module's body
+    import slow_to_import  # waits for the thread's import to finish instead of importing it a second time
 
     assert slow_to_import.importers == ["import slow_to_import"]
     assert sys.modules["slow_to_import"] is slow_to_import
