@@ -349,9 +349,9 @@ def fit(
 
     def follow(u0, from_window):  # least squares through the windows from the from_window-th to the whole record
         for n_samples in windows[from_window:]:
-            for step, tolerance in JACOBIAN_STEPS if n_samples == windows[-1] else JACOBIAN_STEPS[:1]:
-                result = _least_squares(lambda rows, n=n_samples: residuals(rows, n), u0, step, tolerance)
-                u0 = result.x
+            result = _passes(lambda rows, n=n_samples: residuals(rows, n), u0,
+                             JACOBIAN_STEPS if n_samples == windows[-1] else JACOBIAN_STEPS[:1])
+            u0 = result.x
         return result
 
     starts = [(u0, first, number < len(given)) for number, (u0, first) in enumerate(u_starts)]
@@ -382,6 +382,15 @@ def fit(
         float(likelihood.reduced_chi2(data, model_star, sigma, n_fitted=k, instruments=instruments)), log_evidence, sum(runs), at_bound,
         covariance, instruments, searched_from,
     )
+
+
+def _passes(residuals, u0: np.ndarray, passes) -> optimize.OptimizeResult:
+    """:func:`_least_squares` of ``residuals`` through ``passes`` (of :data:`JACOBIAN_STEPS`), each from the last one's
+    optimum: the last one's result."""
+    for step, tolerance in passes:
+        result = _least_squares(residuals, u0, step, tolerance)
+        u0 = result.x
+    return result
 
 
 def _least_squares(residuals, u0: np.ndarray, step: float, tolerance: float) -> optimize.OptimizeResult:
@@ -523,19 +532,13 @@ def fit_joint(hypothesis: Hypothesis, recordings: Sequence[Recording], starts: S
                    for r, found in zip(recordings, outputs(theta))]
         return np.concatenate([*misfits, ((theta - mean) / sd)[:, normal]], axis=1)
 
-    def follow(u0):
-        for step, tolerance in JACOBIAN_STEPS:
-            result = _least_squares(residuals, u0, step, tolerance)
-            u0 = result.x
-        return result
-
     def vector(start):
         shared = [start[p.name] for p in shared_priors]
         each = [np.broadcast_to(np.asarray(start[p.name], dtype=float), (n,)) for p in own_priors]
         return np.array(shared + [values[r] for r in range(n) for values in each], dtype=float)
 
     u_starts = [(vector(start) - low) / span for start in starts]
-    chains = concurrency.in_parallel({number: lambda u0=u0: follow(u0) for number, u0 in enumerate(u_starts)})
+    chains = concurrency.in_parallel({number: lambda u0=u0: _passes(residuals, u0, JACOBIAN_STEPS) for number, u0 in enumerate(u_starts)})
     best = min((chains[number] for number in sorted(chains)), key=lambda result: result.cost)
     theta_star = low + best.x * span
     models, ll, chi2 = summary(theta_star)
