@@ -164,14 +164,23 @@ def test_importance_sampling_recovers_a_correlated_gaussian_in_three_parameters(
 @pytest.mark.parametrize(("narrower", "missed"), [(4, "pareto_k"), (3, "ess")])
 def test_importance_sampling_fits_its_proposal_again_where_the_approximation_is_too_narrow(narrower, missed):
     """An approximation a quarter as wide as the posterior: k̂ says the first batch misses it; a third as wide: k̂
-    passes but the most draws leave too few effective ones.  Fitted again to its weighted draws, the proposal verifies
-    the posterior's closed-form moments."""
+    passes but the batch leaves too few effective draws.  Fitted again to that batch's weighted draws, the proposal
+    verifies the posterior's closed-form moments with one batch of its own: two batches in all, where more draws of
+    the approximation would have needed the most."""
     mean, sd = np.array([3.0e6, 0.35, 2000.0]), np.array([8.0e3, 1.0e-3, 0.5])
     cov = np.array([[1.0, -0.9, 0.3], [-0.9, 1.0, -0.2], [0.3, -0.2, 1.0]]) * np.outer(sd, sd)
-    idata = posterior.sample(gaussian(mean, cov), box([0, 0, 0], [1e7, 1, 1e4]), ["k", "a", "t"],
+    calls = []
+
+    def counted(theta):
+        calls.append(len(theta))
+        return gaussian(mean, cov)(theta)
+
+    idata = posterior.sample(counted, box([0, 0, 0], [1e7, 1, 1e4]), ["k", "a", "t"],
                              mean + np.array([0.5, -0.5, 0.3]) * sd, cov / narrower**2, SETTINGS)
     assert idata.attrs["converged"] == 1 and idata.attrs["refits"] == 1, idata.attrs["reason"]
     assert idata.attrs["tried"].startswith(f"proposal fitted again to its weighted draws after: {missed}")
+    assert idata.attrs["tried"].endswith(f"({SETTINGS.batch} draws)")
+    assert sum(calls) == 2 * SETTINGS.batch and idata.attrs["n_proposals"] == SETTINGS.batch
     ess = idata.attrs["ess_bulk"]
     got_mean, got_sd = moments(idata, ["k", "a", "t"])
     np.testing.assert_array_less(np.abs(got_mean - mean), 4 * sd / np.sqrt(ess))

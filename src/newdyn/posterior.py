@@ -19,10 +19,11 @@ ridge's ends and importance sampling understates the spread.
 Importance sampling (three or more): draws of a Student-t with the approximation's mean and covariance, weighted by
 posterior over proposal and Pareto-smoothed (:func:`arviz.psislw`, Vehtari et al. 2024), a batch at a time until the
 smoothed weights' effective sample size reaches its target.  Its k̂ says whether the estimate can be trusted (at most
-:attr:`PosteriorSettings.pareto_k_max`); more draws of a proposal that misses the posterior would not mend it, so where
-a proposal leaves the answer unverified (k̂ too large after a batch, or too few effective draws after the most), it is
-fitted again to its weighted draws (their mean and covariance, as in population Monte Carlo, Cappé et al. 2004), up to
-:data:`REFITS` times, and only the last proposal's draws count.
+:attr:`PosteriorSettings.pareto_k_max`); more draws of a proposal that misses the posterior would not mend it, and a
+proposal whose batch falls short of the effective draws wastes most of its draws, so where a batch leaves the answer
+unverified (k̂ too large, or too few effective draws), the proposal is fitted again to its weighted draws (their mean
+and covariance, as in population Monte Carlo, Cappé et al. 2004), up to :data:`REFITS` times; the last proposal draws
+batches until the answer is verified or it has drawn the most, and only its draws count.
 
 The result is an :class:`arviz.InferenceData` shaped like :func:`newdyn.sampling.run`'s: a ``posterior`` of one chain
 of equally weighted draws, ``sample_stats`` with their ``lp`` and ``log_likelihood``, a ``weighted`` group with every
@@ -258,11 +259,13 @@ def _settled(coarser: tuple[np.ndarray, np.ndarray], finer: tuple[np.ndarray, np
 
 def _importance(log_posterior, whitened: _Whitened, settings: PosteriorSettings, refits: int = 0):
     """Importance sampling from a Student-t around the approximation, its proposal fitted again to its weighted draws
-    up to ``refits`` times while it leaves the answer unverified (module docstring): (the last proposal's θ, smoothed
+    after a batch that leaves the answer unverified, up to ``refits`` times (module docstring): (the last proposal's θ, smoothed
     normalized log weights, log posteriors, log-likelihoods, None, what it found)."""
     missed, proposal = [], "the Laplace approximation"
+    one_batch = dataclasses.replace(settings, max_draws=settings.batch)
     while True:
-        theta, log_weight, log_post, log_like, found = _importance_from(log_posterior, whitened, settings, proposal)
+        effort = settings if len(missed) == refits else one_batch
+        theta, log_weight, log_post, log_like, found = _importance_from(log_posterior, whitened, effort, proposal)
         if found["converged"] or len(missed) == refits:
             break
         refitted = _recentred(theta, log_weight)
