@@ -22,11 +22,11 @@ missing, add it and show the error fall (the paper's Steps 1–3, automated, the
 6. Discovery, when no fit of the library explains the data: the form of the missing term at the place where it acts
    (:mod:`newdyn.discovery`), its best candidate written as an effect file and fitted on the full
    simulator with the drift parameters, so that its χ² and evidence stand beside the library's.
-7. The best fault model is sampled by MCMC for its parameters' uncertainty: to convergence (up to
-   ``max_rounds``) and polished from its best draw, or one round when healthy or a drift explains the
-   data with more evidence, or the discovered term does where no library fit did, since then the verdict
-   does not rest on it. (The polish restarts a fit that explained already; on the library blind test no
-   fault's fit left χ² above the noise before it.)
+7. The best fault model's posterior, for its parameters' uncertainty: verified (quadrature, importance sampling,
+   else MCMC to convergence, up to ``max_rounds``) and polished from its best draw where the verdict may rest on it;
+   one batch of importance sampling where it cannot: healthy or a drift explains the data with more evidence, or the
+   discovered term does where no library fit did, or the fault's own fit leaves χ² above the noise. (The polish
+   restarts the fit from a draw that fits better; where that brings it to the noise, its posterior is verified then.)
 """
 
 from __future__ import annotations
@@ -219,10 +219,15 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
         discovery = verify.discover(measurement.name, fits[_best_of(fits, "parameter_change")], data, sigma, values, sampling, settings)
         stage(f"discovery ({len(discovery.section['candidates'])} candidates)")
     ahead = _explaining_ahead(fits, calibrations, best_fault, settings.chi2_max, discovery and discovery.fit)
-    effect_posterior = _effect_posterior(fits[best_fault], data, sigma, values, sampling, channels, settings, ahead)
+    unneeded = _unneeded(fits[best_fault], ahead, settings.chi2_max)
+    effect_posterior = _effect_posterior(fits[best_fault], data, sigma, values, sampling, channels, settings, unneeded)
     if ahead is None:
-        fits[best_fault] = _polished(fits[best_fault], effect_posterior, data, sigma, values, sampling, channels, settings, instruments)
-    stage(f"posterior of {best_fault} by {effect_posterior.attrs['method']}" + (f" ({ahead} explains the data ahead of it)" if ahead else ""))
+        polished = _polished(fits[best_fault], effect_posterior, data, sigma, values, sampling, channels, settings, instruments)
+        if unneeded and _unneeded(polished, None, settings.chi2_max) is None:  # polished to the noise: the verdict may rest on it
+            unneeded = None
+            effect_posterior = _effect_posterior(polished, data, sigma, values, sampling, channels, settings, unneeded)
+        fits[best_fault] = polished
+    stage(f"posterior of {best_fault} by {effect_posterior.attrs['method']}" + (f" ({unneeded})" if unneeded else ""))
 
     verdict = _verdict(fits, calibrations, signatures, settings, values, sampling, data, sigma)
     if instruments is not None and np.any(instruments.scale > 0):
@@ -330,11 +335,11 @@ def _drift_fit(hypothesis: hypotheses.Hypothesis, cal: calibration.Calibration, 
                           instruments=instruments)
 
 
-def _effect_posterior(fit: hypotheses.Fit, data, sigma, values, sampling, channels, settings: Settings, ahead: str | None):
+def _effect_posterior(fit: hypotheses.Fit, data, sigma, values, sampling, channels, settings: Settings, unneeded: str | None):
     """The posterior of a fault model's parameters (InferenceData) from its fit's Laplace approximation, by quadrature or
-    importance sampling (:mod:`newdyn.posterior`) where that is verified; else, where the verdict may rest on the fault
-    (nothing without it explains the data ``ahead`` of it), emcee to convergence, up to ``max_rounds`` rounds.  Where
-    the verdict rests on what is ahead, one batch of importance sampling: how much of the fault the data leave room for."""
+    importance sampling (:mod:`newdyn.posterior`) where that is verified; else, where the verdict may rest on the fault,
+    emcee to convergence, up to ``max_rounds`` rounds.  Where it cannot (``unneeded`` says why, :func:`_unneeded`), one
+    batch of importance sampling: how much of the fault the data leave room for."""
     hypothesis = fit.hypothesis
 
     def log_likelihood(rows):
@@ -346,13 +351,13 @@ def _effect_posterior(fit: hypotheses.Fit, data, sigma, values, sampling, channe
     support = {p.name: [p.low, p.high] for p in hypothesis.priors}
     posterior = posterior_module.sample(log_likelihood, hypothesis.log_prior, hypothesis.parameters, fit.theta, fit.covariance,
                                         settings.posterior, observed=observed,
-                                        attrs={"hypothesis": hypothesis.name, "support": support}, verify=ahead is None)
+                                        attrs={"hypothesis": hypothesis.name, "support": support}, verify=unneeded is None)
     if posterior.attrs["converged"]:
         return posterior
-    if ahead is not None:
-        # The verdict rests on another hypothesis: the unverified answer shows how much of the fault the data leave
-        # room for, and sampling it further would change nothing.
-        posterior.attrs["reason"] = f"{ahead} explains the data with more evidence; {posterior.attrs['reason']}"
+    if unneeded is not None:
+        # No verdict rests on the fault: the unverified answer shows how much of it the data leave room for, and
+        # sampling it further would change nothing.
+        posterior.attrs["reason"] = f"{unneeded}; {posterior.attrs['reason']}"
         return posterior
     return _sample_effect(fit, log_likelihood, observed, support, settings,
                           f"{posterior.attrs['method']} unverified ({posterior.attrs['reason']})")
@@ -380,6 +385,17 @@ def _explains(fit: hypotheses.Fit, calibrations, chi2_max: float) -> bool:
     """Whether a fit brings χ² to the noise, a drift's with a consistent grid posterior (one peak)."""
     consistent = fit.hypothesis.kind != PARAMETER_CHANGE or calibrations[fit.hypothesis.effect].posterior.consistent()
     return fit.chi2_red <= chi2_max and consistent
+
+
+def _unneeded(fit: hypotheses.Fit, ahead: str | None, chi2_max: float) -> str | None:
+    """Why no verdict rests on a fault's posterior, which then takes one batch of importance sampling: what explains
+    the data ``ahead`` of it (:func:`_explaining_ahead`), or its fit leaving χ² above the noise, where the verdict is
+    ``unexplained`` whatever its posterior; None where the verdict may rest on it."""
+    if ahead is not None:
+        return f"{ahead} explains the data with more evidence"
+    if fit.chi2_red > chi2_max:
+        return f"its fit leaves reduced chi2 {fit.chi2_red:.4g} above {chi2_max:g}, so no verdict rests on it"
+    return None
 
 
 def _explaining_ahead(fits, calibrations, fault: str, chi2_max: float, discovered: hypotheses.Fit | None = None) -> str | None:
