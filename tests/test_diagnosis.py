@@ -84,13 +84,13 @@ def test_the_posterior_of_the_fault_that_explains_the_data_is_verified_or_sample
 def test_a_fault_posterior_no_verdict_rests_on_takes_one_batch_of_importance_sampling(diagnosed):
     """Where the fault's own fit leaves χ² above the noise (the verdict is ``unexplained`` whatever its posterior) or
     something explains the data ahead of it, its posterior is one unverified batch that says why, never MCMC."""
-    fit = diagnosed["stick_slip"].fits["stick_slip"]
+    found = diagnosed["stick_slip"]
+    fit = found.fits["stick_slip"]
     assert diagnosis._unneeded(fit, None, SETTINGS.chi2_max) is None  # it explains the data: the verdict rests on it
     misfit = replace(fit, chi2_red=6.2)
     why = diagnosis._unneeded(misfit, None, SETTINGS.chi2_max)
     assert why == f"its fit leaves reduced chi2 6.2 above {SETTINGS.chi2_max:g}, so no verdict rests on it"
     assert diagnosis._unneeded(misfit, "healthy", SETTINGS.chi2_max) == "healthy explains the data with more evidence"
-    found = diagnosed["stick_slip"]
     narrow = replace(fit, covariance=fit.covariance / 100)  # a proposal too narrow for one batch to verify
     calls, evaluate = [], hypotheses.evaluate
 

@@ -22,6 +22,17 @@ def gaussian(mean, cov):
     return log_likelihood
 
 
+def counted(log_likelihood):
+    """``log_likelihood`` and the list of the batch sizes it is called with, as simulations are counted."""
+    calls = []
+
+    def wrapped(theta):
+        calls.append(len(theta))
+        return log_likelihood(theta)
+
+    return wrapped, calls
+
+
 def box(low, high):
     low, high = np.asarray(low, dtype=float), np.asarray(high, dtype=float)
     return lambda theta: np.where(np.all((theta >= low) & (theta <= high), axis=1), 0.0, -np.inf)
@@ -102,13 +113,8 @@ def test_a_posterior_nothing_rests_on_costs_one_batch_of_importance_sampling_and
     lattice; from the exact one, that batch verifies the answer."""
     mean, sd = STIFFNESS_AND_DEPTH
     cov = np.array([[1.0, -0.9], [-0.9, 1.0]]) * np.outer(sd, sd)
-    calls = []
-
-    def counted(theta):
-        calls.append(len(theta))
-        return gaussian(mean, cov)(theta)
-
-    off = posterior.sample(counted, box([0, 0], [1e7, 1]), ["k", "a"], mean + np.array([1.0, -1.0]) * sd, 0.5**2 * cov, SETTINGS,
+    likelihood, calls = counted(gaussian(mean, cov))
+    off = posterior.sample(likelihood, box([0, 0], [1e7, 1]), ["k", "a"], mean + np.array([1.0, -1.0]) * sd, 0.5**2 * cov, SETTINGS,
                            verify=False)
     assert off.attrs["method"] == "importance sampling" and off.attrs["n_proposals"] == SETTINGS.batch == sum(calls)
     exact = posterior.sample(gaussian(mean, cov), box([0, 0], [1e7, 1]), ["k", "a"], mean, cov, SETTINGS, verify=False)
@@ -169,13 +175,8 @@ def test_importance_sampling_fits_its_proposal_again_where_the_approximation_is_
     the approximation would have needed the most."""
     mean, sd = np.array([3.0e6, 0.35, 2000.0]), np.array([8.0e3, 1.0e-3, 0.5])
     cov = np.array([[1.0, -0.9, 0.3], [-0.9, 1.0, -0.2], [0.3, -0.2, 1.0]]) * np.outer(sd, sd)
-    calls = []
-
-    def counted(theta):
-        calls.append(len(theta))
-        return gaussian(mean, cov)(theta)
-
-    idata = posterior.sample(counted, box([0, 0, 0], [1e7, 1, 1e4]), ["k", "a", "t"],
+    likelihood, calls = counted(gaussian(mean, cov))
+    idata = posterior.sample(likelihood, box([0, 0, 0], [1e7, 1, 1e4]), ["k", "a", "t"],
                              mean + np.array([0.5, -0.5, 0.3]) * sd, cov / narrower**2, SETTINGS)
     assert idata.attrs["converged"] == 1 and idata.attrs["refits"] == 1, idata.attrs["reason"]
     assert idata.attrs["tried"].startswith(f"proposal fitted again to its weighted draws after: {missed}")
