@@ -25,7 +25,7 @@ import numpy as np
 
 from . import comparison, concurrency, hypotheses, instrument_checks, io, model, next_condition, noise, sensors, slots
 from .discovery import effect_file, search, verify
-from .hypotheses import HEALTHY, PARAMETER_CHANGE
+from .hypotheses import HEALTHY
 from .settings import Settings
 
 
@@ -117,12 +117,13 @@ def _record_next(ranking: Sequence[Mapping], fits, recordings: Sequence[Diagnose
 def _discovery(name: str, recordings: Sequence[Diagnosed], ranking: Sequence[Mapping], fits, seen: Sequence[hypotheses.Recording],
                settings: Settings) -> tuple[dict, tuple[str, str] | None]:
     """One term of the catalogue behind every recording's residual (:func:`newdyn.discovery.search.discover_across`),
-    from the drift that the recordings' evidence favours, fitted to all of them: each form with one shape for all
+    from healthy or the drift the recordings' evidence favours among those the term's fit fits jointly
+    (:func:`newdyn.discovery.verify.searched_from`), fitted to all of them: each form with one shape for all
     recordings, so that a line that moves with the speed is an order of a disk and one that stays a fixed frequency.
     Each term's best place, best first, what each recording alone would have said, and the best term added to the
     model: fitted to all recordings on the full simulator with that drift (:func:`newdyn.discovery.verify.fit_across`),
     each recording's reduced χ² before and after; and that term's found effect file (:func:`effect_file.render_across`)."""
-    drift = next(row["hypothesis"] for row in ranking if row["class"] in (HEALTHY, PARAMETER_CHANGE))
+    drift = next(row["hypothesis"] for row in ranking if verify.searched_from(fits[row["hypothesis"]].hypothesis, settings.drift))
     fit = fits[drift]
     records = []
     for i, s in enumerate(seen):

@@ -1,6 +1,6 @@
 """A missing generalized force at one place, estimated from a model's residual, with its evidence.
 
-The residual r of the calibrated model (channel, time) is taken as the response to an unknown force
+The residual r (channel, time) of the model the search starts from is taken as the response to an unknown force
 history at the place plus the measurement's noise: r = G c + e, where the columns of the sensitivity
 G are the channels' responses to unit basis pulses of force at the place, c the force at the pulses'
 centres, and e ~ N(0, σ_c²) independent.  With a Normal prior c ~ N(0, s² I) this is Bayesian linear

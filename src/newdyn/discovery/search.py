@@ -1,6 +1,6 @@
 """Find the missing term: where the force acts, and which form of the catalogue it has.
 
-From the calibrated model's residual r (channel, time) and noise σ:
+From the residual r (channel, time) of the model the search starts from (healthy or a drift) and noise σ:
 
 1. the residual's spectral peaks above the noise (whitened periodogram, a line's power far above the
    noise's unit mean) give the frequencies that forms with one try;

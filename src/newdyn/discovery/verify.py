@@ -1,5 +1,6 @@
-"""Discovery inside a diagnosis: search the calibrated model's residual, fit the leading candidates on the full
-simulator, and say what was found — the verdict's ``discovery`` section and the best candidate's effect file.
+"""Discovery inside a diagnosis: search the residual of the model it starts from (healthy or a drift,
+:func:`search_base`), fit the leading candidates on the full simulator, and say what was found — the verdict's
+``discovery`` section and the best candidate's effect file.
 
 The linearized ranking of a term that depends on the motion is first order only (a strong dry friction across
 the coupling ranked behind a line at its resonance, and behind itself across the motor shaft), so the best
@@ -51,17 +52,34 @@ class Discovered:
             yield
 
 
-def discover(name: str, calibrated: hypotheses.Fit, data, sigma, values, sampling, settings: Settings) -> Discovered:
+def searched_from(hypothesis: hypotheses.Hypothesis, drift: Sequence[str]) -> bool:
+    """Whether the search for a missing term may linearize about ``hypothesis``'s fit: healthy, or a drift of parameters
+    that the found term's full fit fits jointly (``drift``), so that the search ranks terms on the very model the full
+    fit adds them to.  A calibration of any other parameter that does not explain the data may have absorbed part of
+    the term (a bearing stiffness moved toward a line, the probes' gains pulled out of spec with it), and the residual
+    it leaves is then the term less what it absorbed."""
+    return hypothesis.kind == hypotheses.HEALTHY or (
+        hypothesis.kind == hypotheses.PARAMETER_CHANGE and set(hypothesis.parameters) <= set(drift))
+
+
+def search_base(fits: Mapping[str, hypotheses.Fit], drift: Sequence[str]) -> hypotheses.Fit:
+    """The fit the search for a missing term starts from: of those it may linearize about (:func:`searched_from`), the
+    one with the most evidence."""
+    return max((fit for fit in fits.values() if searched_from(fit.hypothesis, drift)), key=lambda fit: fit.log_evidence)
+
+
+def discover(name: str, origin: hypotheses.Fit, data, sigma, values, sampling, settings: Settings) -> Discovered:
     """The discovery section of the verdict, the force estimated at each place and, where the search found a candidate,
-    the best one's effect file and its fit on the full simulator."""
-    base = {**values, **calibrated.values}
-    read = sensors.reading(data, calibrated.model, sigma, _datasheets(calibrated, settings, sampling))  # what the instruments add taken out
+    the best one's effect file and its fit on the full simulator: the search starts from the fit ``origin``
+    (:func:`search_base`)."""
+    base = {**values, **origin.values}
+    read = sensors.reading(data, origin.model, sigma, _datasheets(origin, settings, sampling))  # what the instruments add taken out
     found = search.discover(data - read, sigma, base, sampling, settings.channels, settings.max_step)
     top = search.log_bayes_factor(found.candidates[0], found) if found.candidates else 0.0
     leading = [c for c in found.candidates if search.log_bayes_factor(c, found) >= FULL_FIT_SHARE * top]
     terms = list(dict.fromkeys(c.term for c in leading))[:FULL_FIT_TERMS]
     tried = [c for term in terms for c in [c for c in leading if c.term == term][:FULL_FIT_PLACES]]
-    full, kernel_files = _full_fits(tried, data, sigma, values, calibrated, sampling, settings)
+    full, kernel_files = _full_fits(tried, data, sigma, values, origin, sampling, settings)
     ranked = sorted(tried, key=lambda c: -full[id(c)].log_evidence) + [c for c in found.candidates if id(c) not in full]
 
     def row(c):
@@ -73,7 +91,7 @@ def discover(name: str, calibrated: hypotheses.Fit, data, sigma, values, samplin
         return summary
 
     equal = _equivalent(found, {(c.term, c.acts_on): full[id(c)].log_evidence for c in tried}, settings.evidence_margin)
-    section = {"from": calibrated.hypothesis.name, "peaks_hz": list(found.peaks.frequencies), "chi2_before": found.chi2_before,
+    section = {"from": origin.hypothesis.name, "peaks_hz": list(found.peaks.frequencies), "chi2_before": found.chi2_before,
                "candidates": [row(c) for c in ranked],
                "equivalent": [f"{term} on {place}" for term, place in equal],
                "equivalent_margin": settings.evidence_margin,
@@ -142,7 +160,7 @@ def _force_dataset(found: search.Discovery) -> xr.Dataset:
     )
 
 
-def _full_fits(candidates: Sequence[search.Candidate], data, sigma, values, calibrated: hypotheses.Fit, sampling,
+def _full_fits(candidates: Sequence[search.Candidate], data, sigma, values, origin: hypotheses.Fit, sampling,
                settings: Settings) -> tuple[dict[int, hypotheses.Fit], dict[int, list[Path]]]:
     """Each candidate's :func:`_full_fit` and the generic effect files it ran beside (its own among them), by ``id``.
     One whose kernel (the active effects and its form's generic file) is compiled already runs in it; the others share
@@ -156,11 +174,11 @@ def _full_fits(candidates: Sequence[search.Candidate], data, sigma, values, cali
     with contextlib.ExitStack() as stack:
         included = {id(c): stack.enter_context(effects.including(files[id(c)])) for c in together}
         for c in together:
-            fits[id(c)] = _full_fit(c, included[id(c)], data, sigma, values, calibrated, sampling, settings)
+            fits[id(c)] = _full_fit(c, included[id(c)], data, sigma, values, origin, sampling, settings)
     for c in candidates:
         if id(c) not in fits:
             with effects.including(files[id(c)]) as effect:
-                fits[id(c)] = _full_fit(c, effect, data, sigma, values, calibrated, sampling, settings)
+                fits[id(c)] = _full_fit(c, effect, data, sigma, values, origin, sampling, settings)
     return fits, {id(c): group if files[id(c)] in group else [files[id(c)]] for c in candidates}
 
 
@@ -170,15 +188,15 @@ def _compiled(path: Path) -> bool:
         return kernels.is_compiled(effects.active())
 
 
-def _full_fit(candidate: search.Candidate, effect: type[effects.Effect], data, sigma, values, calibrated: hypotheses.Fit,
+def _full_fit(candidate: search.Candidate, effect: type[effects.Effect], data, sigma, values, origin: hypotheses.Fit,
               sampling, settings: Settings) -> hypotheses.Fit:
     """``candidate`` (``effect``, its form's generic effect file, active) and the drift parameters fitted on the full
     simulator, within :func:`newdyn.discovery.effect_file.prior_range` of its linearized fit."""
     ranges = {effect.name: {key: effect_file.prior_range(key, row)[:2] for key, row in candidate.parameters.items()}}
     hypothesis = hypotheses.library(settings.calibration_priors(), ranges, settings.drift)[-1]
-    start = {**{key: float(row["value"]) for key, row in candidate.parameters.items()}, **calibrated.values}
+    start = {**{key: float(row["value"]) for key, row in candidate.parameters.items()}, **origin.values}
     return hypotheses.fit(hypothesis, data, sigma, values, sampling, settings.channels, [start], settings.max_step, search=False,
-                          instruments=_datasheets(calibrated, settings, sampling))
+                          instruments=_datasheets(origin, settings, sampling))
 
 
 def fit_across(term: str, place: str, shape: Shape, parameters: Sequence[Mapping], recordings: Sequence[hypotheses.Recording],
@@ -209,9 +227,9 @@ def _generic_file(term: str, place: str, shape: Shape) -> Path:
     return path
 
 
-def _datasheets(calibrated: hypotheses.Fit, settings: Settings, sampling) -> sensors.Instruments | None:
+def _datasheets(origin: hypotheses.Fit, settings: Settings, sampling) -> sensors.Instruments | None:
     """The instruments as their datasheets say, with the noise colour the library's fits were whitened by."""
-    return settings.instruments(sampling.fs, calibrated.instruments.colour if calibrated.instruments is not None else None)
+    return settings.instruments(sampling.fs, origin.instruments.colour if origin.instruments is not None else None)
 
 
 def merged(linearized: Mapping, full: Mapping) -> dict:
