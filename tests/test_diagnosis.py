@@ -31,6 +31,7 @@ from newdyn import (
     slots,
     statement,
 )
+from newdyn.discovery import verify
 from newdyn.effects.library import stick_slip
 from newdyn.settings import Settings
 
@@ -463,6 +464,22 @@ def test_the_fault_posterior_is_left_unverified_behind_a_discovered_term_that_ex
     # discovery found on request.
     explained = {**fits, "stick_slip": replace(fits["stick_slip"], chi2_red=1.0)}
     assert diagnosis._explaining_ahead(explained, {}, "stick_slip", 1.1, discovered) is None
+
+
+def test_the_instruments_are_reported_under_the_discovered_term_where_it_explains_what_the_library_does_not():
+    """A library fit that came nearer the data only through probes far out of spec says nothing about the probes:
+    where the verdict is unexplained and the discovered term explains the data, its fit's instruments are reported."""
+    def fit(name, chi2):
+        return hypotheses.Fit(hypotheses.Hypothesis(name, "parameter_change"), {}, np.zeros((1, 1)), 0.0, chi2, -100.0, 1)
+
+    fits = {"parameter_change:k_bx": fit("parameter_change:k_bx", 198.0)}
+    discovered = verify.Discovered({}, None, None, fit("discovered_periodic_b2_x", 1.0))
+    unexplained = {"verdict": "unexplained", "models": {"after": "parameter_change:k_bx"}}
+    assert diagnosis._read_through(fits, unexplained, discovered, 1.1) is discovered.fit
+    assert diagnosis._read_through(fits, unexplained, replace(discovered, fit=replace(discovered.fit, chi2_red=1.5)), 1.1) is fits["parameter_change:k_bx"]
+    assert diagnosis._read_through(fits, unexplained, None, 1.1) is fits["parameter_change:k_bx"]
+    explained = {"verdict": "parameter_change", "models": {"after": "parameter_change:k_bx"}}  # discovery run on request
+    assert diagnosis._read_through(fits, explained, discovered, 1.1) is fits["parameter_change:k_bx"]
 
 
 def test_a_speed_sensor_out_of_its_spec_is_a_sensor_problem_not_a_machine_fault():

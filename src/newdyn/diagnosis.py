@@ -231,7 +231,8 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
 
     verdict = _verdict(fits, calibrations, signatures, settings, values, sampling, data, sigma)
     if instruments is not None and np.any(instruments.scale > 0):
-        verdict.update(instrument_checks.report(fits[verdict["models"]["after"]], data, sigma, instruments, channels, settings.evidence_margin))
+        verdict.update(instrument_checks.report(_read_through(fits, verdict, discovery, settings.chi2_max), data, sigma, instruments, channels,
+                                                settings.evidence_margin))
         if verdict["verdict"] == "healthy" and verdict["sensor_problems"]:
             verdict["verdict"] = SENSOR_PROBLEM
         verdict["sensor_alternatives"] = instrument_checks.alternatives(fits, verdict["models"]["after"], data, sigma, instruments, channels, settings)
@@ -385,6 +386,15 @@ def _explains(fit: hypotheses.Fit, calibrations, chi2_max: float) -> bool:
     """Whether a fit brings χ² to the noise, a drift's with a consistent grid posterior (one peak)."""
     consistent = fit.hypothesis.kind != PARAMETER_CHANGE or calibrations[fit.hypothesis.effect].posterior.consistent()
     return fit.chi2_red <= chi2_max and consistent
+
+
+def _read_through(fits, verdict: Mapping, discovery: verify.Discovered | None, chi2_max: float) -> hypotheses.Fit:
+    """The model whose instruments the verdict reports: the final model, or the discovered term's fit where it explains
+    what the library does not.  A library fit that came nearer the data only through probes far out of their spec (a
+    bearing stiffness pulled toward a line, both probes' gains with it) says nothing about the probes."""
+    if verdict["verdict"] == "unexplained" and discovery is not None and discovery.fit is not None and discovery.fit.chi2_red <= chi2_max:
+        return discovery.fit
+    return fits[verdict["models"]["after"]]
 
 
 def _unneeded(fit: hypotheses.Fit, ahead: str | None, chi2_max: float) -> str | None:
