@@ -570,29 +570,37 @@ def test_the_slurm_profile_asks_for_each_rules_memory_and_time(tmp_path):
             assert re.search(r"\bmem_mb=\d+", resources) and re.search(r"\bruntime=\d+", resources), (rule, resources)
 
 
-def test_on_a_batch_system_each_scenario_is_one_job_with_its_noisy_copies_and_their_calibrations(tmp_path):
+def test_on_a_batch_system_a_scenario_the_library_and_a_case_are_one_job_each(tmp_path):
     """A batch system makes each job wait for the queue, its start and the next status check: there a scenario's
-    simulation, noisy copies and their calibrations run as one group job, one per scenario of each variant, and no
-    job of those rules runs alone.  (A local run ignores groups.)"""
+    simulation, noisy copies and their calibrations run as one group job, one per scenario of each variant; the default
+    study's coarse grids and its bank as one; a blind case's measurement and its diagnosis as one per case; and no job
+    of those rules runs alone.  (A local run ignores groups.)"""
     run = snakemake(tmp_path, "--executor", "cluster-generic", "--cluster-generic-submit-cmd", "true", "--jobs", "2",
                     "--dry-run")
     assert run.returncode == 0, run.stderr[-3000:]
-    blocks = re.split(r"^.*Group job scenario .*$", run.stdout, flags=re.MULTILINE)[1:]
     groups = {}
-    for block in blocks:
-        jobs = re.findall(r"^    rule (\w+):\n(?:        .*\n)*?        wildcards: variant=(\w+), scenario=(\w+)", block, re.MULTILINE)
-        [pair] = {(variant, scenario) for _, variant, scenario in jobs}
-        groups[pair] = sorted(rule for rule, _, _ in jobs)
+    parts = re.split(r"^.*Group job (\w+) .*$", run.stdout, flags=re.MULTILINE)
+    for group, block in zip(parts[1::2], parts[2::2]):
+        jobs = re.findall(r"^    rule (\w+):\n((?:        .*\n)*)", block, re.MULTILINE)  # a group's jobs indented
+        groups.setdefault(group, []).append(sorted((rule, " ".join(re.findall(r"^        wildcards: (.*)$", body, re.MULTILINE)))
+                                                   for rule, body in jobs))
     config = yaml.safe_load(TEST_CONFIG.read_text())
-    expected = {}
+    scenarios, grids = [], []
     for variant in newdyn.study.variant_names(config):
         cfg = newdyn.study.variant_config(config, variant)
-        copies = len(cfg["noise"]["snr_db"]) * len(cfg["noise"]["seeds"])
+        copies = [f"snr={snr}, seed={seed}" for snr in cfg["noise"]["snr_db"] for seed in cfg["noise"]["seeds"]]
         calibrations = [f"calibrate_grid_{variant}"] + [f"calibrate_mcmc_{variant}"] * bool(newdyn.study.mcmc_runs(cfg))
         for scenario in cfg["scenarios"]:
-            expected[variant, scenario] = sorted(["simulate"] + (["add_noise"] + calibrations) * copies)
-    assert len(blocks) == len(expected) and groups == expected
-    alone = re.findall(r"^rule (simulate|add_noise|calibrate_\w+):", run.stdout, re.MULTILINE)
+            at = f"variant={variant}, scenario={scenario}"
+            scenarios.append(sorted([("simulate", at)] + [(rule, f"{at}, {copy}") for copy in copies for rule in ["add_noise", *calibrations]]))
+        grids += [("grid_models", f"variant={variant}, parameter={p}") for p in cfg["calibration"]["parameters"]]
+    study = sorted([("bank", "")] + [grid for grid in grids if "variant=default," in grid[1]])
+    cases = [sorted([("diagnose", f"root=results/demo, name={case}"), ("hidden_measurement", f"set=demo, name={case}")])
+             for case in hidden_sets.case_names("demo", config["hidden"]["sets"]["demo"]["cases"])]
+    assert sorted(groups["scenario"]) == sorted(scenarios)
+    assert sorted(groups["library"]) == sorted([study] + [[grid] for grid in grids if grid not in study])
+    assert sorted(groups["case"]) == sorted(cases)
+    alone = re.findall(r"^rule (simulate|add_noise|calibrate_\w+|grid_models|bank|hidden_measurement|diagnose):", run.stdout, re.MULTILINE)
     assert not alone, alone
 
 

@@ -8,6 +8,8 @@ rule grid_models:
     # First, on one thread (below): a two-thread job waits for both cores to be free, which with the
     # study's one-thread jobs queued is near the end, and every grid calibration and diagnosis waits on it.
     priority: 2
+    group:
+        LIBRARY_GROUP
     conda:
         "../envs/newdyn.yaml"
     threads: 1

@@ -34,6 +34,10 @@ SEEDS = [str(seed) for seed in config["noise"]["seeds"]]
 # group (one group job per scenario; a local run ignores groups). Each job a batch system runs waits for its queue,
 # its start and the next status check, which cost more than most of these jobs' work.
 SCENARIO_GROUP = "scenario"
+# The same for what every diagnosis reads (the study's coarse grids and its hypothesis bank: one job), and for a blind
+# set's case (its measurement drawn and diagnosed: one job per case, as a bank shared by all would join them into one).
+LIBRARY_GROUP = "library"
+CASE_GROUP = "case"
 
 # Rules pass the hash of the code their `newdyn` command runs as a param (code_hash), so that an edit of any
 # module it imports, directly or through others, reruns exactly its jobs; an effect's own file counts only

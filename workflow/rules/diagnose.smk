@@ -24,6 +24,8 @@ rule bank:
     # First, as every diagnosis waits on it, on one thread: a two-thread job waits for both cores to be free, which
     # with the study's one-thread jobs queued is near the end, and the bank then heads a chain that ends the study.
     priority: 2
+    group:
+        LIBRARY_GROUP
     conda:
         "../envs/newdyn.yaml"
     threads: 1
@@ -66,6 +68,8 @@ rule diagnose:
         name=rf"(?!(?:{MACHINE_NAMES})/[^/]+$){MEASUREMENT_NAME}",
     # Its log's lines (each stage and fit as it ends) go to the terminal too, so that a long diagnosis can be watched.
     priority: 1
+    group:
+        CASE_GROUP
     conda:
         "../envs/newdyn.yaml"
     threads: diagnosis_threads

@@ -36,6 +36,8 @@ rule hidden_measurement:
     benchmark:
         "results/benchmarks/hidden_measurement/{set}/{name}.tsv"
     priority: 1
+    group:
+        CASE_GROUP
     conda:
         "../envs/newdyn.yaml"
     resources:
