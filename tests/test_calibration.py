@@ -55,7 +55,8 @@ def test_the_best_fit_is_the_most_likely_model_of_every_pass(coarse_models):
 
 def test_calibrations_run_together_give_each_its_result_alone_to_the_bit(coarse_models, monkeypatch):
     """Several measurements on both grids, their refinements simulated in shared batches (small ones here, so that
-    cells of different tasks share a batch and a task's cells span two), give what each gets alone."""
+    cells of different tasks share a batch and a task's cells span two), give what each gets alone; a task whose
+    cells another's already holds (here the same measurement twice) adds no simulation."""
     measurements = [noise.add_noise(simulate(truth, SAMPLING, CHANNELS), CHANNELS, 40.0, seed)
                     for seed, truth in enumerate([{}, {"kT1": 3.13e6}, STICK_SLIP], start=1)]
     sigma = measurements[0][1]
@@ -63,8 +64,14 @@ def test_calibrations_run_together_give_each_its_result_alone_to_the_bit(coarse_
     alone = [calibration.calibrate(t.data, sigma, t.spec, t.prior, t.coarse_models, {}, SAMPLING, CHANNELS, 41, 1.1)
              for t in tasks]
     monkeypatch.setattr(calibration, "REFINE_BATCH", 100)
-    together = calibration.calibrate_many(tasks, sigma, {}, SAMPLING, CHANNELS, 41, 1.1)
-    for one, many in zip(alone, together, strict=True):
+    simulated = []
+    batch = calibration.simulation.simulate_batch
+    monkeypatch.setattr(calibration.simulation, "simulate_batch", lambda rows, *args: simulated.append(len(rows)) or batch(rows, *args))
+    calibration.calibrate_many(tasks, sigma, {}, SAMPLING, CHANNELS, 41, 1.1)
+    once, simulated[:] = sum(simulated), []
+    together = calibration.calibrate_many(tasks + tasks[:2], sigma, {}, SAMPLING, CHANNELS, 41, 1.1)
+    assert sum(simulated) == once
+    for one, many in zip(alone + alone[:2], together, strict=True):
         for name in ("grid", "log_likelihood", "density"):
             np.testing.assert_array_equal(getattr(one.posterior, name), getattr(many.posterior, name))
         np.testing.assert_array_equal(one.best_fit, many.best_fit)

@@ -217,7 +217,8 @@ def calibrate_many(tasks: Sequence[Task], sigma: np.ndarray, values: Mapping[str
                    instruments: sensors.Instruments | None = None) -> list[Calibration]:
     """:func:`calibrate` of each of ``tasks`` (all with noise ``sigma`` through ``instruments``), each refinement pass
     of them all simulated together: the kernel fills its lanes and both cores, where one task's cells of
-    ``refine_points`` would not.  Each task's result is the one it gets alone, to the bit."""
+    ``refine_points`` would not, and a cell that several tasks refine is simulated once.  Each task's result is the one
+    it gets alone, to the bit."""
     def run(task, grid, models):
         per_channel = likelihood.log_likelihood(task.data, models, sigma, per_channel=True, instruments=instruments)
         ll = per_channel.sum(axis=-1)
@@ -225,15 +226,20 @@ def calibrate_many(tasks: Sequence[Task], sigma: np.ndarray, values: Mapping[str
         return _Run(grid, per_channel, ll, best, models[best].copy())
 
     def refined(cells):  # [(task number, points)] -> each cell's run
-        found, per_batch = [], max(1, REFINE_BATCH // refine_points)
-        for start in range(0, len(cells), per_batch):
-            batch = cells[start:start + per_batch]
+        # Cells of one parameter at the same points (tasks whose peaks fall in one coarse cell: a library's signatures,
+        # mostly) are simulated once for all of them; a lane's result does not depend on its batch.
+        same = {}
+        for c, (k, points) in enumerate(cells):
+            same.setdefault((tasks[k].spec.parameter, points.tobytes()), []).append(c)
+        groups, found, per_batch = list(same.values()), {}, max(1, REFINE_BATCH // refine_points)
+        for start in range(0, len(groups), per_batch):
+            batch = [(cells[group[0]], group) for group in groups[start:start + per_batch]]
             models = simulation.simulate_batch(
-                np.vstack([parameter_rows(values, [tasks[k].spec.parameter], points[:, None]) for k, points in batch]),
+                np.vstack([parameter_rows(values, [tasks[k].spec.parameter], points[:, None]) for (k, points), _ in batch]),
                 sampling, channels, max_step)
-            found += [run(tasks[k], points, cell_models)
-                      for (k, points), cell_models in zip(batch, np.split(models, np.cumsum([len(p) for _, p in batch])[:-1]))]
-        return found
+            for ((_, points), group), cell_models in zip(batch, np.split(models, np.cumsum([len(p) for (_, p), _ in batch])[:-1])):
+                found.update({c: run(tasks[cells[c][0]], points, cell_models) for c in group})
+        return [found[c] for c in range(len(cells))]
 
     coarse_runs = [run(task, task.spec.axis, task.coarse_models) for task in tasks]
     # Pass 1 finds each peak inside its coarse cells; pass 2 covers ±SPAN_SD widths of it, so that quadrature sees the
