@@ -331,8 +331,9 @@ def test_equivalent_placements_rest_on_the_full_fits_and_on_the_best_forms_linea
 
 def test_the_search_starts_from_healthy_or_a_drift_its_terms_full_fit_fits_not_from_another_calibration():
     """A calibration of a parameter outside ``drift`` that does not explain the data may have absorbed part of the
-    missing term (a bearing stiffness moved toward its line), so the search starts from the best fit among healthy and
-    the drifts that the found term's full fit fits jointly, whatever the others' evidence."""
+    missing term (a bearing stiffness moved toward its line), so the search starts from the best fit among healthy,
+    the drifts that the found term's full fit fits jointly and the drifts that explain the data, whatever the others'
+    evidence."""
     def fit(name, kind, log_evidence, parameters=()):
         priors = tuple(hypotheses.Prior(p, 0.0, 1.0) for p in parameters)
         return hypotheses.Fit(hypotheses.Hypothesis(name, kind, priors), {}, np.zeros((1, 1)), 0.0, 9.0, log_evidence, 1)
@@ -346,3 +347,6 @@ def test_the_search_starts_from_healthy_or_a_drift_its_terms_full_fit_fits_not_f
     assert verify.search_base(fits, ["kT1", "k_bx"]).hypothesis.name == "parameter_change:k_bx"
     worse = {**fits, "parameter_change:kT1": fit("parameter_change:kT1", "parameter_change", -950.0, ["kT1"])}
     assert verify.search_base(worse, ["kT1"]).hypothesis.name == "healthy"
+    # Run on request where a drift explains the data, the search looks beyond that drift.
+    assert verify.search_base(fits, ["kT1"], explaining=["parameter_change:k_bx"]).hypothesis.name == "parameter_change:k_bx"
+    assert verify.search_base(fits, ["kT1"], explaining=["stick_slip"]).hypothesis.name == "parameter_change:kT1"

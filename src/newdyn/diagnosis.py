@@ -216,7 +216,9 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
     best_fault = max(settings.fault_ranges, key=lambda kind: fits[kind].log_evidence)
     discovery = None
     if settings.searches(any(_explains(fit, calibrations, settings.chi2_max) for fit in fits.values())):
-        discovery = verify.discover(measurement.name, verify.search_base(fits, settings.drift), data, sigma, values, sampling, settings)
+        explaining = [name for name, fit in fits.items() if _explains(fit, calibrations, settings.chi2_max)]
+        discovery = verify.discover(measurement.name, verify.search_base(fits, settings.drift, explaining), data, sigma, values, sampling,
+                                    settings)
         stage(f"discovery ({len(discovery.section['candidates'])} candidates)")
     ahead = _explaining_ahead(fits, calibrations, best_fault, settings.chi2_max, discovery and discovery.fit)
     unneeded = _unneeded(fits[best_fault], ahead, settings.chi2_max)

@@ -123,7 +123,8 @@ def _discovery(name: str, recordings: Sequence[Diagnosed], ranking: Sequence[Map
     Each term's best place, best first, what each recording alone would have said, and the best term added to the
     model: fitted to all recordings on the full simulator with that drift (:func:`newdyn.discovery.verify.fit_across`),
     each recording's reduced χ² before and after; and that term's found effect file (:func:`effect_file.render_across`)."""
-    drift = next(row["hypothesis"] for row in ranking if verify.searched_from(fits[row["hypothesis"]].hypothesis, settings.drift))
+    drift = next(row["hypothesis"] for row in ranking
+                 if verify.searched_from(fits[row["hypothesis"]].hypothesis, settings.drift, row["explains"]))
     fit = fits[drift]
     records = []
     for i, s in enumerate(seen):

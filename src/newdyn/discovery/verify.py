@@ -12,7 +12,7 @@ parameters, and ranked by that fit's Laplace evidence, as the library's hypothes
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Mapping, Sequence
+from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -52,20 +52,22 @@ class Discovered:
             yield
 
 
-def searched_from(hypothesis: hypotheses.Hypothesis, drift: Sequence[str]) -> bool:
-    """Whether the search for a missing term may linearize about ``hypothesis``'s fit: healthy, or a drift of parameters
+def searched_from(hypothesis: hypotheses.Hypothesis, drift: Sequence[str], explains: bool) -> bool:
+    """Whether the search for a missing term may linearize about ``hypothesis``'s fit: healthy, a drift of parameters
     that the found term's full fit fits jointly (``drift``), so that the search ranks terms on the very model the full
-    fit adds them to.  A calibration of any other parameter that does not explain the data may have absorbed part of
-    the term (a bearing stiffness moved toward a line, the probes' gains pulled out of spec with it), and the residual
-    it leaves is then the term less what it absorbed."""
+    fit adds them to, or a drift that ``explains`` the data (the search, run on request, then looks beyond it).  A
+    calibration of any other parameter that does not explain the data may have absorbed part of the term (a bearing
+    stiffness moved toward a line, the probes' gains pulled out of spec with it), and the residual it leaves is then
+    the term less what it absorbed."""
     return hypothesis.kind == hypotheses.HEALTHY or (
-        hypothesis.kind == hypotheses.PARAMETER_CHANGE and set(hypothesis.parameters) <= set(drift))
+        hypothesis.kind == hypotheses.PARAMETER_CHANGE and (explains or set(hypothesis.parameters) <= set(drift)))
 
 
-def search_base(fits: Mapping[str, hypotheses.Fit], drift: Sequence[str]) -> hypotheses.Fit:
-    """The fit the search for a missing term starts from: of those it may linearize about (:func:`searched_from`), the
-    one with the most evidence."""
-    return max((fit for fit in fits.values() if searched_from(fit.hypothesis, drift)), key=lambda fit: fit.log_evidence)
+def search_base(fits: Mapping[str, hypotheses.Fit], drift: Sequence[str], explaining: Collection[str] = ()) -> hypotheses.Fit:
+    """The fit the search for a missing term starts from: of those it may linearize about (:func:`searched_from`; the
+    fits named in ``explaining`` explain the data), the one with the most evidence."""
+    return max((fit for name, fit in fits.items() if searched_from(fit.hypothesis, drift, name in explaining)),
+               key=lambda fit: fit.log_evidence)
 
 
 def discover(name: str, origin: hypotheses.Fit, data, sigma, values, sampling, settings: Settings) -> Discovered:
