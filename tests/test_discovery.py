@@ -129,6 +129,22 @@ def test_steady_torque_at_each_place_gives_the_static_closed_form(linear, place,
     assert response[2, -1] == pytest.approx(coupling_torque_per_torque, abs=1e-6)
 
 
+@pytest.mark.parametrize("place", ["coupling", "b2_y"])
+def test_each_pulse_column_is_the_response_to_its_hat_over_the_record(place):
+    """Column j of the pulse sensitivity is the channels' response to a unit hat centred at centres[j], seen on the
+    record's samples first … first + n − 1 (zero before the hat starts), as the linear model gives it directly."""
+    first, n_record, spacing = 30, 120, 4
+    rig = LinearRig.build(BASE, FS, first + n_record, ("w1", "b1_x", "b2_y"))
+    columns, centres = rig.pulse_sensitivity(place, first, n_record, spacing)
+    assert columns.shape == (3, n_record, centres.size) and centres[0] == spacing and centres[-1] < first + n_record
+    k = np.arange(first + n_record)
+    for j in (0, 7, centres.size // 2, centres.size - 1):
+        hat = np.clip(1.0 - np.abs(k - centres[j]) / spacing, 0.0, None)
+        direct = rig.response(place, hat)[:, first:]
+        np.testing.assert_allclose(columns[:, :, j], direct, rtol=0, atol=1e-9 * np.abs(direct).max())
+        assert np.all(columns[:, : max(0, centres[j] - spacing - first), j] == 0.0)
+
+
 def test_steady_lateral_force_gives_the_static_deflection(linear):
     _, _, stiffness = model.linear_matrices(BASE)
     n = len(model.NODES)

@@ -18,6 +18,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
 from scipy import signal
 
 from .. import model
@@ -115,7 +116,10 @@ class LinearRig:
         unit = np.zeros(n_grid)
         unit[lags + spacing] = hat  # the hat centred at sample `spacing`
         one = self.response(place, unit)  # (channel, grid)
-        # Column j is the response to a hat centred at centres[j], i.e. `one` shifted by centres[j] − spacing.
-        shift = first + np.arange(n_record)[:, None] - centres[None, :] + spacing
-        columns = np.where(shift >= 0, one[:, np.clip(shift, 0, n_grid - 1)], 0.0)
+        # Column j is the response to a hat centred at centres[j], i.e. `one` shifted by centres[j] − spacing: the
+        # record's window of `one` from first − (centres[j] − spacing), zero before the grid's start.
+        lead = max(0, centres[-1] - spacing - first)
+        padded = np.concatenate([np.zeros((one.shape[0], lead)), one], axis=1)
+        windows = sliding_window_view(padded, n_record, axis=1)  # (channel, window start, record sample)
+        columns = np.ascontiguousarray(np.moveaxis(windows[:, lead + first - (centres - spacing), :], 1, 2))
         return columns, centres
