@@ -215,8 +215,8 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
 
     best_fault = max(settings.fault_ranges, key=lambda kind: fits[kind].log_evidence)
     discovery = None
-    if settings.searches(any(_explains(fit, calibrations, settings.chi2_max) for fit in fits.values())):
-        explaining = [name for name, fit in fits.items() if _explains(fit, calibrations, settings.chi2_max)]
+    explaining = [name for name, fit in fits.items() if _explains(fit, calibrations, settings.chi2_max)]
+    if settings.searches(bool(explaining)):
         discovery = verify.discover(measurement.name, verify.search_base(fits, settings.drift, explaining), data, sigma, values, sampling,
                                     settings)
         stage(f"discovery ({len(discovery.section['candidates'])} candidates)")
