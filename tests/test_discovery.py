@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy import integrate, stats
 
-from newdyn import effects, faults, hypotheses, model, reference, simulation, slots
+from newdyn import effects, faults, hypotheses, model, reference, sensors, simulation, slots
 from newdyn import noise as measurement_noise
 from newdyn.discovery import effect_file, force, search, verify
 from newdyn.discovery.forms import FORMS, Peaks, Shape, Trajectory
@@ -65,6 +65,32 @@ def test_the_prior_scale_is_marginalized_over_its_log_uniform_prior():
     peak = max(log_evidence_at(x) for x in np.linspace(math.log(low), math.log(high), 41))
     integral, _ = integrate.quad(lambda x: math.exp(log_evidence_at(x) - peak), math.log(low), math.log(high), limit=200)
     assert result.log_evidence == pytest.approx(peak + math.log(integral / (math.log(high) - math.log(low))), abs=1e-3)
+
+
+def test_instrument_errors_fitted_beside_the_force_are_the_gaussian_closed_forms():
+    """r = G c + B b + e with b ~ N(0, I) (an offset and a gain-like column per channel, one of them far wider than the
+    data say): the regression on the whitened r and G gives the Bayes factor and the posterior of c of the Normal model
+    with covariance σ²I + BBᵀ + s²GGᵀ."""
+    rng = np.random.default_rng(4)
+    g = smooth_sensitivity(rng)
+    n_samples = g.shape[1]
+    design = np.stack([np.column_stack([np.full(n_samples, 0.3 * sd), 50.0 * sd * np.sin(0.05 * np.arange(n_samples) + c)])
+                       for c, sd in enumerate(SIGMA)])
+    residual = np.einsum("ctj,j->ct", g, rng.normal(0, 3.0, g.shape[2])) + np.einsum("ctk,ck->ct", design, rng.normal(size=(2, 2))) + noise(rng)
+    nuisance = force.Nuisance.of(design, SIGMA)
+    s = 2.5
+    result = force.regress(nuisance.whiten(residual), SIGMA, nuisance.whiten(g), (s, s * (1 + 1e-10)))
+    flat = g.reshape(residual.size, -1)
+    errors = np.zeros((residual.size, residual.size))
+    for c in range(2):
+        rows = slice(c * n_samples, (c + 1) * n_samples)
+        errors[rows, rows] = SIGMA[c] ** 2 * np.eye(n_samples) + design[c] @ design[c].T
+    with_force = stats.multivariate_normal(np.zeros(residual.size), errors + s**2 * flat @ flat.T).logpdf(residual.ravel())
+    without = stats.multivariate_normal(np.zeros(residual.size), errors).logpdf(residual.ravel())
+    assert result.log_bayes_factor == pytest.approx(with_force - without, abs=1e-6)
+    covariance = np.linalg.inv(flat.T @ np.linalg.solve(errors, flat) + np.eye(g.shape[2]) / s**2)
+    assert result.mean == pytest.approx(covariance @ flat.T @ np.linalg.solve(errors, residual.ravel()), abs=1e-8)
+    assert result.sd == pytest.approx(np.sqrt(np.diag(covariance)), rel=1e-7)
 
 
 def test_the_place_the_force_acts_on_wins_and_the_force_is_recovered_within_its_uncertainty():
@@ -218,6 +244,24 @@ def test_each_forms_effect_file_loads_and_its_force_is_the_forms_basis(term, mot
     assert forces == pytest.approx(list(coefficients @ basis[:, list(samples)]), rel=1e-9, abs=1e-12 * np.max(np.abs(forces)))
 
 
+def test_a_loose_seat_seen_through_a_probe_reading_high_is_found_with_the_probes_errors_fitted_beside_it():
+    # A loose b1 housing changes how much b1_x swings, as a probe's gain error does: the instruments read off the nominal
+    # model first would take that part of it (and the search then names a line at 3x disk 4 on m4_x); fitted jointly
+    # with every form, they leave the dead zone its own.
+    channels, gap = ("b1_x", "w1"), 1e-8
+    loose = faults.scenario_values({"fault": {"kind": "loose_bearing", "parameters": {"gap": gap}}}, model.DEFAULTS)
+    seen = simulation.simulate(slots.complete(loose), RECORD, channels) * np.array([[1.03], [1.0]])  # b1_x reads 3 % high
+    data, sigma = measurement_noise.add_noise(seen, channels, 40.0, 3)
+    instruments = sensors.Instruments.of({"b1_x": sensors.Sensor(1e-6, 0.01, 2e-4), "w1": sensors.Sensor(0.01, 0.001, 2e-4)},
+                                         channels, RECORD.fs)
+    residual, design = sensors.linearized(data, simulation.simulate(BASE, RECORD, channels), sigma, instruments)
+    found = search.discover(residual, sigma, BASE, RECORD, channels, simulation.DEFAULT_MAX_STEP, force.Nuisance.of(design, sigma))
+    best = found.candidates[0]
+    assert (best.term, best.acts_on) == ("dead_zone", "b1_x")
+    assert best.parameters["clearance"]["value"] == pytest.approx(gap, rel=0.3)  # the clearance tried nearest the gap
+    assert best.chi2_after < 0.3 * found.chi2_before
+
+
 def test_a_small_breathing_crack_is_found_as_a_stiffness_turning_with_the_load(motion):
     # The crack is the library's, but the search knows only the catalogue: its top form must be a
     # stiffness modulated once per revolution of disk 4, and its frequency that speed.
@@ -258,7 +302,7 @@ def recorded_at(effect, parameters, conditions=TWO_SPEEDS, channels=("b1_x", "w1
             truth = faults.scenario_values({"fault": {"kind": effect, "parameters": parameters}}, condition)
             runs.append((condition, *measurement_noise.add_noise(reference.simulate_reference(truth, SHORT, channels), channels, 40.0, seed)))
     # the nominal model after the block: the kernel compiled for the built-in effects serves it
-    return [(y - simulation.simulate(slots.complete(condition), SHORT, channels), sigma, slots.complete(condition), SHORT, channels)
+    return [(y - simulation.simulate(slots.complete(condition), SHORT, channels), sigma, slots.complete(condition), SHORT, channels, None)
             for condition, y, sigma in runs]
 
 
@@ -337,7 +381,7 @@ def test_full_fits_whose_kernels_are_not_compiled_share_one_kernel(monkeypatch, 
 def test_equivalent_placements_rest_on_the_full_fits_and_on_the_best_forms_linearized_scores():
     scores = (("dead_zone", "b3_x", 100.0), ("periodic", "b2_x", 99.0), ("dead_zone", "b2_x", 95.0),
               ("dead_zone", "b4_x", 90.0), ("dead_zone", "m2_x", 80.0), ("periodic", "m2_x", 94.0))
-    found = search.Discovery([], scores, {}, None, 0.0, 1.0, None, None, 0)
+    found = search.Discovery([], scores, {}, 0.0, 1.0, None)
     # Fitted on the full simulator, b3_x falls far behind b2_x; b4_x was not fitted, but on the linearized model
     # it scores within the margin of b2_x; a line at m2_x does too, but another form's score there says nothing.
     fitted = {("dead_zone", "b3_x"): 50.0, ("dead_zone", "b2_x"): 70.0, ("periodic", "b2_x"): 66.0}

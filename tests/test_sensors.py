@@ -129,6 +129,9 @@ def test_the_delayed_model_is_the_cubic_through_its_four_nearest_samples_also_at
     left = sensors._left(data[None], signal[None, None], np.array([[late]]), fitted[None, None])
     expected = data - fitted[0] - (1 + fitted[1]) * value - (late - fitted[2]) * slope
     np.testing.assert_allclose(left[0, 0], expected, rtol=1e-9, atol=1e-9)
+    delayed = sensors._delayed(signal[None], np.array([late]))
+    np.testing.assert_allclose(delayed[0][0], value, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(delayed[1][0], slope, rtol=1e-9, atol=1e-9)
 
 
 def test_the_delay_is_integrated_out_as_quadrature_over_it_does():
@@ -154,6 +157,19 @@ def test_the_delay_is_integrated_out_as_quadrature_over_it_does():
     top = log_joint.max()
     marginal = top + np.log(np.trapezoid(np.exp(log_joint - top), grid))
     assert sensors.log_likelihood(data, signal(t)[None], sigma, instruments) == pytest.approx(marginal, abs=0.1)
+
+
+def test_the_linearized_residual_and_design_are_the_likelihoods_normal_density():
+    """What a regression beside the instruments takes (r and B about the delay's mode, :func:`sensors.linearized`): each
+    channel's marginal likelihood is the Normal density of r with covariance σ²I + BBᵀ, delays, offsets and gains alike."""
+    data = np.roll(readings(np.array([4e-8, 0.03]), np.array([1.01, 0.999])), 1, axis=1)  # a sample late
+    instruments = sensors.Instruments(np.array([[5e-8, 0.01, 0.8], [0.02, 0.002, 0.6]]), FS)
+    residual, design = sensors.linearized(data, MODEL, SIGMA, instruments)
+    expected = [stats.multivariate_normal(np.zeros(N), SIGMA[c] ** 2 * np.eye(N) + design[c] @ design[c].T).logpdf(residual[c])
+                for c in range(2)]
+    assert sensors.log_likelihood(data, MODEL, SIGMA, instruments, per_channel=True) == pytest.approx(expected, rel=1e-9)
+    residual, design = sensors.linearized(data, MODEL, SIGMA, None)
+    assert np.array_equal(residual, data - MODEL) and design.shape == (2, N, 0)
 
 
 @pytest.mark.parametrize("sds, flagged", [(0.8, []), (-3.0, []), (12.0, [(1, sensors.GAIN)])])

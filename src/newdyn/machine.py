@@ -24,7 +24,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from . import comparison, concurrency, hypotheses, instrument_checks, io, model, next_condition, noise, sensors, slots
-from .discovery import effect_file, search, verify
+from .discovery import effect_file, force, search, verify
 from .hypotheses import HEALTHY
 from .settings import Settings
 
@@ -129,8 +129,8 @@ def _discovery(name: str, recordings: Sequence[Diagnosed], ranking: Sequence[Map
     records = []
     for i, s in enumerate(seen):
         instruments = fit.instruments[i] if fit.instruments else s.instruments
-        residual = s.data - sensors.reading(s.data, fit.models[i], s.sigma, instruments)
-        records.append((residual, s.sigma, {**s.base, **fit.values}, s.sampling, s.channels))
+        residual, design = sensors.linearized(s.data, fit.models[i], s.sigma, instruments)
+        records.append((residual, s.sigma, {**s.base, **fit.values}, s.sampling, s.channels, force.Nuisance.of(design, s.sigma)))
     across = search.discover_across(records, settings.max_step)
     best = {}
     for row in across.scores:  # each term's best place, best first
@@ -139,7 +139,7 @@ def _discovery(name: str, recordings: Sequence[Diagnosed], ranking: Sequence[Map
     section = {"from": drift, "candidates": list(best.values()),
                "equivalent": [f"{row['term']} on {row['acts_on']}" for row in across.scores
                               if top - row["log_evidence"] <= settings.evidence_margin],
-               "alone": [{"peaks_hz": list(found.peaks.frequencies), "equivalent_terms": _equal_terms(found, settings.evidence_margin)}
+               "alone": [{"peaks_hz": list(found.record.peaks.frequencies), "equivalent_terms": _equal_terms(found, settings.evidence_margin)}
                          for found in across.alone]}
     if not across.scores:
         return section, None

@@ -352,6 +352,31 @@ def in_words(channel: str, quantity: str, value: float, unit: str) -> str:
     return f"{channel} reads {abs(value):.2g} {unit} {'high' if value > 0 else 'low'}"
 
 
+def linearized(data: np.ndarray, model: np.ndarray, sigma: np.ndarray, instruments: Instruments | None) -> tuple[np.ndarray, np.ndarray]:
+    """The closed form's residual and design about the delay's mode for one ``model`` (C, n), the noise taken as white:
+    r = y − m(t − τ̂) − τ̂·ṁ(t − τ̂), what perfect instruments leave of the data, and B (C, n, 3) = [s_o·1, s_g·m(t − τ̂),
+    −s_τ·ṁ(t − τ̂)], so that r = B b + (what the model lacks) + e with b ~ N(0, I): a regression on r with B's columns
+    marginalizes the instrument errors jointly with whatever else it fits.  Exact instruments: y − m and no column."""
+    data, model = np.asarray(data, dtype=float), np.asarray(model, dtype=float)
+    if instruments is None:
+        return data - model, np.zeros((*data.shape, 0))
+    shift = _solve(np.ascontiguousarray(data), model, sigma, instruments.scale)[0].shift[0]
+    value, slope = _delayed(model, shift)
+    design = np.stack([np.ones_like(value), value, -slope], axis=-1) * instruments.scale[:, None, :]
+    return data - value - shift[:, None] * slope, design
+
+
+def _delayed(signal: np.ndarray, late: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(m, dm/dk) of each channel's ``signal`` (C, n) at k − ``late`` (C,) samples, as the compiled sums take them
+    (:func:`_delayed_at`): the cubic through the four samples around it, or the four nearest an end beyond it."""
+    n = signal.shape[-1]
+    k = np.arange(n)
+    first = np.clip(k + np.floor(-late).astype(int)[:, None], 1, n - 3)
+    value, slope = _cubic.py_func(k - late[:, None] - first)
+    samples = [np.take_along_axis(signal, first + j, axis=-1) for j in (-1, 0, 1, 2)]
+    return sum(w * x for w, x in zip(value, samples)), sum(w * x for w, x in zip(slope, samples))
+
+
 def reading(data: np.ndarray, model: np.ndarray, sigma: np.ndarray, instruments: Instruments | None) -> np.ndarray:
     """What the instruments most probably show of ``model`` (..., C, n): o + g·m(t − τ) at the posterior
     means (to first order in τ about its mode); the model itself with exact instruments."""

@@ -45,6 +45,32 @@ def log_evidence_without_force(residual: np.ndarray, sigma: np.ndarray) -> float
 
 
 @dataclass(frozen=True)
+class Nuisance:
+    """Errors of known prior beside the force: r = G c + B b + e, b ~ N(0, I) per channel (the instruments' offset,
+    gain and delay, :func:`newdyn.sensors.linearized`), e ~ N(0, σ² I).  Integrating b out gives each channel the
+    covariance σ² (I + B Bᵀ/σ²); :meth:`whiten` takes it back to σ² I (x − U diag(d) Uᵀ x, with U, S the left
+    singular vectors and values of B and d = 1 − (1 + S²/σ²)^−½), so that the regression above holds for the whitened
+    r and G as it stands.  Every evidence of whitened data lacks the same −½ Σ log(1 + S²/σ²), which cancels in every
+    Bayes factor.  A prior much wider than what the data say of b projects B's span out of r and G alike."""
+
+    basis: np.ndarray  # (channel, time, k) U
+    shrink: np.ndarray  # (channel, k) d
+
+    @classmethod
+    def of(cls, design: np.ndarray, sigma: np.ndarray) -> Nuisance:
+        """From the design B (channel, time, k), the prior's scales folded in, and the noise σ per channel."""
+        basis, singular, _ = np.linalg.svd(np.asarray(design, dtype=float), full_matrices=False)
+        return cls(basis, 1.0 - 1.0 / np.sqrt(1.0 + (singular / np.asarray(sigma, dtype=float)[:, None]) ** 2))
+
+    def whiten(self, x: np.ndarray) -> np.ndarray:
+        """``x`` (channel, time) or (channel, time, column) with the errors' covariance taken out."""
+        x = np.asarray(x, dtype=float)
+        columns = x if x.ndim == 3 else x[..., None]
+        whitened = columns - self.basis @ (self.shrink[..., None] * (np.swapaxes(self.basis, 1, 2) @ columns))
+        return whitened if x.ndim == 3 else whitened[..., 0]
+
+
+@dataclass(frozen=True)
 class Regression:
     """The posterior of coefficients c in r = G c + e, c ~ N(0, s² I), s log-uniform, and the evidence."""
 

@@ -67,6 +67,25 @@ def spectral_peaks(residual: np.ndarray, sigma: np.ndarray, fs: float, n: int = 
 
 
 @dataclass(frozen=True)
+class Record:
+    """One record as the forms are scored on it: the calibrated model's residual (channel, time) and noise, the model's
+    motion and linearized response on the grid from t = 0, the record's first sample there, the residual's lines, and
+    the instruments' errors that the residual and every form's columns are whitened against (:class:`.force.Nuisance`)."""
+
+    residual: np.ndarray
+    sigma: np.ndarray
+    trajectory: Trajectory
+    linear: LinearRig
+    first: int
+    peaks: Peaks
+    nuisance: force.Nuisance | None
+
+
+def _whitened(x: np.ndarray, nuisance: force.Nuisance | None) -> np.ndarray:
+    return np.asarray(x, dtype=float) if nuisance is None else nuisance.whiten(x)
+
+
+@dataclass(frozen=True)
 class Candidate:
     """A form at a place, fitted on the linear model: its evidence, best shape and parameters."""
 
@@ -93,12 +112,9 @@ class Discovery:
     candidates: list[Candidate]
     scores: tuple[tuple[str, str, float], ...]  # (term, place, log-evidence) of every form scored, best first
     forces: dict[str, force.ForceEstimate]
-    peaks: Peaks
     log_evidence_without: float
-    chi2_before: float
-    trajectory: Trajectory
-    linear: LinearRig
-    first: int  # the record's first sample on the trajectory's grid
+    chi2_before: float  # of the residual, the instruments' errors taken out
+    record: Record  # what the forms were scored on
 
 
 def record_start(sampling: model.Sampling) -> int:
@@ -112,9 +128,11 @@ def record_start(sampling: model.Sampling) -> int:
 
 
 def discover(residual: np.ndarray, sigma: np.ndarray, values: Mapping[str, float], sampling: model.Sampling,
-             channels: Sequence[str], max_step: float) -> Discovery:
-    """Search the catalogue for the term behind ``residual`` (channel, time) of the model with ``values``."""
-    residual, sigma = np.asarray(residual, dtype=float), np.asarray(sigma, dtype=float)
+             channels: Sequence[str], max_step: float, nuisance: force.Nuisance | None = None) -> Discovery:
+    """Search the catalogue for the term behind ``residual`` (channel, time) of the model with ``values``, the
+    instruments' errors (``nuisance``, :func:`newdyn.sensors.linearized`) fitted jointly with every force."""
+    sigma = np.asarray(sigma, dtype=float)
+    residual = _whitened(residual, nuisance)
     first = record_start(sampling)
     n_grid = first + sampling.n_samples
     trajectory = Trajectory.simulate(values, sampling.fs, n_grid, max_step)
@@ -125,10 +143,12 @@ def discover(residual: np.ndarray, sigma: np.ndarray, values: Mapping[str, float
     forces = {}
     for place in ESTIMABLE_PLACES:
         columns, centres = linear.pulse_sensitivity(place, first, sampling.n_samples, spacing)
+        columns = _whitened(columns, nuisance)
         forces[place] = force.estimate(place, residual, sigma, columns, centres / sampling.fs, scale_range(place, values))
 
     places = _places({place: f.log_bayes_factor for place, f in forces.items()})
-    scored = _scored(places, [Record(residual, sigma, trajectory, linear, first, peaks)])
+    record = Record(residual, sigma, trajectory, linear, first, peaks, nuisance)
+    scored = _scored(places, [record])
     seen = Counter()
     candidates = []
     for entry in scored:  # best first: each form's best places
@@ -137,8 +157,7 @@ def discover(residual: np.ndarray, sigma: np.ndarray, values: Mapping[str, float
             candidates.append(_candidate(*entry, trajectory))
     r = residual / sigma[:, None]
     scores = tuple((form.term, place, log_evidence) for log_evidence, form, place, *_ in scored)
-    return Discovery(candidates, scores, forces, peaks, force.log_evidence_without_force(residual, sigma), float(np.mean(r**2)),
-                     trajectory, linear, first)
+    return Discovery(candidates, scores, forces, force.log_evidence_without_force(residual, sigma), float(np.mean(r**2)), record)
 
 
 @dataclass(frozen=True)
@@ -156,13 +175,13 @@ class Across:
 
 def discover_across(records: Sequence[tuple], max_step: float) -> Across:
     """Search the catalogue for one term behind every record's residual: ``records`` of (residual, sigma, values,
-    sampling, channels) as :func:`discover` takes them.  Each form is scored with one shape for all records (one order
+    sampling, channels, nuisance) as :func:`discover` takes them.  Each form is scored with one shape for all records (one order
     of a disk, one frequency, one clearance), so that a line that moves with the speed is told from one that stays; the
     places tried are those whose free forces explain, summed over the records, at least :data:`PLACE_SHARE` of the
     best's."""
-    alone = [discover(*record, max_step) for record in records]
-    seen = [Record(np.asarray(residual, dtype=float), np.asarray(sigma, dtype=float), found.trajectory, found.linear,
-                   found.first, found.peaks) for (residual, sigma, *_), found in zip(records, alone)]
+    alone = [discover(residual, sigma, values, sampling, channels, max_step, nuisance)
+             for residual, sigma, values, sampling, channels, nuisance in records]
+    seen = [found.record for found in alone]
     places = _places({place: sum(found.forces[place].log_bayes_factor for found in alone) for place in ESTIMABLE_PLACES})
     without = sum(found.log_evidence_without for found in alone)
     scores, best_shapes = [], []
@@ -184,19 +203,6 @@ def _record_coefficients(form: type[Form], fit: force.Regression, record: int) -
         return fit
     block = slice(record * len(form.coefficients), (record + 1) * len(form.coefficients))
     return replace(fit, mean=fit.mean[block], sd=fit.sd[block])
-
-
-@dataclass(frozen=True)
-class Record:
-    """One record as the forms are scored on it: the calibrated model's residual (channel, time) and noise, the model's
-    motion and linearized response on the grid from t = 0, the record's first sample there, and the residual's lines."""
-
-    residual: np.ndarray
-    sigma: np.ndarray
-    trajectory: Trajectory
-    linear: LinearRig
-    first: int
-    peaks: Peaks
 
 
 def _places(log_bayes_factors: Mapping[str, float]) -> list[str]:
@@ -248,7 +254,7 @@ def _columns(form: type[Form], place: str, shape: Shape, record: Record) -> tupl
     basis = form.basis(record.trajectory, place, shape)
     rms = np.sqrt(np.mean(basis[:, window] ** 2, axis=1))
     rms = np.where(rms > 0, rms, 1.0)
-    return np.moveaxis(record.linear.response(place, basis / rms[:, None])[:, :, window], 1, 2), rms
+    return _whitened(np.moveaxis(record.linear.response(place, basis / rms[:, None])[:, :, window], 1, 2), record.nuisance), rms
 
 
 def _candidate(log_evidence, form, place, shapes, shape_weights, fit, scales, trajectory) -> Candidate:
@@ -292,9 +298,9 @@ def separating_channels(candidates: Sequence[Candidate], discovery: Discovery, s
     """Channels ranked by how well they would separate the closest pair of ``candidates`` (which explain the
     measured channels equally): ½ Σ ((m_a − m_b)/σ_c)², the expected log Bayes factor, m the channel's
     response to each candidate's fitted force through the linearized rig, σ_c the noise there."""
-    values, trajectory, first = discovery.trajectory.values, discovery.trajectory, discovery.first
+    trajectory, first = discovery.record.trajectory, discovery.record.first
     channels = list(sigma)
-    linear = LinearRig.build(values, discovery.linear.fs, trajectory.t.size, channels)
+    linear = LinearRig.build(trajectory.values, discovery.record.linear.fs, trajectory.t.size, channels)
     responses = [linear.response(c.acts_on, c.force)[:, first:] for c in candidates]
     rows = []
     for i, channel in enumerate(channels):

@@ -21,7 +21,7 @@ import numpy as np
 import xarray as xr
 
 from .. import cache, effects, hypotheses, io, kernels, model, noise, sensors, simulation
-from . import effect_file, search
+from . import effect_file, force, search
 from .forms import FORMS, Shape
 
 if TYPE_CHECKING:
@@ -75,8 +75,8 @@ def discover(name: str, origin: hypotheses.Fit, data, sigma, values, sampling, s
     the best one's effect file and its fit on the full simulator: the search starts from the fit ``origin``
     (:func:`search_base`)."""
     base = {**values, **origin.values}
-    read = sensors.reading(data, origin.model, sigma, _datasheets(origin, settings, sampling))  # what the instruments add taken out
-    found = search.discover(data - read, sigma, base, sampling, settings.channels, settings.max_step)
+    residual, design = sensors.linearized(data, origin.model, sigma, _datasheets(origin, settings, sampling))
+    found = search.discover(residual, sigma, base, sampling, settings.channels, settings.max_step, force.Nuisance.of(design, sigma))
     top = search.log_bayes_factor(found.candidates[0], found) if found.candidates else 0.0
     leading = [c for c in found.candidates if search.log_bayes_factor(c, found) >= FULL_FIT_SHARE * top]
     terms = list(dict.fromkeys(c.term for c in leading))[:FULL_FIT_TERMS]
@@ -93,7 +93,7 @@ def discover(name: str, origin: hypotheses.Fit, data, sigma, values, sampling, s
         return summary
 
     equal = _equivalent(found, {(c.term, c.acts_on): full[id(c)].log_evidence for c in tried}, settings.evidence_margin)
-    section = {"from": origin.hypothesis.name, "peaks_hz": list(found.peaks.frequencies), "chi2_before": found.chi2_before,
+    section = {"from": origin.hypothesis.name, "peaks_hz": list(found.record.peaks.frequencies), "chi2_before": found.chi2_before,
                "candidates": [row(c) for c in ranked],
                "equivalent": [f"{term} on {place}" for term, place in equal],
                "equivalent_margin": settings.evidence_margin,
@@ -151,13 +151,13 @@ def _force_dataset(found: search.Discovery) -> xr.Dataset:
     disks' angles there, for the figures."""
     places = list(found.forces)
     times = found.forces[places[0]].times
-    at = np.rint(times * found.linear.fs).astype(int)
+    at = np.rint(times * found.record.linear.fs).astype(int)
     return xr.Dataset(
         {"force_mean": (("place", "pulse_time"), np.stack([found.forces[p].mean for p in places])),
          "force_sd": (("place", "pulse_time"), np.stack([found.forces[p].sd for p in places])),
          "force_log_bayes_factor": ("place", [found.forces[p].log_bayes_factor for p in places]),
-         "theta1_at_pulse": ("pulse_time", found.trajectory.theta["1"][at]),
-         "theta4_at_pulse": ("pulse_time", found.trajectory.theta["4"][at])},
+         "theta1_at_pulse": ("pulse_time", found.record.trajectory.theta["1"][at]),
+         "theta4_at_pulse": ("pulse_time", found.record.trajectory.theta["4"][at])},
         coords={"place": places, "pulse_time": times},
     )
 
