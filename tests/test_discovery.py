@@ -158,10 +158,14 @@ def test_steady_torque_at_each_place_gives_the_static_closed_form(linear, place,
 @pytest.mark.parametrize("place", ["coupling", "b2_y"])
 def test_each_pulse_column_is_the_response_to_its_hat_over_the_record(place):
     """Column j of the pulse sensitivity is the channels' response to a unit hat centred at centres[j], seen on the
-    record's samples first … first + n − 1 (zero before the hat starts), as the linear model gives it directly."""
+    record's samples first … first + n − 1 (zero before the hat starts), as the linear model gives it directly; the
+    Gram matrices from the one response's lagged running sums are the columns' products, pulses before the record,
+    in it and at its end alike."""
     first, n_record, spacing = 30, 120, 4
     rig = LinearRig.build(BASE, FS, first + n_record, ("w1", "b1_x", "b2_y"))
-    columns, centres = rig.pulse_sensitivity(place, first, n_record, spacing)
+    columns, centres, gram = rig.pulse_sensitivity(place, first, n_record, spacing)
+    products = np.einsum("ctj,ctk->cjk", columns, columns)
+    assert np.all(np.abs(gram - products).max(axis=(1, 2)) <= 1e-12 * np.abs(products).max(axis=(1, 2)))
     assert columns.shape == (3, n_record, centres.size) and centres[0] == spacing and centres[-1] < first + n_record
     k = np.arange(first + n_record)
     for j in (0, 7, centres.size // 2, centres.size - 1):

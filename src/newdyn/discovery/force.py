@@ -66,8 +66,17 @@ class Nuisance:
         """``x`` (channel, time) or (channel, time, column) with the errors' covariance taken out."""
         x = np.asarray(x, dtype=float)
         columns = x if x.ndim == 3 else x[..., None]
-        whitened = columns - self.basis @ (self.shrink[..., None] * (np.swapaxes(self.basis, 1, 2) @ columns))
+        whitened = columns - self.basis @ (self.shrink[..., None] * self._along(columns))
         return whitened if x.ndim == 3 else whitened[..., 0]
+
+    def whiten_gram(self, columns: np.ndarray, gram: np.ndarray) -> np.ndarray:
+        """The Gram matrices (channel, column, column) of :meth:`whiten`'s ``columns`` from those of the columns as they
+        are: (LG)ᵀLG = GᵀG − (UᵀG)ᵀ diag(2d − d²) UᵀG."""
+        along = self._along(np.asarray(columns, dtype=float))
+        return gram - np.swapaxes(along, 1, 2) @ ((2.0 * self.shrink - self.shrink**2)[..., None] * along)
+
+    def _along(self, columns: np.ndarray) -> np.ndarray:
+        return np.swapaxes(self.basis, 1, 2) @ columns
 
 
 @dataclass(frozen=True)
@@ -83,14 +92,16 @@ class Regression:
     chi2_after: float  # reduced χ² of the residual less G times the posterior mean
 
 
-def regress(residual: np.ndarray, sigma: np.ndarray, sensitivity: np.ndarray, scale_range: tuple[float, float]) -> Regression:
+def regress(residual: np.ndarray, sigma: np.ndarray, sensitivity: np.ndarray, scale_range: tuple[float, float],
+            gram: np.ndarray | None = None) -> Regression:
     """Bayesian linear regression of ``residual`` (channel, time), noise σ per channel, on the columns of
-    ``sensitivity`` (channel, time, column), the prior scale's log-uniform range ``scale_range``."""
-    return regress_records([residual], [sigma], [sensitivity], scale_range)
+    ``sensitivity`` (channel, time, column), the prior scale's log-uniform range ``scale_range``; ``gram``: each
+    channel's sensitivityᵀsensitivity (channel, column, column) where it is known at less cost than from the columns."""
+    return regress_records([residual], [sigma], [sensitivity], scale_range, None if gram is None else [gram])
 
 
 def regress_records(residuals: Sequence[np.ndarray], sigmas: Sequence[np.ndarray], sensitivities: Sequence[np.ndarray],
-                    scale_range: tuple[float, float]) -> Regression:
+                    scale_range: tuple[float, float], grams: Sequence[np.ndarray] | None = None) -> Regression:
     """:func:`regress` on several records at once (recordings of one machine, each its own channels, noise and length):
     one coefficient vector for all, each record's ``sensitivity`` giving every column (zero where a column is
     another record's own)."""
@@ -99,10 +110,14 @@ def regress_records(residuals: Sequence[np.ndarray], sigmas: Sequence[np.ndarray
     s_low, s_high = (float(x) for x in scale_range)
     if not 0.0 < s_low < s_high:
         raise ValueError(f"scale_range must be 0 < low < high, got {scale_range!r}")
+    if grams is None:
+        responding = g[np.any(g != 0.0, axis=1)]  # rows of channels the force moves at all
+        gram = responding.T @ responding
+    else:
+        gram = sum(np.tensordot(np.asarray(sigma, dtype=float) ** -2, each, axes=1) for sigma, each in zip(sigmas, grams))
     # Eigenvectors V and eigenvalues S² of GᵀG (G's right singular vectors and squared singular values), and
     # w = Vᵀ Gᵀ r: the regression in V's coordinates, without dividing by the small singular values.
-    responding = g[np.any(g != 0.0, axis=1)]  # rows of channels the force moves at all
-    squared, v = np.linalg.eigh(responding.T @ responding)
+    squared, v = np.linalg.eigh(gram)
     squared = np.maximum(squared, 0.0)
     w = v.T @ (g.T @ r)
     log_scales = np.linspace(math.log(s_low), math.log(s_high), SCALE_POINTS)
@@ -143,14 +158,15 @@ def estimate(
     sensitivity: np.ndarray,
     times: np.ndarray,
     scale_range: tuple[float, float],
+    gram: np.ndarray | None = None,
 ) -> ForceEstimate:
     """The force at ``place`` behind ``residual`` (channel, time), with noise σ per channel.
 
     ``sensitivity`` (channel, time, basis): each channel's response to a unit pulse of force at the
     place centred at ``times[j]``; ``scale_range``: the range [s_low, s_high] of the log-uniform prior on
-    the force's scale, in the force's units.
+    the force's scale, in the force's units; ``gram`` as :func:`regress` takes it.
     """
     if np.shape(times) != (np.shape(sensitivity)[-1],):
         raise ValueError(f"times must give the centres of the {np.shape(sensitivity)[-1]} basis pulses, got shape {np.shape(times)}")
-    fit = regress(residual, sigma, sensitivity, scale_range)
+    fit = regress(residual, sigma, sensitivity, scale_range, gram)
     return ForceEstimate(**{f.name: getattr(fit, f.name) for f in fields(fit)}, place=place, times=np.asarray(times, dtype=float))

@@ -18,6 +18,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from numpy.lib.stride_tricks import sliding_window_view
 from scipy import signal
 
@@ -104,11 +105,12 @@ class LinearRig:
                            * np.fft.rfft(force, self.fft_size), self.fft_size)
         return out[..., :n]
 
-    def pulse_sensitivity(self, place: str, first: int, n_record: int, spacing: int) -> tuple[np.ndarray, np.ndarray]:
+    def pulse_sensitivity(self, place: str, first: int, n_record: int, spacing: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(channel, record sample, pulse) responses to unit hats of half-width ``spacing`` samples centred
         every ``spacing`` samples from t = spacing/fs (the first hat whole) to the record's end, on the
-        record (samples first … first + n_record − 1 of the grid), and the pulses' centres in samples.
-        Time invariance makes every column a shift of one response."""
+        record (samples first … first + n_record − 1 of the grid), the pulses' centres in samples, and each channel's
+        Gram matrix of those columns (channel, pulse, pulse).  Time invariance makes every column a shift of one
+        response, and the Gram matrix running sums of that response's lagged products."""
         centres = np.arange(spacing, first + n_record, spacing)
         lags = np.arange(-spacing + 1, spacing)
         hat = 1.0 - np.abs(lags) / spacing
@@ -118,8 +120,33 @@ class LinearRig:
         one = self.response(place, unit)  # (channel, grid)
         # Column j is the response to a hat centred at centres[j], i.e. `one` shifted by centres[j] − spacing: the
         # record's window of `one` from first − (centres[j] − spacing), zero before the grid's start.
-        lead = max(0, centres[-1] - spacing - first)
+        shifts = centres - spacing
+        lead = max(0, shifts[-1] - first)
         padded = np.concatenate([np.zeros((one.shape[0], lead)), one], axis=1)
         windows = sliding_window_view(padded, n_record, axis=1)  # (channel, window start, record sample)
-        columns = np.ascontiguousarray(np.moveaxis(windows[:, lead + first - (centres - spacing), :], 1, 2))
-        return columns, centres
+        columns = np.ascontiguousarray(np.moveaxis(windows[:, lead + first - shifts, :], 1, 2))
+        return columns, centres, _shifted_gram(one, shifts, first, spacing)
+
+
+@njit(cache=True, error_model="numpy")
+def _shifted_gram(one: np.ndarray, shifts: np.ndarray, first: int, spacing: int) -> np.ndarray:
+    """Each channel's Σ_t one(t − a_i)·one(t − a_j) over the record t = first … n_grid − 1, shifts a_i = i·spacing and
+    one(u < 0) = 0: for j = i + k, the sum of q(v) = one(v + k·spacing)·one(v) over v = t − a_j, the difference of
+    q's running sum at the window's two ends (one pass over the grid for each k, not one product of two columns per
+    pair)."""
+    n_channels, n_grid = one.shape
+    n_pulses = shifts.size
+    gram = np.empty((n_channels, n_pulses, n_pulses))
+    running = np.zeros(n_grid + 1)
+    for c in range(n_channels):
+        for k in range(n_pulses):
+            lag = k * spacing
+            total = 0.0
+            for v in range(n_grid - lag):
+                total += one[c, v + lag] * one[c, v]
+                running[v + 1] = total
+            for i in range(n_pulses - k):
+                end = n_grid - shifts[i + k]
+                start = min(max(first - shifts[i + k], 0), end)
+                gram[c, i, i + k] = gram[c, i + k, i] = running[end] - running[start]
+    return gram

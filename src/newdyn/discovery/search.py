@@ -142,9 +142,10 @@ def discover(residual: np.ndarray, sigma: np.ndarray, values: Mapping[str, float
     spacing = max(1, round(PULSE_SPACING * sampling.fs))
     forces = {}
     for place in ESTIMABLE_PLACES:
-        columns, centres = linear.pulse_sensitivity(place, first, sampling.n_samples, spacing)
-        columns = _whitened(columns, nuisance)
-        forces[place] = force.estimate(place, residual, sigma, columns, centres / sampling.fs, scale_range(place, values))
+        columns, centres, gram = linear.pulse_sensitivity(place, first, sampling.n_samples, spacing)
+        if nuisance is not None:
+            columns, gram = nuisance.whiten(columns), nuisance.whiten_gram(columns, gram)
+        forces[place] = force.estimate(place, residual, sigma, columns, centres / sampling.fs, scale_range(place, values), gram)
 
     places = _places({place: f.log_bayes_factor for place, f in forces.items()})
     record = Record(residual, sigma, trajectory, linear, first, peaks, nuisance)
