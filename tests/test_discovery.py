@@ -29,6 +29,11 @@ def smooth_sensitivity(rng, n_samples=120, n_basis=30, decay=8.0):
     return np.stack(channels)
 
 
+def estimated(place, residual, sigma, sensitivity, times, scale_range):
+    """The force behind ``residual`` on the columns of ``sensitivity``, as the search estimates it from their moments."""
+    return force.estimate(place, force.Moments.of(residual, sigma, sensitivity), times, scale_range)
+
+
 def noise(rng, n_samples=120):
     return rng.normal(size=(len(SIGMA), n_samples)) * SIGMA[:, None]
 
@@ -39,7 +44,7 @@ def test_evidence_and_posterior_at_one_scale_are_the_gaussian_closed_forms(n_bas
     g = smooth_sensitivity(rng, n_basis=n_basis)
     residual = np.einsum("ctj,j->ct", g, rng.normal(0, 3.0, n_basis)) + noise(rng)
     s = 2.5
-    result = force.estimate("here", residual, SIGMA, g, np.arange(n_basis), (s, s * (1 + 1e-10)))
+    result = estimated("here", residual, SIGMA, g, np.arange(n_basis), (s, s * (1 + 1e-10)))
     flat = g.reshape(residual.size, -1)
     noise_cov = np.diag(np.repeat(SIGMA**2, residual.shape[1]))
     expected = stats.multivariate_normal(np.zeros(residual.size), noise_cov + s**2 * flat @ flat.T).logpdf(residual.ravel())
@@ -57,10 +62,10 @@ def test_the_prior_scale_is_marginalized_over_its_log_uniform_prior():
     g = smooth_sensitivity(rng)
     residual = np.einsum("ctj,j->ct", g, rng.normal(0, 1.0, g.shape[2])) + noise(rng)
     low, high = 0.01, 100.0
-    result = force.estimate("here", residual, SIGMA, g, np.arange(g.shape[2]), (low, high))
+    result = estimated("here", residual, SIGMA, g, np.arange(g.shape[2]), (low, high))
 
     def log_evidence_at(log_s):
-        return force.estimate("here", residual, SIGMA, g, np.arange(g.shape[2]), (math.exp(log_s), math.exp(log_s) * (1 + 1e-10))).log_evidence
+        return estimated("here", residual, SIGMA, g, np.arange(g.shape[2]), (math.exp(log_s), math.exp(log_s) * (1 + 1e-10))).log_evidence
 
     peak = max(log_evidence_at(x) for x in np.linspace(math.log(low), math.log(high), 41))
     integral, _ = integrate.quad(lambda x: math.exp(log_evidence_at(x) - peak), math.log(low), math.log(high), limit=200)
@@ -79,7 +84,16 @@ def test_instrument_errors_fitted_beside_the_force_are_the_gaussian_closed_forms
     residual = np.einsum("ctj,j->ct", g, rng.normal(0, 3.0, g.shape[2])) + np.einsum("ctk,ck->ct", design, rng.normal(size=(2, 2))) + noise(rng)
     nuisance = force.Nuisance.of(design, SIGMA)
     s = 2.5
-    result = force.regress(nuisance.whiten(residual), SIGMA, nuisance.whiten(g), (s, s * (1 + 1e-10)))
+    whitened = nuisance.whiten(residual)
+    result = force.regress(whitened, SIGMA, nuisance.whiten(g), (s, s * (1 + 1e-10)))
+    # the same products from the columns as they are, the whitened columns never formed (as the search's pulses)
+    products = nuisance.whitened_products(np.einsum("ctj,ctk->cjk", g, g), np.einsum("ctj,ct->cj", g, whitened),
+                                          np.einsum("ctj,ctk->cjk", g, nuisance.basis), whitened)
+    formed = force.Moments.of(whitened, SIGMA, nuisance.whiten(g))
+    unformed = force.Moments.of_channels(*products, whitened, SIGMA)
+    assert unformed.gram == pytest.approx(formed.gram, rel=1e-10, abs=1e-12 * np.abs(formed.gram).max())
+    assert unformed.projection == pytest.approx(formed.projection, rel=1e-10, abs=1e-12 * np.abs(formed.projection).max())
+    assert unformed.squares == pytest.approx(formed.squares, rel=1e-12)
     flat = g.reshape(residual.size, -1)
     errors = np.zeros((residual.size, residual.size))
     for c in range(2):
@@ -100,8 +114,8 @@ def test_the_place_the_force_acts_on_wins_and_the_force_is_recovered_within_its_
     times = np.arange(at.shape[2])
     truth = 4.0 * np.sin(times / 3.0)
     residual = np.einsum("ctj,j->ct", at, truth) + noise(rng)
-    right = force.estimate("right", residual, SIGMA, at, times, (0.01, 100.0))
-    wrong = force.estimate("wrong", residual, SIGMA, elsewhere, times, (0.01, 100.0))
+    right = estimated("right", residual, SIGMA, at, times, (0.01, 100.0))
+    wrong = estimated("wrong", residual, SIGMA, elsewhere, times, (0.01, 100.0))
     assert right.log_evidence - wrong.log_evidence > 50 and right.log_bayes_factor > 50
     assert right.chi2_before > 3 and right.chi2_after < 1.0  # the fitted force absorbs a little noise too
     inside = np.abs(right.mean - truth) <= 2 * right.sd
@@ -111,7 +125,7 @@ def test_the_place_the_force_acts_on_wins_and_the_force_is_recovered_within_its_
 def test_noise_alone_is_not_read_as_a_force():
     """The Occam factor: with no force in the residual, adding one lowers the evidence."""
     g = smooth_sensitivity(np.random.default_rng(4))
-    factors = [force.estimate("here", noise(np.random.default_rng(seed)), SIGMA, g, np.arange(g.shape[2]), (0.01, 100.0)).log_bayes_factor
+    factors = [estimated("here", noise(np.random.default_rng(seed)), SIGMA, g, np.arange(g.shape[2]), (0.01, 100.0)).log_bayes_factor
                for seed in range(20)]
     assert max(factors) < 1.0 and np.median(factors) < 0
 
@@ -120,13 +134,13 @@ def test_bad_shapes_and_scale_ranges_are_refused():
     g = smooth_sensitivity(np.random.default_rng(5))
     residual = np.zeros(g.shape[:2])
     with pytest.raises(ValueError, match="sensitivity must be"):
-        force.estimate("here", residual, SIGMA, g[:, :-1], np.arange(g.shape[2]), (0.1, 1.0))
+        estimated("here", residual, SIGMA, g[:, :-1], np.arange(g.shape[2]), (0.1, 1.0))
     with pytest.raises(ValueError, match="sigma must be"):
-        force.estimate("here", residual, np.array([1.0, -1.0]), g, np.arange(g.shape[2]), (0.1, 1.0))
+        estimated("here", residual, np.array([1.0, -1.0]), g, np.arange(g.shape[2]), (0.1, 1.0))
     with pytest.raises(ValueError, match="times must"):
-        force.estimate("here", residual, SIGMA, g, np.arange(g.shape[2] - 1), (0.1, 1.0))
+        estimated("here", residual, SIGMA, g, np.arange(g.shape[2] - 1), (0.1, 1.0))
     with pytest.raises(ValueError, match="scale_range"):
-        force.estimate("here", residual, SIGMA, g, np.arange(g.shape[2]), (1.0, 0.1))
+        estimated("here", residual, SIGMA, g, np.arange(g.shape[2]), (1.0, 0.1))
 
 
 # ------------------------------------------------------------------------- the rig's linear response, and the search
@@ -156,23 +170,22 @@ def test_steady_torque_at_each_place_gives_the_static_closed_form(linear, place,
 
 
 @pytest.mark.parametrize("place", ["coupling", "b2_y"])
-def test_each_pulse_column_is_the_response_to_its_hat_over_the_record(place):
-    """Column j of the pulse sensitivity is the channels' response to a unit hat centred at centres[j], seen on the
-    record's samples first … first + n − 1 (zero before the hat starts), as the linear model gives it directly; the
-    Gram matrices from the one response's lagged running sums are the columns' products, pulses before the record,
-    in it and at its end alike."""
+def test_the_pulses_products_are_those_of_each_hats_response_over_the_record(place):
+    """The pulses' Gram matrices (from one response's lagged running sums) and their products with data (correlations
+    with it) are those of the columns formed here from the linear model's response to each hat directly, seen on the
+    record's samples first … first + n − 1, pulses before the record, in it and at its end alike."""
     first, n_record, spacing = 30, 120, 4
     rig = LinearRig.build(BASE, FS, first + n_record, ("w1", "b1_x", "b2_y"))
-    columns, centres, gram = rig.pulse_sensitivity(place, first, n_record, spacing)
-    products = np.einsum("ctj,ctk->cjk", columns, columns)
-    assert np.all(np.abs(gram - products).max(axis=(1, 2)) <= 1e-12 * np.abs(products).max(axis=(1, 2)))
-    assert columns.shape == (3, n_record, centres.size) and centres[0] == spacing and centres[-1] < first + n_record
+    pulses = rig.pulses(place, first, n_record, spacing)
+    centres = pulses.centres
+    assert centres[0] == spacing and centres[-1] < first + n_record
     k = np.arange(first + n_record)
-    for j in (0, 7, centres.size // 2, centres.size - 1):
-        hat = np.clip(1.0 - np.abs(k - centres[j]) / spacing, 0.0, None)
-        direct = rig.response(place, hat)[:, first:]
-        np.testing.assert_allclose(columns[:, :, j], direct, rtol=0, atol=1e-9 * np.abs(direct).max())
-        assert np.all(columns[:, : max(0, centres[j] - spacing - first), j] == 0.0)
+    columns = np.stack([rig.response(place, np.clip(1.0 - np.abs(k - c) / spacing, 0.0, None))[:, first:] for c in centres], axis=2)
+    scale = np.abs(columns).max(axis=(1, 2))
+    products = np.einsum("ctj,ctk->cjk", columns, columns)
+    assert np.all(np.abs(pulses.gram - products).max(axis=(1, 2)) <= 1e-12 * scale**2)
+    x = np.random.default_rng(6).standard_normal((3, n_record, 2))
+    assert np.all(np.abs(pulses.project(x) - np.einsum("ctj,ctm->cjm", columns, x)).max(axis=(1, 2)) <= 1e-12 * scale * n_record)
 
 
 def test_steady_lateral_force_gives_the_static_deflection(linear):

@@ -5,7 +5,8 @@ history at the place plus the measurement's noise: r = G c + e, where the column
 G are the channels' responses to unit basis pulses of force at the place, c the force at the pulses'
 centres, and e ~ N(0, σ_c²) independent.  With a Normal prior c ~ N(0, s² I) this is Bayesian linear
 regression: the posterior of c and the evidence p(r | place, s) are closed-form, from one eigen-
-decomposition of the whitened sensitivity's Gram matrix.  The prior scale s is marginalized over a
+decomposition of the whitened sensitivity's Gram matrix; they need of r and G only GᵀG, Gᵀr and rᵀr
+(:class:`Moments`), so a sensitivity made of shifts of one response is never formed.  The prior scale s is marginalized over a
 log-uniform prior on [s_low, s_high] (quadrature on a logarithmic grid), so places are compared by
 their evidence, Occam factor included, and against the evidence of no missing force at all.
 
@@ -14,7 +15,9 @@ The noise is white here; where it is not, whiten r and G first.
 
 from __future__ import annotations
 
+import functools
 import math
+import operator
 from collections.abc import Sequence
 from dataclasses import dataclass, fields
 
@@ -66,17 +69,58 @@ class Nuisance:
         """``x`` (channel, time) or (channel, time, column) with the errors' covariance taken out."""
         x = np.asarray(x, dtype=float)
         columns = x if x.ndim == 3 else x[..., None]
-        whitened = columns - self.basis @ (self.shrink[..., None] * self._along(columns))
+        whitened = columns - self.basis @ (self.shrink[..., None] * (np.swapaxes(self.basis, 1, 2) @ columns))
         return whitened if x.ndim == 3 else whitened[..., 0]
 
-    def whiten_gram(self, columns: np.ndarray, gram: np.ndarray) -> np.ndarray:
-        """The Gram matrices (channel, column, column) of :meth:`whiten`'s ``columns`` from those of the columns as they
-        are: (LG)ᵀLG = GᵀG − (UᵀG)ᵀ diag(2d − d²) UᵀG."""
-        along = self._along(np.asarray(columns, dtype=float))
-        return gram - np.swapaxes(along, 1, 2) @ ((2.0 * self.shrink - self.shrink**2)[..., None] * along)
+    def whitened_products(self, gram: np.ndarray, projection: np.ndarray, crossed: np.ndarray,
+                          residual: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Each channel's GᵀG and Gᵀr of the whitened columns LG and a whitened ``residual`` r (channel, time) from
+        products of the columns G as they are, never formed: ``gram`` GᵀG (channel, column, column), ``projection`` Gᵀr
+        (channel, column) and ``crossed`` GᵀU (channel, column, k).  (LG)ᵀLG = GᵀG − GᵀU diag(2d − d²) UᵀG and
+        (LG)ᵀr = Gᵀr − GᵀU diag(d) Uᵀr."""
+        along = np.einsum("ctk,ct->ck", self.basis, residual)
+        return (gram - (crossed * (2.0 * self.shrink - self.shrink**2)[:, None, :]) @ np.swapaxes(crossed, 1, 2),
+                projection - np.einsum("cjk,ck->cj", crossed, self.shrink * along))
 
-    def _along(self, columns: np.ndarray) -> np.ndarray:
-        return np.swapaxes(self.basis, 1, 2) @ columns
+
+@dataclass(frozen=True)
+class Moments:
+    """What the regression needs of r and G, summed over the channels (and records) with each channel's σ divided out:
+    GᵀG, Gᵀr and rᵀr; and the number of data and Σ log σ over them."""
+
+    gram: np.ndarray
+    projection: np.ndarray
+    squares: float
+    size: int
+    log_sigma: float
+
+    @classmethod
+    def of(cls, residual: np.ndarray, sigma: np.ndarray, sensitivity: np.ndarray) -> Moments:
+        """From ``residual`` (channel, time), noise σ per channel and the columns of ``sensitivity`` (channel, time, column)."""
+        r, g = _whitened(residual, sigma, sensitivity)
+        responding = g[np.any(g != 0.0, axis=1)]  # rows of channels the force moves at all
+        return cls(responding.T @ responding, g.T @ r, float(r @ r), r.size, _log_sigma(residual, sigma))
+
+    @classmethod
+    def of_channels(cls, gram: np.ndarray, projection: np.ndarray, residual: np.ndarray, sigma: np.ndarray) -> Moments:
+        """From each channel's GᵀG (channel, column, column) and Gᵀr (channel, column), ``residual`` (channel, time) and σ."""
+        residual, sigma = np.asarray(residual, dtype=float), np.asarray(sigma, dtype=float)
+        weights = sigma**-2.0
+        return cls(np.tensordot(weights, gram, axes=1), weights @ projection, float(weights @ np.sum(residual**2, axis=1)),
+                   residual.size, _log_sigma(residual, sigma))
+
+    def __add__(self, other: Moments) -> Moments:
+        return Moments(self.gram + other.gram, self.projection + other.projection, self.squares + other.squares,
+                       self.size + other.size, self.log_sigma + other.log_sigma)
+
+    @property
+    def log_evidence_without(self) -> float:
+        """log p(r | no missing force): r is the noise alone."""
+        return -0.5 * (self.squares + self.size * LOG_2PI) - self.log_sigma
+
+
+def _log_sigma(residual: np.ndarray, sigma: np.ndarray) -> float:
+    return np.shape(residual)[1] * float(np.sum(np.log(sigma)))
 
 
 @dataclass(frozen=True)
@@ -92,40 +136,35 @@ class Regression:
     chi2_after: float  # reduced χ² of the residual less G times the posterior mean
 
 
-def regress(residual: np.ndarray, sigma: np.ndarray, sensitivity: np.ndarray, scale_range: tuple[float, float],
-            gram: np.ndarray | None = None) -> Regression:
+def regress(residual: np.ndarray, sigma: np.ndarray, sensitivity: np.ndarray, scale_range: tuple[float, float]) -> Regression:
     """Bayesian linear regression of ``residual`` (channel, time), noise σ per channel, on the columns of
-    ``sensitivity`` (channel, time, column), the prior scale's log-uniform range ``scale_range``; ``gram``: each
-    channel's sensitivityᵀsensitivity (channel, column, column) where it is known at less cost than from the columns."""
-    return regress_records([residual], [sigma], [sensitivity], scale_range, None if gram is None else [gram])
+    ``sensitivity`` (channel, time, column), the prior scale's log-uniform range ``scale_range``."""
+    return regress_records([residual], [sigma], [sensitivity], scale_range)
 
 
 def regress_records(residuals: Sequence[np.ndarray], sigmas: Sequence[np.ndarray], sensitivities: Sequence[np.ndarray],
-                    scale_range: tuple[float, float], grams: Sequence[np.ndarray] | None = None) -> Regression:
+                    scale_range: tuple[float, float]) -> Regression:
     """:func:`regress` on several records at once (recordings of one machine, each its own channels, noise and length):
     one coefficient vector for all, each record's ``sensitivity`` giving every column (zero where a column is
     another record's own)."""
-    whitened = [_whitened(*record) for record in zip(residuals, sigmas, sensitivities)]
-    r, g = np.concatenate([w[0] for w in whitened]), np.concatenate([w[1] for w in whitened])
+    return regress_moments(functools.reduce(operator.add, map(Moments.of, residuals, sigmas, sensitivities)), scale_range)
+
+
+def regress_moments(moments: Moments, scale_range: tuple[float, float]) -> Regression:
+    """:func:`regress` from the data's :class:`Moments`."""
     s_low, s_high = (float(x) for x in scale_range)
     if not 0.0 < s_low < s_high:
         raise ValueError(f"scale_range must be 0 < low < high, got {scale_range!r}")
-    if grams is None:
-        responding = g[np.any(g != 0.0, axis=1)]  # rows of channels the force moves at all
-        gram = responding.T @ responding
-    else:
-        gram = sum(np.tensordot(np.asarray(sigma, dtype=float) ** -2, each, axes=1) for sigma, each in zip(sigmas, grams))
     # Eigenvectors V and eigenvalues S² of GᵀG (G's right singular vectors and squared singular values), and
     # w = Vᵀ Gᵀ r: the regression in V's coordinates, without dividing by the small singular values.
-    squared, v = np.linalg.eigh(gram)
+    squared, v = np.linalg.eigh(moments.gram)
     squared = np.maximum(squared, 0.0)
-    w = v.T @ (g.T @ r)
+    w = v.T @ moments.projection
     log_scales = np.linspace(math.log(s_low), math.log(s_high), SCALE_POINTS)
     variance = np.exp(2.0 * log_scales)[:, None]  # s² (scale, 1)
     spread = 1.0 + variance * squared  # eigenvalues of the whitened residual's covariance along U
-    log_z = -0.5 * (np.sum(np.log(spread) - variance * w**2 / spread, axis=1) + r @ r + r.size * LOG_2PI)
-    # back to the residuals' units
-    log_z -= sum(residual.shape[1] * float(np.sum(np.log(sigma))) for residual, sigma in zip(residuals, sigmas))
+    log_z = -0.5 * (np.sum(np.log(spread) - variance * w**2 / spread, axis=1) + moments.squares + moments.size * LOG_2PI)
+    log_z -= moments.log_sigma  # back to the residuals' units
     # Log-uniform prior on s: density 1/(log s_high − log s_low) in log s, integrated by the trapezoidal rule.
     log_weights = np.log(trapezoid(np.eye(SCALE_POINTS), log_scales, axis=1) / (log_scales[-1] - log_scales[0]))
     log_evidence = float(logsumexp(log_z + log_weights))
@@ -134,11 +173,11 @@ def regress_records(residuals: Sequence[np.ndarray], sigmas: Sequence[np.ndarray
     variances = (variance / spread) @ (v.T) ** 2  # diagonal of V diag(s²/(1 + s² S²)) Vᵀ
     mean = posterior_weights @ means
     sd = np.sqrt(np.maximum(posterior_weights @ (variances + means**2) - mean**2, 0.0))
-    remaining = r - g @ mean
+    remaining = moments.squares - 2.0 * mean @ moments.projection + mean @ moments.gram @ mean  # |r − G·mean|²
     return Regression(
         mean=mean, sd=sd, scale=float(np.exp(log_scales[np.argmax(posterior_weights)])), log_evidence=log_evidence,
-        log_bayes_factor=log_evidence - sum(log_evidence_without_force(*record) for record in zip(residuals, sigmas)),
-        chi2_before=float(r @ r / r.size), chi2_after=float(remaining @ remaining / r.size),
+        log_bayes_factor=log_evidence - moments.log_evidence_without,
+        chi2_before=moments.squares / moments.size, chi2_after=float(remaining / moments.size),
     )
 
 
@@ -151,22 +190,11 @@ class ForceEstimate(Regression):
     times: np.ndarray  # the basis pulses' centres [s]
 
 
-def estimate(
-    place: str,
-    residual: np.ndarray,
-    sigma: np.ndarray,
-    sensitivity: np.ndarray,
-    times: np.ndarray,
-    scale_range: tuple[float, float],
-    gram: np.ndarray | None = None,
-) -> ForceEstimate:
-    """The force at ``place`` behind ``residual`` (channel, time), with noise σ per channel.
-
-    ``sensitivity`` (channel, time, basis): each channel's response to a unit pulse of force at the
-    place centred at ``times[j]``; ``scale_range``: the range [s_low, s_high] of the log-uniform prior on
-    the force's scale, in the force's units; ``gram`` as :func:`regress` takes it.
-    """
-    if np.shape(times) != (np.shape(sensitivity)[-1],):
-        raise ValueError(f"times must give the centres of the {np.shape(sensitivity)[-1]} basis pulses, got shape {np.shape(times)}")
-    fit = regress(residual, sigma, sensitivity, scale_range, gram)
+def estimate(place: str, moments: Moments, times: np.ndarray, scale_range: tuple[float, float]) -> ForceEstimate:
+    """The force at ``place`` behind a residual, from the :class:`Moments` of it and of the channels' responses to unit
+    pulses of force at the place centred at ``times``; ``scale_range``: the range [s_low, s_high] of the log-uniform
+    prior on the force's scale, in the force's units."""
+    if np.shape(times) != np.shape(moments.projection):
+        raise ValueError(f"times must give the centres of the {np.size(moments.projection)} basis pulses, got shape {np.shape(times)}")
+    fit = regress_moments(moments, scale_range)
     return ForceEstimate(**{f.name: getattr(fit, f.name) for f in fields(fit)}, place=place, times=np.asarray(times, dtype=float))

@@ -19,7 +19,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
-from numpy.lib.stride_tricks import sliding_window_view
 from scipy import signal
 
 from .. import model
@@ -105,27 +104,43 @@ class LinearRig:
                            * np.fft.rfft(force, self.fft_size), self.fft_size)
         return out[..., :n]
 
-    def pulse_sensitivity(self, place: str, first: int, n_record: int, spacing: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(channel, record sample, pulse) responses to unit hats of half-width ``spacing`` samples centred
-        every ``spacing`` samples from t = spacing/fs (the first hat whole) to the record's end, on the
-        record (samples first … first + n_record − 1 of the grid), the pulses' centres in samples, and each channel's
-        Gram matrix of those columns (channel, pulse, pulse).  Time invariance makes every column a shift of one
-        response, and the Gram matrix running sums of that response's lagged products."""
+    def pulses(self, place: str, first: int, n_record: int, spacing: int) -> Pulses:
+        """Unit hats of force at ``place`` of half-width ``spacing`` samples, centred every ``spacing`` samples from
+        t = spacing/fs (the first hat whole) to the record's end, seen on the record (samples first … first + n_record − 1
+        of the grid)."""
         centres = np.arange(spacing, first + n_record, spacing)
         lags = np.arange(-spacing + 1, spacing)
-        hat = 1.0 - np.abs(lags) / spacing
-        n_grid = first + n_record
-        unit = np.zeros(n_grid)
-        unit[lags + spacing] = hat  # the hat centred at sample `spacing`
-        one = self.response(place, unit)  # (channel, grid)
-        # Column j is the response to a hat centred at centres[j], i.e. `one` shifted by centres[j] − spacing: the
-        # record's window of `one` from first − (centres[j] − spacing), zero before the grid's start.
-        shifts = centres - spacing
-        lead = max(0, shifts[-1] - first)
-        padded = np.concatenate([np.zeros((one.shape[0], lead)), one], axis=1)
-        windows = sliding_window_view(padded, n_record, axis=1)  # (channel, window start, record sample)
-        columns = np.ascontiguousarray(np.moveaxis(windows[:, lead + first - shifts, :], 1, 2))
-        return columns, centres, _shifted_gram(one, shifts, first, spacing)
+        unit = np.zeros(first + n_record)
+        unit[lags + spacing] = 1.0 - np.abs(lags) / spacing  # the hat centred at sample `spacing`
+        return Pulses(self.response(place, unit), centres, first, n_record, spacing)
+
+
+@dataclass(frozen=True)
+class Pulses:
+    """The channels' responses to unit force pulses on a record: column j of their sensitivity G (channel, record sample,
+    pulse) is the response ``one`` to the first hat shifted by a_j = centres[j] − spacing (time invariance), zero
+    before the grid's start.  G is never formed: its Gram matrices come from running sums of ``one``'s lagged products
+    and its products with data from correlations with ``one``."""
+
+    one: np.ndarray  # (channel, grid) the response to the hat centred at sample `spacing`
+    centres: np.ndarray  # the pulses' centres, in samples of the grid
+    first: int  # the record's first sample on the grid
+    n_record: int
+    spacing: int
+
+    @property
+    def gram(self) -> np.ndarray:
+        """Each channel's GᵀG (channel, pulse, pulse)."""
+        return _shifted_gram(self.one, self.centres - self.spacing, self.first, self.spacing)
+
+    def project(self, x: np.ndarray) -> np.ndarray:
+        """Gᵀx of each channel for ``x`` (channel, record sample, ...), (channel, pulse, ...): Σ_t one(first + t − a_j)·x(t),
+        the correlation of ``one`` with x by FFT (long enough that nothing wraps)."""
+        x = np.asarray(x, dtype=float)
+        size = 1 << (self.one.shape[1] + self.n_record - 1).bit_length()
+        one = np.fft.rfft(self.one, size).reshape(self.one.shape[:1] + (-1,) + (1,) * (x.ndim - 2))
+        correlation = np.fft.irfft(one * np.conj(np.fft.rfft(x, size, axis=1)), size, axis=1)
+        return correlation[:, (self.first - (self.centres - self.spacing)) % size]
 
 
 @njit(cache=True, error_model="numpy")

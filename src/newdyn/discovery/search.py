@@ -142,10 +142,12 @@ def discover(residual: np.ndarray, sigma: np.ndarray, values: Mapping[str, float
     spacing = max(1, round(PULSE_SPACING * sampling.fs))
     forces = {}
     for place in ESTIMABLE_PLACES:
-        columns, centres, gram = linear.pulse_sensitivity(place, first, sampling.n_samples, spacing)
+        pulses = linear.pulses(place, first, sampling.n_samples, spacing)
+        gram, projection = pulses.gram, pulses.project(residual)
         if nuisance is not None:
-            columns, gram = nuisance.whiten(columns), nuisance.whiten_gram(columns, gram)
-        forces[place] = force.estimate(place, residual, sigma, columns, centres / sampling.fs, scale_range(place, values), gram)
+            gram, projection = nuisance.whitened_products(gram, projection, pulses.project(nuisance.basis), residual)
+        moments = force.Moments.of_channels(gram, projection, residual, sigma)
+        forces[place] = force.estimate(place, moments, pulses.centres / sampling.fs, scale_range(place, values))
 
     places = _places({place: f.log_bayes_factor for place, f in forces.items()})
     record = Record(residual, sigma, trajectory, linear, first, peaks, nuisance)
