@@ -3,6 +3,7 @@ simulator, the catalogue's effect files, and the search on a measurement it must
 
 import math
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -367,6 +368,27 @@ def test_including_an_effect_file_adds_it_for_the_block_only(tmp_path):
         with pytest.raises(effects.EffectError, match="already active"), effects.including(tmp_path / "torque_ripple.py"):
             pass
     assert list(effects.active()) == before
+
+
+@pytest.mark.parametrize(("drift", "expected"), [
+    ({"kT1": 4.5e6}, [{"friction": 16.0, "v_smooth": 6e-4, "kT1": 4.5e6}, {"friction": 16.0, "v_smooth": 6e-4}]),  # and at kT1's prior mean
+    ({}, [{"friction": 16.0, "v_smooth": 6e-4}]),  # found beside the healthy model: one start
+])
+def test_a_found_terms_full_fit_starts_beside_its_drift_and_at_the_drifts_prior_mean(monkeypatch, drift, expected):
+    """A drift can absorb part of the missing term (a friction across the coupling pushed kT1 to its grid's edge), so
+    the term's full fit starts from the drift it was found beside and from the drift's prior mean, the best kept."""
+    shape = Shape({"v_smooth": 6e-4}, "v_s 0.0006")
+    rows = {"friction": {"value": 16.0, "sd": 1.0, "hdi_low": 14.0, "hdi_high": 18.0, "unit": "N·m"},
+            "v_smooth": {"value": 6e-4, "sd": 0.0, "hdi_low": 6e-4, "hdi_high": 6e-4, "unit": "rad/s"}}
+    candidate = search.Candidate("friction", "coupling", 0.0, shape, None, None, rows, 1.0, None)
+    origin = hypotheses.Fit(hypotheses.Hypothesis("origin", "parameter_change", ()), drift, np.zeros((1, 1)), 0.0, 9.0, 0.0, 1)
+    settings = SimpleNamespace(calibration_priors=lambda: {"kT1": hypotheses.Prior("kT1", 1.5e6, 4.5e6, 3.0e6, 5.0e5)},
+                               drift=["kT1"], channels=("w1",), max_step=1e-4, instruments=lambda fs, colour: None)
+    seen = []
+    monkeypatch.setattr(hypotheses, "fit", lambda hypothesis, data, sigma, values, sampling, channels, starts, *_, **__: seen.append(starts))
+    with effects.including(verify._generic_file("friction", "coupling", shape)) as effect:
+        verify._full_fit(candidate, effect, None, None, {}, origin, model.Sampling(), settings)
+    assert seen == [expected]
 
 
 @pytest.mark.parametrize(("uncompiled", "together"), [({"coupling", "b1_x"}, ["b1_x", "coupling"]), ({"coupling"}, [])])

@@ -196,8 +196,11 @@ def _full_fit(candidate: search.Candidate, effect: type[effects.Effect], data, s
     simulator, within :func:`newdyn.discovery.effect_file.prior_range` of its linearized fit."""
     ranges = {effect.name: {key: effect_file.prior_range(key, row)[:2] for key, row in candidate.parameters.items()}}
     hypothesis = hypotheses.library(settings.calibration_priors(), ranges, settings.drift)[-1]
-    start = {**{key: float(row["value"]) for key, row in candidate.parameters.items()}, **origin.values}
-    return hypotheses.fit(hypothesis, data, sigma, values, sampling, settings.channels, [start], settings.max_step, search=False,
+    found = {key: float(row["value"]) for key, row in candidate.parameters.items()}
+    # From the drift the term was found beside, and from the drift's prior mean: a drift that absorbed part of the
+    # term (kT1 pushed to its grid's edge by a friction across the coupling) can hold the fit in its basin.
+    starts = [{**found, **origin.values}, found] if origin.values else [found]
+    return hypotheses.fit(hypothesis, data, sigma, values, sampling, settings.channels, starts, settings.max_step, search=False,
                           instruments=_datasheets(origin, settings, sampling))
 
 
