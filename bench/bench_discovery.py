@@ -41,15 +41,15 @@ def main() -> None:
     values = slots.complete({**settings.rig, **measurement.operating})
     nominal = hypotheses.fit(hypotheses.Hypothesis("healthy", "healthy"), y, sigma, values, sampling, settings.channels,
                              max_step=settings.max_step)
-    print("a 10 N·m ripple at 3x the motor speed, 1-s record at 40 dB (b1_x, w1), 2 cores")
+    print(f"a 10 N·m ripple at 3x the motor speed, 1-s record at 40 dB ({', '.join(settings.channels)}), 2 cores")
     print(f"{'run':10s} {'time':>8s} {'vs goal':>8s}   best form")
     for run in ("first", "second"):
         start = time.perf_counter()
-        section, _, fit, _ = verify.discover(measurement.name, nominal, y, sigma, values, sampling, settings)
+        found = verify.discover(measurement.name, nominal, y, sigma, values, sampling, settings)
         seconds = time.perf_counter() - start
-        best = section["candidates"][0]
+        best = found.section["candidates"][0]
         print(f"{run:10s} {seconds:7.1f}s {seconds / GOAL_SECONDS:7.2f}x   {best['term']} on {best['acts_on']} ({best['shape']}), "
-              f"chi2 {section['chi2_before']:.3g} -> {fit.chi2_red:.3g}")
+              f"chi2 {found.section['chi2_before']:.3g} -> {found.fit.chi2_red:.3g}")
 
 
 if __name__ == "__main__":
