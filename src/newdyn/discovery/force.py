@@ -44,7 +44,12 @@ def _whitened(residual: np.ndarray, sigma: np.ndarray, sensitivity: np.ndarray) 
 def log_evidence_without_force(residual: np.ndarray, sigma: np.ndarray) -> float:
     """log p(r | no missing force): the residual is the noise alone."""
     r = np.asarray(residual, dtype=float) / np.asarray(sigma, dtype=float)[:, None]
-    return float(-0.5 * (np.sum(r**2) + r.size * LOG_2PI) - r.shape[1] * np.sum(np.log(sigma)))
+    return _log_evidence_of_noise(float(np.sum(r**2)), r.size, _log_sigma(residual, sigma))
+
+
+def _log_evidence_of_noise(squares: float, size: int, log_sigma: float) -> float:
+    """log N(r; 0, σ²I) from Σ(r/σ)², the number of data and Σ log σ over them."""
+    return -0.5 * (squares + size * LOG_2PI) - log_sigma
 
 
 @dataclass(frozen=True)
@@ -116,7 +121,7 @@ class Moments:
     @property
     def log_evidence_without(self) -> float:
         """log p(r | no missing force): r is the noise alone."""
-        return -0.5 * (self.squares + self.size * LOG_2PI) - self.log_sigma
+        return _log_evidence_of_noise(self.squares, self.size, self.log_sigma)
 
 
 def _log_sigma(residual: np.ndarray, sigma: np.ndarray) -> float:
