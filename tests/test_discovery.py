@@ -86,7 +86,7 @@ def test_instrument_errors_fitted_beside_the_force_are_the_gaussian_closed_forms
     nuisance = force.Nuisance.of(design, SIGMA)
     s = 2.5
     whitened = nuisance.whiten(residual)
-    result = force.regress(whitened, SIGMA, nuisance.whiten(g), (s, s * (1 + 1e-10)))
+    result = force.regress_records([whitened], [SIGMA], [nuisance.whiten(g)], (s, s * (1 + 1e-10)))
     # the same products from the columns as they are, the whitened columns never formed (as the search's pulses)
     products = nuisance.whitened_products(np.einsum("ctj,ctk->cjk", g, g), np.einsum("ctj,ct->cj", g, whitened),
                                           np.einsum("ctj,ctk->cjk", g, nuisance.basis), whitened)

@@ -141,22 +141,17 @@ class Regression:
     chi2_after: float  # reduced χ² of the residual less G times the posterior mean
 
 
-def regress(residual: np.ndarray, sigma: np.ndarray, sensitivity: np.ndarray, scale_range: tuple[float, float]) -> Regression:
-    """Bayesian linear regression of ``residual`` (channel, time), noise σ per channel, on the columns of
-    ``sensitivity`` (channel, time, column), the prior scale's log-uniform range ``scale_range``."""
-    return regress_records([residual], [sigma], [sensitivity], scale_range)
-
-
 def regress_records(residuals: Sequence[np.ndarray], sigmas: Sequence[np.ndarray], sensitivities: Sequence[np.ndarray],
                     scale_range: tuple[float, float]) -> Regression:
-    """:func:`regress` on several records at once (recordings of one machine, each its own channels, noise and length):
-    one coefficient vector for all, each record's ``sensitivity`` giving every column (zero where a column is
-    another record's own)."""
+    """Bayesian linear regression of each record's ``residual`` (channel, time), noise σ per channel, on the columns of
+    its ``sensitivity`` (channel, time, column), the prior scale's log-uniform range ``scale_range``.  Several records
+    (recordings of one machine, each its own channels, noise and length) share one coefficient vector, each record's
+    ``sensitivity`` giving every column (zero where a column is another record's own)."""
     return regress_moments(functools.reduce(operator.add, map(Moments.of, residuals, sigmas, sensitivities)), scale_range)
 
 
 def regress_moments(moments: Moments, scale_range: tuple[float, float]) -> Regression:
-    """:func:`regress` from the data's :class:`Moments`."""
+    """:func:`regress_records` from the data's :class:`Moments`."""
     s_low, s_high = (float(x) for x in scale_range)
     if not 0.0 < s_low < s_high:
         raise ValueError(f"scale_range must be 0 < low < high, got {scale_range!r}")

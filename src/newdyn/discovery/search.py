@@ -10,7 +10,7 @@ From the residual r (channel, time) of the model the search starts from (healthy
 3. every form of :data:`.forms.FORMS` at each of those places it can act, each shape it proposes: its basis
    forces along the calibrated motion, normalized to unit RMS so that one log-uniform prior on the
    force's RMS holds for all, through the linear model, then Bayesian linear regression on them
-   (:func:`.force.regress`); the shapes marginalized with the form's prior.  Candidates are ranked by
+   (:func:`.force.regress_records`); the shapes marginalized with the form's prior.  Candidates are ranked by
    that evidence; those within ``evidence_margin`` of the best explain the data equally.
 """
 
