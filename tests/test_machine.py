@@ -86,6 +86,34 @@ def test_a_drift_of_one_value_under_two_conditions_is_consistent(drifted):
     assert "contradict" not in v["statement"]
 
 
+def test_recordings_whose_optima_agree_start_one_joint_fit_at_the_optimum_that_pins_them_best():
+    """An optimum farther than AGREEMENT_SDS sds of the difference from another, on any parameter, starts a fit of its
+    own; of agreeing ones, the one of the least product of sds."""
+    alone = [{"kT1": {"map": 3.00e6, "sd": 1e4}, "r_k": {"map": 0.98, "sd": 0.02}},
+             {"kT1": {"map": 3.02e6, "sd": 2e4}, "r_k": {"map": 0.99, "sd": 0.005}},  # 2e4 x 0.005 < 1e4 x 0.02
+             {"kT1": {"map": 3.01e6, "sd": 1e4}, "r_k": {"map": 0.85, "sd": 0.01}},  # r_k 5.8 sds from the first
+             {"kT1": {"map": 3.00e6, "sd": 0.0}, "r_k": {"map": 0.98, "sd": 0.01}}]  # no width: agrees with none
+    assert machine.joint_starts(alone, ["kT1", "r_k"]) == [{"kT1": 3.02e6, "r_k": 0.99}, {"kT1": 3.01e6, "r_k": 0.85},
+                                                           {"kT1": 3.00e6, "r_k": 0.98}]
+    assert machine.joint_starts([{}, {}], []) == [{}]
+
+
+def test_a_consistent_drift_fitted_from_its_one_start_reaches_the_optimum_of_every_recordings_start(drifted):
+    """kT1 3.25e6 under two conditions: the recordings' optima agree, so one joint fit starts from one of them, and it
+    ends where the fits from each recording's own optimum end."""
+    pair = [drifted["stiff_full"], drifted["stiff_part"]]
+    seen = [machine.recording(d, SETTINGS) for d in pair]
+    drift = next(h for h in SETTINGS.hypotheses() if h.name == "parameter_change:kT1")
+    alone = [next(r for r in d.verdict["ranking"] if r["hypothesis"] == drift.name)["parameters"] for d in pair]
+    starts = machine.joint_starts(alone, drift.parameters)
+    assert len(starts) == 1
+    one = hypotheses.fit_joint(drift, seen, starts, SETTINGS.max_step)
+    each = hypotheses.fit_joint(drift, seen, [{"kT1": rows["kT1"]["map"]} for rows in alone], SETTINGS.max_step)
+    assert one.values["kT1"] == pytest.approx(each.values["kT1"], abs=0.01 * each.laplace_parameters()["kT1"]["sd"])
+    assert one.log_evidence == pytest.approx(each.log_evidence, abs=1e-3)
+    assert one.n_simulations < each.n_simulations
+
+
 def test_a_drift_that_needs_different_values_under_two_conditions_is_named_as_contradicted(drifted):
     """Each recording alone is a kT1 drift, but of different sizes: one value cannot explain both."""
     assert all(r["hypothesis"] != "parameter_change:kT1" or r["explains"]

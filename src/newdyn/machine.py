@@ -3,7 +3,8 @@ instruments: one verdict with the machine's parameters shared by all of them.
 
 Each recording is first diagnosed alone (:func:`newdyn.diagnosis.diagnose`); its verdict gives its channels, noise and
 each hypothesis's optimum and evidence.  Then every hypothesis is fitted to all recordings at once, one parameter set
-for all (:func:`newdyn.hypotheses.fit_joint`, started from each recording's optimum), and the machine's verdict is the
+for all (:func:`newdyn.hypotheses.fit_joint`, started from the recordings' optima, one start for those that agree),
+and the machine's verdict is the
 hypothesis of highest joint evidence whose fit brings every recording's χ² to the noise.
 
 Consistency across conditions, the paper's principle: a drifted parameter has one value under every condition, a
@@ -18,6 +19,7 @@ decision rests on the Bayes factor).
 from __future__ import annotations
 
 import itertools
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 
@@ -65,7 +67,7 @@ def diagnose(name: str, recordings: Sequence[Diagnosed], settings: Settings) -> 
     own = [{row["hypothesis"]: row for row in r.verdict["ranking"]} for r in recordings]
 
     def joint(hypothesis):
-        starts = [{p: rows[hypothesis.name]["parameters"][p]["map"] for p in hypothesis.parameters} for rows in own]
+        starts = joint_starts([rows[hypothesis.name]["parameters"] for rows in own], hypothesis.parameters)
         return instrument_checks.joint_checked(hypotheses.fit_joint(hypothesis, seen, starts, settings.max_step), seen,
                                               settings.evidence_margin)
 
@@ -94,6 +96,39 @@ def diagnose(name: str, recordings: Sequence[Diagnosed], settings: Settings) -> 
         **({"discovery": discovery} if discovery is not None else {}),
     }
     return MachineDiagnosis({"statement": statement(result, settings.chi2_max), **result}, found_file)
+
+
+# Two recordings' optima of a parameter agree where they are this many standard deviations of their difference apart
+# or fewer: two independent Normal estimates of one value lie farther apart one time in 370.
+AGREEMENT_SDS = 3.0
+
+
+def joint_starts(alone: Sequence[Mapping[str, Mapping]], names: Sequence[str]) -> list[dict[str, float]]:
+    """Where a joint fit of the parameters ``names`` starts, from each recording's own posterior of them (``alone``, one
+    mapping of name -> {"map", "sd"} per recording): recordings whose optima agree on every parameter (see
+    :data:`AGREEMENT_SDS`) share one start, the optimum of the one that pins the parameters best (the least product of
+    its sds), which the others' likelihoods hardly move; each group of agreeing recordings gives one.  A drift that is
+    one value under every condition is then fitted from one start, a calibration that absorbs new dynamics, whose
+    optima part, from each.  Not their precision-weighted mean: where a likelihood is not Normal (a joint that slips)
+    that point can lie in no recording's basin."""
+    groups: list[list[Mapping[str, Mapping]]] = []
+    for rows in alone:
+        group = next((g for g in groups if all(_agree(rows, other, names) for other in g)), None)
+        if group is None:
+            groups.append([rows])
+        else:
+            group.append(rows)
+    narrowest = [min(group, key=lambda rows: math.prod(rows[n]["sd"] for n in names)) for group in groups]
+    return [{n: float(rows[n]["map"]) for n in names} for rows in narrowest]
+
+
+def _agree(a: Mapping[str, Mapping], b: Mapping[str, Mapping], names: Sequence[str]) -> bool:
+    """Whether two recordings' optima agree on every parameter; an optimum without a finite positive width agrees with
+    none."""
+    def width(p):
+        return p["sd"] if 0 < p["sd"] < np.inf else np.nan
+
+    return all(abs(a[n]["map"] - b[n]["map"]) <= AGREEMENT_SDS * np.hypot(width(a[n]), width(b[n])) for n in names)
 
 
 def _record_next(ranking: Sequence[Mapping], fits, recordings: Sequence[Diagnosed], seen: Sequence[hypotheses.Recording],
