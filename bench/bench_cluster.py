@@ -1,8 +1,8 @@
 """What running on a batch system costs: the CI study (.test/config.yaml) run locally and through Snakemake's
 cluster-generic executor plugin with the stand-in batch system of the tests (.test/stand-in-submit: every job
-a separate process with its own Snakemake start and parse), side by side (goal: at most 1.5 times the local
-time).  Each run starts from an empty folder; the kernels' cache is shared, so no run compiles for the other.
-With --baseline REV the same two runs of a fresh clone of that revision (its newdyn first on PYTHONPATH) go
+a separate process with its own Snakemake start and parse, the scenarios grouped as the repository's SLURM profile
+groups them), side by side (goal: at most 1.5 times the local time).  Each run starts from an empty folder; the
+kernels' cache is shared, so no run compiles for the other.  With --baseline REV the same two runs of a fresh clone of that revision (its newdyn first on PYTHONPATH) go
 beside those of the working tree, in turns, so that the machine's drift touches both alike.
 
 Run: python bench/bench_cluster.py [--baseline REV] [--status-checks SECONDS]   (a few minutes, twice that with a
@@ -20,13 +20,19 @@ import tempfile
 import time
 from pathlib import Path
 
+import yaml
+
 ROOT = Path(__file__).resolve().parents[1]
 GOAL = 1.5
+PROFILE = Path("workflow") / "profiles" / "slurm" / "config.yaml"
 
 
 def cluster(root: Path, status_checks: float) -> list[str]:
+    """The stand-in batch system's command line, with the groups the repository's SLURM profile submits together."""
+    profile = yaml.safe_load((root / PROFILE).read_text()) if (root / PROFILE).exists() else {}
+    groups = ["--group-components", *profile["group-components"]] if "group-components" in profile else []
     return ["--executor", "cluster-generic", "--cluster-generic-submit-cmd", str(root / ".test" / "stand-in-submit"),
-            "--jobs", "2", "--seconds-between-status-checks", f"{status_checks:g}"]
+            "--jobs", "2", "--seconds-between-status-checks", f"{status_checks:g}", *groups]
 
 
 def study_time(root: Path, *args: str) -> float:

@@ -570,6 +570,32 @@ def test_the_slurm_profile_asks_for_each_rules_memory_and_time(tmp_path):
             assert re.search(r"\bmem_mb=\d+", resources) and re.search(r"\bruntime=\d+", resources), (rule, resources)
 
 
+def group_jobs(dry_run: str) -> dict[str, list[list[tuple[str, str]]]]:
+    """A dry run's group jobs: per group, one sorted list of (rule, wildcards) per group job."""
+    groups = {}
+    parts = re.split(r"^.*Group job (\w+) .*$", dry_run, flags=re.MULTILINE)
+    for group, block in zip(parts[1::2], parts[2::2]):
+        jobs = re.findall(r"^    rule (\w+):\n((?:        .*\n)*)", block, re.MULTILINE)  # a group's jobs indented
+        groups.setdefault(group, []).append(sorted((rule, " ".join(re.findall(r"^        wildcards: (.*)$", body, re.MULTILINE)))
+                                                   for rule, body in jobs))
+    return groups
+
+
+def test_the_slurm_profile_submits_as_many_scenarios_a_job_as_it_says(tmp_path):
+    """The profile's group-components joins that many scenarios' group jobs into one submission (the rest in one more),
+    each scenario in one of them: a batch system then makes fewer jobs wait for the queue."""
+    profile = yaml.safe_load((ROOT / "workflow" / "profiles" / "slurm" / "config.yaml").read_text())
+    (per_job,) = [int(size) for group, size in (c.split("=") for c in profile["group-components"]) if group == "scenario"]
+    run = snakemake(tmp_path, "--executor", "cluster-generic", "--cluster-generic-submit-cmd", "true", "--jobs", "2",
+                    "--group-components", *profile["group-components"], "--dry-run")
+    assert run.returncode == 0, run.stderr[-3000:]
+    config = yaml.safe_load(TEST_CONFIG.read_text())
+    n_scenarios = sum(len(newdyn.study.variant_config(config, v)["scenarios"]) for v in newdyn.study.variant_names(config))
+    submitted = [[w for rule, w in job if rule == "simulate"] for job in group_jobs(run.stdout)["scenario"]]
+    assert sorted(map(len, submitted)) == sorted([per_job] * (n_scenarios // per_job) + [n_scenarios % per_job] * bool(n_scenarios % per_job))
+    assert sorted(w for job in submitted for w in job) == sorted(set(w for job in submitted for w in job))
+
+
 def test_on_a_batch_system_a_scenario_the_library_and_a_case_are_one_job_each(tmp_path):
     """A batch system makes each job wait for the queue, its start and the next status check: there a scenario's
     simulation, noisy copies and their calibrations run as one group job, one per scenario of each variant; the default
@@ -578,12 +604,7 @@ def test_on_a_batch_system_a_scenario_the_library_and_a_case_are_one_job_each(tm
     run = snakemake(tmp_path, "--executor", "cluster-generic", "--cluster-generic-submit-cmd", "true", "--jobs", "2",
                     "--dry-run")
     assert run.returncode == 0, run.stderr[-3000:]
-    groups = {}
-    parts = re.split(r"^.*Group job (\w+) .*$", run.stdout, flags=re.MULTILINE)
-    for group, block in zip(parts[1::2], parts[2::2]):
-        jobs = re.findall(r"^    rule (\w+):\n((?:        .*\n)*)", block, re.MULTILINE)  # a group's jobs indented
-        groups.setdefault(group, []).append(sorted((rule, " ".join(re.findall(r"^        wildcards: (.*)$", body, re.MULTILINE)))
-                                                   for rule, body in jobs))
+    groups = group_jobs(run.stdout)
     config = yaml.safe_load(TEST_CONFIG.read_text())
     scenarios, grids = [], []
     for variant in newdyn.study.variant_names(config):
