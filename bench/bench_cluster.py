@@ -2,8 +2,9 @@
 cluster-generic executor plugin with the stand-in batch system of the tests (.test/stand-in-submit: every job
 a separate process with its own Snakemake start and parse, the scenarios grouped as the repository's SLURM profile
 groups them), side by side (goal: at most 1.5 times the local time).  Each run starts from an empty folder; the
-kernels' cache is shared, so no run compiles for the other.  With --baseline REV the same two runs of a fresh clone of that revision (its newdyn first on PYTHONPATH) go
-beside those of the working tree, in turns, so that the machine's drift touches both alike.
+kernels' cache is shared, so no run compiles for the other.  With --baseline REV the same two runs of a fresh clone
+of that revision (its newdyn first on PYTHONPATH, its own profile's groups) go beside those of the working tree, in
+turns, so that the machine's drift touches both alike.
 
 Run: python bench/bench_cluster.py [--baseline REV] [--status-checks SECONDS]   (a few minutes, twice that with a
 baseline; needs snakemake-executor-plugin-cluster-generic).  --status-checks is how often Snakemake asks the batch

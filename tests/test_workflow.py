@@ -592,8 +592,10 @@ def test_the_slurm_profile_submits_as_many_scenarios_a_job_as_it_says(tmp_path):
     config = yaml.safe_load(TEST_CONFIG.read_text())
     n_scenarios = sum(len(newdyn.study.variant_config(config, v)["scenarios"]) for v in newdyn.study.variant_names(config))
     submitted = [[w for rule, w in job if rule == "simulate"] for job in group_jobs(run.stdout)["scenario"]]
-    assert sorted(map(len, submitted)) == sorted([per_job] * (n_scenarios // per_job) + [n_scenarios % per_job] * bool(n_scenarios % per_job))
-    assert sorted(w for job in submitted for w in job) == sorted(set(w for job in submitted for w in job))
+    full, rest = divmod(n_scenarios, per_job)
+    assert sorted(map(len, submitted), reverse=True) == [per_job] * full + ([rest] if rest else [])
+    every = [w for job in submitted for w in job]
+    assert len(set(every)) == len(every) == n_scenarios
 
 
 def test_on_a_batch_system_a_scenario_the_library_and_a_case_are_one_job_each(tmp_path):

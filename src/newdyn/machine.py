@@ -3,9 +3,9 @@ instruments: one verdict with the machine's parameters shared by all of them.
 
 Each recording is first diagnosed alone (:func:`newdyn.diagnosis.diagnose`); its verdict gives its channels, noise and
 each hypothesis's optimum and evidence.  Then every hypothesis is fitted to all recordings at once, one parameter set
-for all (:func:`newdyn.hypotheses.fit_joint`, started from the recordings' optima, one start for those that agree),
-and the machine's verdict is the
-hypothesis of highest joint evidence whose fit brings every recording's χ² to the noise.
+for all (:func:`newdyn.hypotheses.fit_joint`, started from the recordings' optima, one start for those that agree,
+:func:`joint_starts`), and the machine's verdict is the hypothesis of highest joint evidence whose fit brings every
+recording's χ² to the noise.
 
 Consistency across conditions, the paper's principle: a drifted parameter has one value under every condition, a
 calibration that absorbs new dynamics lands on different values under different ones.  Both are measured: the
