@@ -281,9 +281,9 @@ def _compare_versions(verdict, fits, calibrations, effect_posterior, discovery: 
     rng = np.random.default_rng(int(settings.mcmc.get("seed", 0)))
     n = model_comparison.DRAWS
 
-    def version(fit, draws):
+    def version(fit, draws, base=values):
         return model_comparison.Version(
-            lambda theta: hypotheses.evaluate(fit.hypothesis, theta, values, sampling, settings.channels, settings.max_step),
+            lambda theta: hypotheses.evaluate(fit.hypothesis, theta, base, sampling, settings.channels, settings.max_step),
             draws, fit.hypothesis.parameters, fit.instruments)
 
     nominal, calibrated, effect = (fits[verdict["models"][key]] for key in ("nominal", "calibrated", "effect"))
@@ -302,7 +302,8 @@ def _compare_versions(verdict, fits, calibrations, effect_posterior, discovery: 
         low, high = np.array([[p.low, p.high] for p in discovered.hypothesis.priors]).T
         with discovery.as_fitted():
             idata.update(model_comparison.evaluate_versions(
-                {"discovered": version(discovered, model_comparison.draws(discovered.theta, discovered.covariance, low, high, rng))},
+                {"discovered": version(discovered, model_comparison.draws(discovered.theta, discovered.covariance, low, high, rng),
+                                       slots.without_effects(values))},
                 data, sigma, cycle, settings.channels))
     pointwise = xr.concat([d.log_likelihood["y"].isel(chain=0, drop=True) for d in idata.values()],
                           dim=xr.Variable("comparison_version", list(idata)))

@@ -49,3 +49,12 @@ def complete(values: Mapping[str, float] | None = None) -> dict[str, float]:
 def parameter_vector(values: Mapping[str, float] | None = None) -> np.ndarray:
     """The kernel's flat parameter vector for ``values`` (missing names take their defaults)."""
     return np.array(list(complete(values).values()), dtype=np.float64)
+
+
+def without_effects(values: Mapping[str, float]) -> dict[str, float]:
+    """The rig and operating values of ``values``, without any effect's slots: the same model where no effect is active
+    (:func:`newdyn.effects.alone`).  An effect present in ``values`` cannot be dropped."""
+    present = [name for name, value in values.items() if name not in model.PARAMETER_INDEX and "." not in name and value != 0.0]
+    if present:
+        raise ValueError(f"effect(s) {', '.join(present)} present: the model without effects is another one")
+    return {name: float(values[name]) for name in model.PARAMETER_NAMES if name in values}

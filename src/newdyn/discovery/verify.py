@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import xarray as xr
 
-from .. import cache, effects, hypotheses, io, kernels, model, noise, sensors, simulation
+from .. import cache, effects, hypotheses, io, kernels, model, noise, sensors, simulation, slots
 from . import effect_file, force, search
 from .forms import FORMS, Shape
 
@@ -44,11 +44,10 @@ class Discovered:
 
     @contextlib.contextmanager
     def as_fitted(self):
-        """The best candidate's generic effect active inside a with-block, beside the files it was fitted with, so that
-        its simulations run in the kernel its fit compiled."""
-        with contextlib.ExitStack() as stack:
-            for path in self.kernel_files:
-                stack.enter_context(effects.including(path))
+        """The best candidate's generic effect active inside a with-block, beside the files it was fitted with and no
+        other, so that its simulations (on values :func:`newdyn.slots.without_effects`) run in the kernel its fit
+        compiled."""
+        with effects.alone(self.kernel_files):
             yield
 
 
@@ -165,28 +164,30 @@ def _force_dataset(found: search.Discovery) -> xr.Dataset:
 def _full_fits(candidates: Sequence[search.Candidate], data, sigma, values, origin: hypotheses.Fit, sampling,
                settings: Settings) -> tuple[dict[int, hypotheses.Fit], dict[int, list[Path]]]:
     """Each candidate's :func:`_full_fit` and the generic effect files it ran beside (its own among them), by ``id``.
-    One whose kernel (the active effects and its form's generic file) is compiled already runs in it; the others share
-    one kernel that holds all their files, each absent from the others' fits (an absent effect adds nothing, so the
-    numbers are the same): one compile, not one per candidate."""
+    A fit runs in a kernel of generic files alone, no library effect in it (the fit starts from healthy or a drift).
+    One whose kernel (its form's generic file) is compiled already runs in it; the others share one kernel that holds
+    all their files, each absent from the others' fits (an absent effect adds nothing, so the numbers are the same):
+    one compile, not one per candidate."""
     files = {id(c): _generic_file(c.term, c.acts_on, c.shape) for c in candidates}
     fresh = sorted((c for c in candidates if not _compiled(files[id(c)])), key=lambda c: files[id(c)].name)
     together = fresh if len(fresh) > 1 else []
     group = [files[id(c)] for c in together]
+    rig = slots.without_effects(values)  # healthy or a drift: no library effect takes part, nor is compiled in
     fits = {}
-    with contextlib.ExitStack() as stack:
-        included = {id(c): stack.enter_context(effects.including(files[id(c)])) for c in together}
-        for c in together:
-            fits[id(c)] = _full_fit(c, included[id(c)], data, sigma, values, origin, sampling, settings)
+    if together:
+        with effects.alone(group) as loaded:
+            for c, effect in zip(together, loaded):
+                fits[id(c)] = _full_fit(c, effect, data, sigma, rig, origin, sampling, settings)
     for c in candidates:
         if id(c) not in fits:
-            with effects.including(files[id(c)]) as effect:
-                fits[id(c)] = _full_fit(c, effect, data, sigma, values, origin, sampling, settings)
+            with effects.alone([files[id(c)]]) as (effect,):
+                fits[id(c)] = _full_fit(c, effect, data, sigma, rig, origin, sampling, settings)
     return fits, {id(c): group if files[id(c)] in group else [files[id(c)]] for c in candidates}
 
 
 def _compiled(path: Path) -> bool:
-    """Whether the kernel of the active effects with the effect file ``path`` is compiled already."""
-    with effects.including(path):
+    """Whether the kernel of the effect file ``path`` alone is compiled already."""
+    with effects.alone([path]):
         return kernels.is_compiled(effects.active())
 
 
@@ -212,7 +213,8 @@ def fit_across(term: str, place: str, shape: Shape, parameters: Sequence[Mapping
     are each recording's own, as the search fitted them (separate recordings share no clock nor angle mark).  Each
     parameter's range covers what :func:`newdyn.discovery.effect_file.prior_range` gives around every recording's value."""
     own = [key for key in parameters[0] if FORMS[term].phased and key not in shape.values]
-    with effects.including(_generic_file(term, place, shape)) as effect:
+    recordings = [replace(r, base=slots.without_effects(r.base)) for r in recordings]
+    with effects.alone([_generic_file(term, place, shape)]) as (effect,):
         ranges = {effect.name: {key: (min(effect_file.prior_range(key, row[key])[0] for row in parameters),
                                       max(effect_file.prior_range(key, row[key])[1] for row in parameters)) for key in parameters[0]}}
         hypothesis = hypotheses.library(settings.calibration_priors(), ranges, settings.drift)[-1]
