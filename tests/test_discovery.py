@@ -370,6 +370,37 @@ def test_including_an_effect_file_adds_it_for_the_block_only(tmp_path):
     assert list(effects.active()) == before
 
 
+def test_alone_makes_the_active_set_those_files_for_the_block_only(tmp_path):
+    (tmp_path / "torque_ripple.py").write_text((TEST_EFFECTS / "torque_ripple.py").read_text())
+    before = list(effects.active())
+    with effects.alone([tmp_path / "torque_ripple.py"]) as (effect,):
+        assert list(effects.active()) == ["torque_ripple"] and effect.name == "torque_ripple"
+        assert [name for name in slots.slot_names() if name not in model.PARAMETER_INDEX] == [
+            "torque_ripple", "torque_ripple.amplitude", "torque_ripple.order"]
+    assert list(effects.active()) == before
+    with pytest.raises(ValueError, match="at least one"), effects.alone([]):
+        pass
+
+
+def test_a_models_values_without_effects_are_its_rig_and_a_present_effect_is_refused():
+    values = slots.complete({"kT1": 3.1e6})
+    assert slots.without_effects(values) == {name: values[name] for name in model.PARAMETER_NAMES}
+    with pytest.raises(ValueError, match="stick_slip"):
+        slots.without_effects({**values, "stick_slip": 1.0})
+
+
+def test_a_model_of_no_library_effect_gets_the_same_bits_in_a_kernel_of_its_own_effects_alone():
+    """A found term's full fit runs in a kernel of its generic file alone: an absent effect adds nothing to the forces
+    nor to the steps, so a model on a drifted rig gets the same bits there as in the kernel that also holds the library."""
+    values = {"torque_ripple": 1.0, "torque_ripple.amplitude": 15.0, "kT1": 3.2e6}
+    with effects.including(TEST_EFFECTS / "torque_ripple.py"):
+        beside = simulation.simulate(values, SHORT)
+    with effects.alone([TEST_EFFECTS / "torque_ripple.py"]):
+        alone = simulation.simulate(values, SHORT)
+    np.testing.assert_array_equal(alone, beside)
+    assert np.ptp(alone[model.CHANNELS.index("w1")]) > 0
+
+
 @pytest.mark.parametrize(("drift", "expected"), [
     ({"kT1": 4.5e6}, [{"friction": 16.0, "v_smooth": 6e-4, "kT1": 4.5e6}, {"friction": 16.0, "v_smooth": 6e-4}]),  # and at kT1's prior mean
     ({}, [{"friction": 16.0, "v_smooth": 6e-4}]),  # found beside the healthy model: one start
@@ -393,15 +424,16 @@ def test_a_found_terms_full_fit_starts_beside_its_drift_and_at_the_drifts_prior_
 
 @pytest.mark.parametrize(("uncompiled", "together"), [({"coupling", "b1_x"}, ["b1_x", "coupling"]), ({"coupling"}, [])])
 def test_full_fits_whose_kernels_are_not_compiled_share_one_kernel(monkeypatch, uncompiled, together):
-    """Candidates whose kernels are not compiled yet are fitted with all their generic files active, one kernel to
-    compile; one whose kernel is compiled, or a lone one that is not, is fitted with its own file alone."""
+    """Candidates whose kernels are not compiled yet are fitted with all their generic files active and no library
+    effect, one kernel to compile; one whose kernel is compiled, or a lone one that is not, with its own file alone."""
     shape = Shape({"frequency": 50.0}, "50 Hz")
     candidates = [search.Candidate("periodic", place, 0.0, shape, 50.0, None, {}, 1.0, None) for place in ("coupling", "load", "b1_x")]
     monkeypatch.setattr(verify, "_compiled", lambda path: path.stem.removeprefix("discovered_periodic_") not in uncompiled)
     fitted = []
 
     def fit(candidate, effect, *_):
-        fitted.append((candidate.acts_on, [name.removeprefix("discovered_periodic_") for name in effects.active() if name.startswith("discovered")]))
+        assert all(name.startswith("discovered") for name in effects.active())  # no library effect compiled in
+        fitted.append((candidate.acts_on, [name.removeprefix("discovered_periodic_") for name in effects.active()]))
         assert effect.name == f"discovered_periodic_{candidate.acts_on}"
         return candidate.acts_on
 
@@ -413,7 +445,7 @@ def test_full_fits_whose_kernels_are_not_compiled_share_one_kernel(monkeypatch, 
     assert not any(name.startswith("discovered") for name in effects.active())
     for c in candidates[:2]:  # what a fit's model is simulated with later: the kernel it was fitted in
         with verify.Discovered({}, None, kernel_files=tuple(kernel_files[id(c)])).as_fitted():
-            beside = [name.removeprefix("discovered_periodic_") for name in effects.active() if name.startswith("discovered")]
+            beside = [name.removeprefix("discovered_periodic_") for name in effects.active()]
         assert beside == (together if c.acts_on in together else [c.acts_on])
 
 
