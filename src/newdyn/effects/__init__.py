@@ -145,7 +145,7 @@ def including(path: str | Path) -> Iterator[type[Effect]]:
 def alone(paths: Sequence[str | Path]) -> Iterator[list[type[Effect]]]:
     """The effects of the files ``paths`` as the whole active set, no built-in and none of the user's, inside a
     with-block; as before after it.  A model in which no library effect takes part (a found term on the healthy or a
-    drifted rig) then runs in a kernel of those effects alone, which compiles in about two thirds of the time."""
+    drifted rig) then runs in a kernel of those effects alone, which compiles sooner than one that also holds the library."""
     loaded = [load_file(path) for path in paths]
     if not loaded:
         raise ValueError("alone() needs at least one effect file")
