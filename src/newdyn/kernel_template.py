@@ -218,7 +218,7 @@ def _rhs(w, lane, src, out, t):
     _node_accelerations(w, lane, out, 7, fx[7], fy[7])
 
 
-@njit(**_JIT)
+@njit(**_JIT, inline="always")
 def _load_torque(t, w, lane):
     """T_l(t) = T0 [1 + a Σ_h sin(2π h f_l t)/h]; sin(hx) by the Chebyshev recurrence (one sin/cos)."""
     x = 2.0 * math.pi * w[_at(LOAD_FREQ, lane)] * t
@@ -232,18 +232,18 @@ def _load_torque(t, w, lane):
 
 # --- RK4 over the lanes of a block ------------------------------------------------------------------
 @njit(**_JIT)
-def _accelerations(w, n_lanes, t):
-    """Rows R_ACC ← the RHS at the stage state rows R_STAGE, for lanes 0..n_lanes-1 (vectorized).
+def _accelerations(w, src, n_lanes, t):
+    """Rows R_ACC ← the RHS at the state rows src (R_Y for a step's first stage, R_STAGE for the others), for lanes
+    0..n_lanes-1 (vectorized).
 
-    The four stages share this one compiled loop (the first copies the step's start into R_STAGE): a
-    copy per stage would no longer fit the CPU's micro-op cache (measured slower), and each copy
-    inlines the whole right-hand side, which is most of the kernel's compile time.
+    The four stages share this one compiled loop: a copy per stage would no longer fit the CPU's micro-op cache
+    (measured slower), and each copy inlines the whole right-hand side, which is most of the kernel's compile time.
     """
     for lane in range(n_lanes):
-        _rhs(w, lane, R_STAGE, R_ACC, t)
+        _rhs(w, lane, src, R_ACC, t)
 
 
-@njit(**_JIT)
+@njit(**_JIT, inline="always")
 def _set_load_torques(w, t, n_lanes):
     """Row R_TL ← T_l(t) per lane.
 
@@ -274,10 +274,7 @@ def _rk4(w, t, h, n_lanes, in_place):
     """
     half = 0.5 * h
     _set_load_torques(w, t, n_lanes)
-    for i in range(NY):  # stage 1 at y, copied so that every stage runs the one compiled _accelerations
-        for lane in range(n_lanes):
-            w[_at(R_STAGE + i, lane)] = w[_at(R_Y + i, lane)]
-    _accelerations(w, n_lanes, t)
+    _accelerations(w, R_Y, n_lanes, t)
     for i in range(NQ):  # k1 = (y', a1); stage 2 at y + h/2 k1
         for lane in range(n_lanes):
             a = w[_at(R_ACC + i, lane)]
@@ -285,7 +282,7 @@ def _rk4(w, t, h, n_lanes, in_place):
             w[_at(R_STAGE + i, lane)] = w[_at(R_Y + i, lane)] + half * w[_at(R_Y + NQ + i, lane)]
             w[_at(R_STAGE + NQ + i, lane)] = w[_at(R_Y + NQ + i, lane)] + half * a
     _set_load_torques(w, t + 0.5 * h, n_lanes)
-    _accelerations(w, n_lanes, t + 0.5 * h)
+    _accelerations(w, R_STAGE, n_lanes, t + 0.5 * h)
     for i in range(NQ):  # k2 = (stage-2 velocity, a2); stage 3 at y + h/2 k2
         for lane in range(n_lanes):
             v = w[_at(R_STAGE + NQ + i, lane)]
@@ -293,7 +290,7 @@ def _rk4(w, t, h, n_lanes, in_place):
             w[_at(R_K23 + NQ + i, lane)] = a
             w[_at(R_STAGE + i, lane)] = w[_at(R_Y + i, lane)] + half * v
             w[_at(R_STAGE + NQ + i, lane)] = w[_at(R_Y + NQ + i, lane)] + half * a
-    _accelerations(w, n_lanes, t + 0.5 * h)
+    _accelerations(w, R_STAGE, n_lanes, t + 0.5 * h)
     for i in range(NQ):  # k2 + k3, the stage-2 velocity recomputed; stage 4 at y + h k3
         for lane in range(n_lanes):
             v = w[_at(R_STAGE + NQ + i, lane)]
@@ -304,7 +301,7 @@ def _rk4(w, t, h, n_lanes, in_place):
             w[_at(R_STAGE + i, lane)] = w[_at(R_Y + i, lane)] + h * v
             w[_at(R_STAGE + NQ + i, lane)] = w[_at(R_Y + NQ + i, lane)] + h * a
     _set_load_torques(w, t + h, n_lanes)
-    _accelerations(w, n_lanes, t + h)
+    _accelerations(w, R_STAGE, n_lanes, t + h)
     if in_place:  # two inlined copies, so that each loop has constant rows
         _finish_step(w, h, n_lanes, R_Y)
     else:
@@ -564,8 +561,22 @@ def _redo_alone(w, alone, lane, t, h):
     _copy_lane_rows(alone, 0, w, lane, R_Y, R_TRIAL, NY)
 
 
+@njit(**_JIT, inline="always")
+def _advance(w, alone, fine, picked, group, t, h, n_lanes, n_run, events_possible):
+    """Advance block ``w`` from t by h: the plain RK4 step in place where no lane has a switching effect (no event can
+    occur), else :func:`_step`.  Inlined, so that a smooth block's step makes no call that takes the scratch blocks:
+    each array a compiled call takes costs an atomic reference count on entry and on exit.  Returns the new time."""
+    if events_possible:
+        return _step(w, alone, fine, picked, group, t, h, n_lanes, n_run)
+    t_end = t + h
+    step = t_end - t
+    if step > 0.0:
+        _rk4(w, t, step, n_run, True)
+    return t_end
+
+
 @njit(**_JIT)
-def _step(w, alone, fine, picked, group, t, h, n_lanes, n_run, events_possible):
+def _step(w, alone, fine, picked, group, t, h, n_lanes, n_run):
     """Advance the ``n_lanes`` lanes of block ``w`` (run as ``n_run`` with its padding) from t by h.  A lane that
     settles after a switch of its effects, or whose step crosses an event while it may step finely, takes R_FINE_STEPS
     steps instead, and one whose joint is open once settled R_OPEN_STEPS, side by side with the other lanes of its step
@@ -576,9 +587,6 @@ def _step(w, alone, fine, picked, group, t, h, n_lanes, n_run, events_possible):
     t_end = t + h
     step = t_end - t
     if step <= 0.0:
-        return t_end
-    if not events_possible:
-        _rk4(w, t, step, n_run, True)
         return t_end
     if _any_plain(w, n_lanes, t):  # else every lane steps finely whatever its plain step finds
         _rk4(w, t, step, n_run, False)
@@ -775,14 +783,14 @@ def _simulate_block(params, fine_steps, settle, sims, t_first, fs, n_samples, su
     t = 0.0
     n_warm = math.ceil(t_first / h_target - 1e-9)
     for k in range(n_warm):
-        t = _step(w, alone, fine, picked, group, t, (k + 1) * t_first / n_warm - t, n_lanes, n_run, events_possible)
+        t = _advance(w, alone, fine, picked, group, t, (k + 1) * t_first / n_warm - t, n_lanes, n_run, events_possible)
     t = t_first
     for k in range(n_samples):
         if k > 0:
             t_sample = t_first + k / fs
             for s in range(substeps):
                 t_next = t_first + (k - 1 + (s + 1) / substeps) / fs
-                t = _step(w, alone, fine, picked, group, t, t_next - t, n_lanes, n_run, events_possible)
+                t = _advance(w, alone, fine, picked, group, t, t_next - t, n_lanes, n_run, events_possible)
             t = t_sample
         _record(w, codes, out, sims, k, n_lanes, t)
 
