@@ -232,15 +232,16 @@ def _load_torque(t, w, lane):
 
 # --- RK4 over the lanes of a block ------------------------------------------------------------------
 @njit(**_JIT)
-def _accelerations(w, src, n_lanes, t):
-    """Rows R_ACC ← the RHS at the state rows src (R_Y for a step's first stage, R_STAGE for the others), for lanes
-    0..n_lanes-1 (vectorized).
+def _accelerations(w, n_lanes, t):
+    """Rows R_ACC ← the RHS at the stage state rows R_STAGE, for lanes 0..n_lanes-1 (vectorized).
 
-    The four stages share this one compiled loop: a copy per stage would no longer fit the CPU's micro-op cache
-    (measured slower), and each copy inlines the whole right-hand side, which is most of the kernel's compile time.
+    The four stages share this one compiled loop (the first copies the step's start into R_STAGE): a
+    copy per stage would no longer fit the CPU's micro-op cache (measured slower), and each copy
+    inlines the whole right-hand side, which is most of the kernel's compile time.  Its rows are constants:
+    rows passed in at run time make the right-hand side much slower to compile.
     """
     for lane in range(n_lanes):
-        _rhs(w, lane, src, R_ACC, t)
+        _rhs(w, lane, R_STAGE, R_ACC, t)
 
 
 @njit(**_JIT, inline="always")
@@ -274,7 +275,10 @@ def _rk4(w, t, h, n_lanes, in_place):
     """
     half = 0.5 * h
     _set_load_torques(w, t, n_lanes)
-    _accelerations(w, R_Y, n_lanes, t)
+    for i in range(NY):  # stage 1 at y, copied so that every stage runs the one compiled _accelerations
+        for lane in range(n_lanes):
+            w[_at(R_STAGE + i, lane)] = w[_at(R_Y + i, lane)]
+    _accelerations(w, n_lanes, t)
     for i in range(NQ):  # k1 = (y', a1); stage 2 at y + h/2 k1
         for lane in range(n_lanes):
             a = w[_at(R_ACC + i, lane)]
@@ -282,7 +286,7 @@ def _rk4(w, t, h, n_lanes, in_place):
             w[_at(R_STAGE + i, lane)] = w[_at(R_Y + i, lane)] + half * w[_at(R_Y + NQ + i, lane)]
             w[_at(R_STAGE + NQ + i, lane)] = w[_at(R_Y + NQ + i, lane)] + half * a
     _set_load_torques(w, t + 0.5 * h, n_lanes)
-    _accelerations(w, R_STAGE, n_lanes, t + 0.5 * h)
+    _accelerations(w, n_lanes, t + 0.5 * h)
     for i in range(NQ):  # k2 = (stage-2 velocity, a2); stage 3 at y + h/2 k2
         for lane in range(n_lanes):
             v = w[_at(R_STAGE + NQ + i, lane)]
@@ -290,7 +294,7 @@ def _rk4(w, t, h, n_lanes, in_place):
             w[_at(R_K23 + NQ + i, lane)] = a
             w[_at(R_STAGE + i, lane)] = w[_at(R_Y + i, lane)] + half * v
             w[_at(R_STAGE + NQ + i, lane)] = w[_at(R_Y + NQ + i, lane)] + half * a
-    _accelerations(w, R_STAGE, n_lanes, t + 0.5 * h)
+    _accelerations(w, n_lanes, t + 0.5 * h)
     for i in range(NQ):  # k2 + k3, the stage-2 velocity recomputed; stage 4 at y + h k3
         for lane in range(n_lanes):
             v = w[_at(R_STAGE + NQ + i, lane)]
@@ -301,7 +305,7 @@ def _rk4(w, t, h, n_lanes, in_place):
             w[_at(R_STAGE + i, lane)] = w[_at(R_Y + i, lane)] + h * v
             w[_at(R_STAGE + NQ + i, lane)] = w[_at(R_Y + NQ + i, lane)] + h * a
     _set_load_torques(w, t + h, n_lanes)
-    _accelerations(w, R_STAGE, n_lanes, t + h)
+    _accelerations(w, n_lanes, t + h)
     if in_place:  # two inlined copies, so that each loop has constant rows
         _finish_step(w, h, n_lanes, R_Y)
     else:
