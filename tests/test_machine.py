@@ -98,6 +98,25 @@ def test_recordings_whose_optima_agree_start_one_joint_fit_at_the_optimum_that_p
     assert machine.joint_starts([{}, {}], []) == [{}]
 
 
+def test_recordings_simulated_in_one_batch_get_the_bits_each_gets_alone():
+    """A joint fit's rows of every recording of one sampling run as one batch on the union of their channels; each
+    recording's outputs are those of its own simulation, whatever it shares the batch with, and a recording of another
+    sampling runs apart."""
+    slip = next(h for h in SETTINGS.hypotheses() if h.name == "stick_slip")
+    short = model.Sampling(n_samples=500)
+    recordings = [hypotheses.Recording(None, None, slots.complete({**SETTINGS.rig, **condition}), sampling, channels)
+                  for condition, sampling, channels in [({"T0": 1613.0}, short, ("b1_x", "w1")),
+                                                        ({"T0": 1290.0, "speed_rpm": 1400.0}, short, ("w1", "b2_x", "torque_c")),
+                                                        ({"T0": 1500.0}, model.Sampling(n_samples=400), ("b1_x",))]]
+    rng = np.random.default_rng(3)
+    thetas = [np.array([[p.low + rng.uniform(0.2, 0.8) * (p.high - p.low) for p in slip.priors] for _ in range(n)]) for n in (3, 2, 1)]
+    together = hypotheses.evaluate_each(slip, thetas, recordings, SETTINGS.max_step)
+    for theta, r, found in zip(thetas, recordings, together):
+        alone = hypotheses.evaluate(slip, theta, r.base, r.sampling, r.channels, SETTINGS.max_step)
+        assert found.shape == (len(theta), len(r.channels), r.sampling.n_samples)
+        assert np.array_equal(found, alone)
+
+
 def test_a_consistent_drift_fitted_from_its_one_start_reaches_the_optimum_of_every_recordings_start(drifted):
     """kT1 3.25e6 under two conditions: the recordings' optima agree, so one joint fit starts from one of them, and it
     ends where the fits from each recording's own optimum end."""

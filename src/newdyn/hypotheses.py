@@ -243,6 +243,23 @@ def evaluate(hypothesis: Hypothesis, theta: np.ndarray, base: Mapping[str, float
                                      search)
 
 
+def evaluate_each(hypothesis: Hypothesis, thetas: Sequence[np.ndarray], recordings: Sequence[Recording],
+                  max_step: float) -> list[np.ndarray]:
+    """:func:`evaluate` of each recording at its own rows of fitted values (``thetas``, one (n, k) array each), the
+    recordings of one sampling simulated in one batch on all their channels: a joint fit's few rows per recording fill
+    the kernel's lanes together where each recording's alone would leave most of a block empty.  A lane's result does
+    not depend on its batch, so each recording's outputs are those :func:`evaluate` gives it."""
+    found: list[np.ndarray | None] = [None] * len(recordings)
+    for sampling in dict.fromkeys(r.sampling for r in recordings):
+        mine = [i for i, r in enumerate(recordings) if r.sampling == sampling]
+        channels = list(dict.fromkeys(c for i in mine for c in recordings[i].channels))
+        rows = [hypothesis.parameter_rows(np.atleast_2d(thetas[i]), recordings[i].base) for i in mine]
+        outputs = simulation.simulate_batch(np.vstack(rows), sampling, channels, max_step)
+        for i, part in zip(mine, np.split(outputs, np.cumsum([len(r) for r in rows])[:-1])):
+            found[i] = part[:, [channels.index(c) for c in recordings[i].channels]]
+    return found
+
+
 def contribution(hypothesis: Hypothesis, values: Mapping[str, float], outputs: np.ndarray, base: Mapping[str, float],
                  sampling: model.Sampling, channels: Sequence[str], sigma: np.ndarray, max_step: float) -> float:
     """What ``hypothesis`` adds to the model, as the expected log Bayes factor of telling its ``outputs`` (at its fitted
@@ -508,7 +525,7 @@ def fit_joint(hypothesis: Hypothesis, recordings: Sequence[Recording], starts: S
 
     def outputs(theta):
         runs.append(len(theta) * n)
-        return [evaluate(hypothesis, admissible(theta[:, at]), r.base, r.sampling, r.channels, max_step) for r, at in zip(recordings, columns)]
+        return evaluate_each(hypothesis, [admissible(theta[:, at]) for at in columns], recordings, max_step)
 
     def summary(theta_star):
         models = tuple(found[0] for found in outputs(theta_star[None]))
