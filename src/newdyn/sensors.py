@@ -108,20 +108,25 @@ def _cubic(u):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _cubic_at(signal, first, weights):
-    """(m, dm/dk) of ``signal`` by ``weights`` (:func:`_cubic`) on its four samples first − 1 .. first + 2."""
+def _cubic_of(a, b, c, d, weights):
+    """(m, dm/dk) by ``weights`` (:func:`_cubic`) of four consecutive samples a, b, c, d."""
     (wa, wb, wc, wd), (sa, sb, sc, sd) = weights
-    a, b, c, d = signal[first - 1], signal[first], signal[first + 1], signal[first + 2]
     return wa * a + wb * b + wc * c + wd * d, sa * a + sb * b + sc * c + sd * d
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _inner(n, inside):
-    """range(start, stop) of the k whose four samples k + inside − 1 .. k + inside + 2 lie in a record of n samples:
-    they share one set of weights, so their loop has no branch and runs in SIMD lanes; the few others (the ends) take
-    :func:`_delayed_at`'s extrapolation."""
+def _inner(signal, inside):
+    """range(start, stop) of the k whose four samples k + inside − 1 .. k + inside + 2 lie in the record, and those
+    samples as four views indexed by k − start.  They share one set of weights, so their loop has no branch and runs in
+    SIMD lanes: an index that cannot be negative loads each lane's samples from consecutive memory, where k + inside − 1,
+    which can (and wraps around), gathered them one at a time.  The few other k (the ends) take :func:`_delayed_at`'s
+    extrapolation."""
+    n = signal.size
     start = min(max(1 - inside, 0), n)
-    return start, max(min(n - 2 - inside, n), start)
+    stop = max(min(n - 2 - inside, n), start)
+    first, count = start + inside - 1, stop - start  # first >= 0 whenever count > 0
+    return start, stop, (signal[first:first + count], signal[first + 1:first + 1 + count], signal[first + 2:first + 2 + count],
+                         signal[first + 3:first + 3 + count])
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -134,7 +139,7 @@ def _delayed_at(signal, k, late, inside, weights):
     if first < 1 or first > n - 3:
         first = min(max(first, 1), n - 3)
         weights = _cubic(k - late - first)
-    return _cubic_at(signal, first, weights)
+    return _cubic_of(signal[first - 1], signal[first], signal[first + 1], signal[first + 2], weights)
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -154,11 +159,12 @@ def _channel_moments(data, signal, late):
     n = signal.size
     inside = math.floor(-late)
     weights = _cubic(-late - inside)
-    start, stop = _inner(n, inside)
+    start, stop, (a, b, c, d) = _inner(signal, inside)
+    inner_data = data[start:stop]
     sums = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-    for k in range(start, stop):
-        m, slope = _cubic_at(signal, k + inside, weights)
-        sums = _summed(sums, data[k], m, slope, late)
+    for j in range(stop - start):
+        m, slope = _cubic_of(a[j], b[j], c[j], d[j], weights)
+        sums = _summed(sums, inner_data[j], m, slope, late)
     for i in range(n - (stop - start)):
         k = i if i < start else i + stop - start
         m, slope = _delayed_at(signal, k, late, inside, weights)
@@ -206,10 +212,11 @@ def _channel_left(out, data, signal, late, fitted):
     inside = math.floor(-late)
     weights = _cubic(-late - inside)
     offset, gain, shift = fitted[0], 1.0 + fitted[1], late - fitted[2]
-    start, stop = _inner(n, inside)
-    for k in range(start, stop):
-        m, slope = _cubic_at(signal, k + inside, weights)
-        out[k] = data[k] - offset - gain * m - shift * slope
+    start, stop, (a, b, c, d) = _inner(signal, inside)
+    inner_data, inner_out = data[start:stop], out[start:stop]
+    for j in range(stop - start):
+        m, slope = _cubic_of(a[j], b[j], c[j], d[j], weights)
+        inner_out[j] = inner_data[j] - offset - gain * m - shift * slope
     for i in range(n - (stop - start)):
         k = i if i < start else i + stop - start
         m, slope = _delayed_at(signal, k, late, inside, weights)
