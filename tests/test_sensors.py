@@ -1,6 +1,10 @@
 """Instrument offsets, gains and delays integrated out: against the multivariate Normal they define and
 quadrature over the delay."""
 
+import os
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 from scipy import stats
@@ -226,3 +230,30 @@ def test_datasheet_offsets_and_delays_are_not_a_misfit_but_a_stiffer_shaft_still
     # A delay takes the phase a resonance's shift gives the strongest line of a channel, not the rest of its change.
     exact, with_instruments = chi2({"kT3": 2.2e6})
     assert exact > 4 and with_instruments > 3
+
+
+SUMS_IN_A_NEW_PROCESS = """
+import sys
+import numpy as np
+from newdyn import sensors
+rng = np.random.default_rng(5)
+n = 2000
+data = np.sin(np.linspace(0, 40, n))[None] * [[1.0], [3e-6]] + 1e-3 * rng.standard_normal((2, n))
+model = data[None] * rng.uniform(0.9, 1.1, (40, 2, 1)) + 1e-3 * rng.standard_normal((40, 2, n))
+sums = sensors._moments(data, model, rng.uniform(-3.0, 3.0, (40, 2)))
+np.save(sys.argv[1], np.concatenate([s.ravel() for s in sums]))
+print(sum(sensors._moments.stats.cache_hits.values()))
+"""
+
+
+def test_the_sums_loaded_from_numbas_cache_are_those_compiled_in_the_process(tmp_path):
+    """A new checkout's first run compiles the likelihood's sums and later runs load them from numba's cache: both must
+    give the same bits, or a rerun would not reproduce the first run's results."""
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba")}
+    hits = {}
+    for run in ("compiled", "cached"):
+        done = subprocess.run([sys.executable, "-c", SUMS_IN_A_NEW_PROCESS, str(tmp_path / f"{run}.npy")], env=env,
+                              capture_output=True, text=True, check=True)
+        hits[run] = int(done.stdout.split()[-1])
+    assert hits == {"compiled": 0, "cached": 1}
+    np.testing.assert_array_equal(np.load(tmp_path / "compiled.npy"), np.load(tmp_path / "cached.npy"))

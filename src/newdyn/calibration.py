@@ -21,7 +21,7 @@ from typing import NamedTuple
 import numpy as np
 import xarray as xr
 
-from . import likelihood, model, sensors, simulation, slots
+from . import concurrency, likelihood, model, sensors, simulation, slots
 
 log = logging.getLogger("newdyn")
 
@@ -218,7 +218,7 @@ def calibrate_many(tasks: Sequence[Task], sigma: np.ndarray, values: Mapping[str
     """:func:`calibrate` of each of ``tasks`` (all with noise ``sigma`` through ``instruments``), each refinement pass
     of them all simulated together: the kernel fills its lanes and both cores, where one task's cells of
     ``refine_points`` would not, and a cell that several tasks refine is simulated once.  Each task's result is the one
-    it gets alone, to the bit."""
+    it gets alone, to the bit.  The likelihoods of its runs are evaluated side by side in threads."""
     def run(task, grid, models):
         per_channel = likelihood.log_likelihood(task.data, models, sigma, per_channel=True, instruments=instruments)
         ll = per_channel.sum(axis=-1)
@@ -237,11 +237,14 @@ def calibrate_many(tasks: Sequence[Task], sigma: np.ndarray, values: Mapping[str
             models = simulation.simulate_batch(
                 np.vstack([parameter_rows(values, [tasks[k].spec.parameter], points[:, None]) for (k, points), _ in batch]),
                 sampling, channels, max_step)
-            for ((_, points), group), cell_models in zip(batch, np.split(models, np.cumsum([len(p) for (_, p), _ in batch])[:-1])):
-                found.update({c: run(tasks[cells[c][0]], points, cell_models) for c in group})
+            found.update(concurrency.in_parallel({
+                c: lambda c=c, points=points, cell_models=cell_models: run(tasks[cells[c][0]], points, cell_models)
+                for ((_, points), group), cell_models in zip(batch, np.split(models, np.cumsum([len(p) for (_, p), _ in batch])[:-1]))
+                for c in group}))
         return [found[c] for c in range(len(cells))]
 
-    coarse_runs = [run(task, task.spec.axis, task.coarse_models) for task in tasks]
+    coarse_runs = list(concurrency.in_parallel({k: lambda task=task: run(task, task.spec.axis, task.coarse_models)
+                                                for k, task in enumerate(tasks)}).values())
     # Pass 1 finds each peak inside its coarse cells; pass 2 covers ±SPAN_SD widths of it, so that quadrature sees the
     # whole peak and not a linear interpolation across a coarse cell.
     cells = []

@@ -151,11 +151,11 @@ def _summed(sums, y, m, slope, late):
     return s_m + m, s_mm + m * m, s_d + d, s_md + m * d, s_dd + d * d, s_r + r, s_mr + m * r, s_dr + d * r, s_rr + r * r
 
 
-@njit(cache=True, error_model="numpy", fastmath={"reassoc", "contract"})
+@njit(cache=True, error_model="numpy", inline="always")
 def _channel_moments(data, signal, late):
     """:func:`_moments`' sums over time of one channel of one model delayed by ``late`` samples, the inner samples
-    (:func:`_inner`) first; the sums may be reassociated so that they run in SIMD lanes, their rounding no worse
-    than a sequential sum's."""
+    (:func:`_inner`) first; compiled into :func:`_moments`, whose fast-math lets the sums be reassociated so that they
+    run in SIMD lanes, their rounding no worse than a sequential sum's."""
     n = signal.size
     inside = math.floor(-late)
     weights = _cubic(-late - inside)
@@ -172,17 +172,20 @@ def _channel_moments(data, signal, late):
     return sums
 
 
-@njit(cache=True, error_model="numpy", parallel=True, nogil=True)
+@njit(cache=True, error_model="numpy", nogil=True, fastmath={"reassoc", "contract"})
 def _moments(data, model, shift):
     """Sums over time of each (model, channel)'s delayed design, unscaled, u = [1, m(k − shift), −ṁ(k − shift)],
     and of its residual r = y − m(k − shift) − shift·ṁ(k − shift): (Σ u uᵀ (B, C, 3, 3), Σ u r (B, C, 3), Σ r² (B, C)).
-    One pass over the samples, nothing of length n kept; the (model, channel) pairs in parallel, each summed by one
-    thread (:func:`_channel_moments`), so the sums do not depend on the number of threads."""
+    One pass over the samples, nothing of length n kept; the (model, channel) pairs one after another, in one compiled
+    function with the sums' loop in it.  Reassociated sums called from another compiled function (a parallel loop's,
+    or a plain one's) came out of numba's cache different in the last bits from the same code compiled in the
+    process, so that a new checkout's first run differed from its reruns; one function compiles to the same either
+    way.  Threads run whole likelihoods side by side instead (:func:`newdyn.calibration.calibrate_many`, the fits)."""
     n_models, n_channels, n = model.shape
     gram = np.zeros((n_models, n_channels, 3, 3))
     projection = np.zeros((n_models, n_channels, 3))
     squares = np.zeros((n_models, n_channels))
-    for bc in prange(n_models * n_channels):
+    for bc in range(n_models * n_channels):
         b, c = bc // n_channels, bc % n_channels
         s_m, s_mm, s_d, s_md, s_dd, s_r, s_mr, s_dr, s_rr = _channel_moments(data[c], model[b, c], shift[b, c])
         g = gram[b, c]
