@@ -234,13 +234,11 @@ def calibrate_many(tasks: Sequence[Task], sigma: np.ndarray, values: Mapping[str
         groups, found, per_batch = list(same.values()), {}, max(1, REFINE_BATCH // refine_points)
         for start in range(0, len(groups), per_batch):
             batch = [(cells[group[0]], group) for group in groups[start:start + per_batch]]
-            models = simulation.simulate_batch(
-                np.vstack([parameter_rows(values, [tasks[k].spec.parameter], points[:, None]) for (k, points), _ in batch]),
-                sampling, channels, max_step)
+            models = simulation.simulate_parts([parameter_rows(values, [tasks[k].spec.parameter], points[:, None]) for (k, points), _ in batch],
+                                               sampling, channels, max_step)
             found.update(concurrency.in_parallel({
                 c: lambda c=c, points=points, cell_models=cell_models: run(tasks[cells[c][0]], points, cell_models)
-                for ((_, points), group), cell_models in zip(batch, np.split(models, np.cumsum([len(p) for (_, p), _ in batch])[:-1]))
-                for c in group}))
+                for ((_, points), group), cell_models in zip(batch, models) for c in group}))
         return [found[c] for c in range(len(cells))]
 
     coarse_runs = list(concurrency.in_parallel({k: lambda task=task: run(task, task.spec.axis, task.coarse_models)

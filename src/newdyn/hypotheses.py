@@ -254,8 +254,7 @@ def evaluate_each(hypothesis: Hypothesis, thetas: Sequence[np.ndarray], recordin
         mine = [i for i, r in enumerate(recordings) if r.sampling == sampling]
         channels = list(dict.fromkeys(c for i in mine for c in recordings[i].channels))
         rows = [hypothesis.parameter_rows(np.atleast_2d(thetas[i]), recordings[i].base) for i in mine]
-        outputs = simulation.simulate_batch(np.vstack(rows), sampling, channels, max_step)
-        for i, part in zip(mine, np.split(outputs, np.cumsum([len(r) for r in rows])[:-1])):
+        for i, part in zip(mine, simulation.simulate_parts(rows, sampling, channels, max_step)):
             found[i] = part[:, [channels.index(c) for c in recordings[i].channels]]
     return found
 

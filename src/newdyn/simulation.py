@@ -73,6 +73,14 @@ def simulate_batch(
     )
 
 
+def simulate_parts(parts: Sequence[np.ndarray], sampling: model.Sampling, outputs: Sequence[str], max_step: float) -> list[np.ndarray]:
+    """:func:`simulate_batch` of several arrays of parameter rows in one batch, so that their few rows fill the kernel's
+    lanes together, its outputs split back into one array per part.  A lane's result does not depend on its batch, so
+    each part's outputs are those it gets alone."""
+    found = simulate_batch(np.vstack(parts), sampling, outputs, max_step)
+    return np.split(found, np.cumsum([len(part) for part in parts])[:-1])
+
+
 def simulate(
     values: Mapping[str, float] | None = None,
     sampling: model.Sampling = DEFAULT_SAMPLING,
