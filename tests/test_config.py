@@ -812,6 +812,30 @@ def _leaf_keys(node, prefix=""):
             yield from _leaf_keys(value, key)
 
 
+def _optional_keys(node, path=""):
+    """The dotted paths of the keys the schema leaves optional (a mapping's entries as ``<name>``), a scenario's aside."""
+    required = set(node.get("required", []))
+    for key, sub in node.get("properties", {}).items():
+        if key == "scenarios":
+            continue
+        dotted = f"{path}.{key}" if path else key
+        if key not in required:
+            yield dotted
+        yield from _optional_keys(sub, dotted)
+    if isinstance(node.get("additionalProperties"), dict):
+        yield from _optional_keys(node["additionalProperties"], f"{path}.<name>")
+
+
+def test_readme_names_every_key_that_may_be_left_out():
+    """config/README.md says every key is required but those it lists: the list is the schema's optional keys."""
+    paragraph = re.search(r"Every section and every key in it is \*\*required\*\*, except these(.*?)Unknown keys",
+                          README.read_text(encoding="utf-8"), re.DOTALL).group(1)
+    named = set(re.findall(r"`([^`]+)`", paragraph))
+    optional = sorted(_optional_keys(_schema()))
+    missing = [key for key in optional if key not in named and key.rsplit(".", 1)[-1] not in named]
+    assert optional and not missing, f"config/README.md does not say these keys may be left out: {missing}"
+
+
 def test_readme_documents_every_key(default_config):
     readme = README.read_text(encoding="utf-8")
     keys = set(_leaf_keys(default_config)) - set(default_config["scenarios"]) | {
