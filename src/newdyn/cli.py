@@ -567,8 +567,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("paths", nargs="+", metavar="path",
                    help="a measurement file (.nc or .csv), or a folder of them (measurements/, a machine's folder)")
     p.add_argument("--config", action="append", dest="configs", metavar="FILE",
-                   help=f"the study's config (default {DEFAULT_CONFIG}); repeat it to merge files in order, as "
-                        "snakemake --configfile merges them over the default")
+                   help=f"the study's config (default {DEFAULT_CONFIG}); repeat it to merge files in order, as Snakemake "
+                        f"merges them: snakemake --configfile my.yaml is --config {DEFAULT_CONFIG} --config my.yaml")
     p = commands.add_parser("check-config", help="check a study config as the workflow does, without running anything")
     p.add_argument("paths", nargs="*", default=[DEFAULT_CONFIG], metavar="file",
                    help=f"config files, merged in the order given as Snakemake merges them (default {DEFAULT_CONFIG})")
