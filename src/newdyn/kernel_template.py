@@ -231,26 +231,13 @@ def _load_torque(t, w, lane):
 
 
 # --- RK4 over the lanes of a block ------------------------------------------------------------------
-@njit(**_JIT)
-def _accelerations(w, n_lanes, t):
-    """Rows R_ACC ← the RHS at the stage state rows R_STAGE, for lanes 0..n_lanes-1 (vectorized).
-
-    The four stages share this one compiled loop (the first copies the step's start into R_STAGE): a
-    copy per stage would no longer fit the CPU's micro-op cache (measured slower), and each copy
-    inlines the whole right-hand side, which is most of the kernel's compile time.  Its rows are constants:
-    rows passed in at run time make the right-hand side much slower to compile.
-    """
-    for lane in range(n_lanes):
-        _rhs(w, lane, R_STAGE, R_ACC, t)
-
-
 @njit(**_JIT, inline="always")
 def _set_load_torques(w, t, n_lanes):
     """Row R_TL ← T_l(t) per lane.
 
     T_l costs a libm sin and cos (kept for exact agreement with the scalar code), so it is skipped
-    when the row already holds time t (stage 4 of a step and stage 1 of the next share their time),
-    and a lane with the same load parameters as its left neighbour (R_SAME_LOAD) copies its value.
+    when the row already holds time t (stages 2 and 3 share their time, as do stage 4 of a step and stage 1 of the
+    next), and a lane with the same load parameters as its left neighbour (R_SAME_LOAD) copies its value.
     """
     if w[_at(R_TL_TIME, 0)] == t:
         return
@@ -262,50 +249,65 @@ def _set_load_torques(w, t, n_lanes):
             w[_at(R_TL, lane)] = _load_torque(t, w, lane)
 
 
+# The stages of a step, counted at run time: with the count a constant, LLVM would unroll the stage loop into four
+# copies of the right-hand side, which no longer fit the CPU's micro-op cache (measured slower) and lengthen the compile.
+RK4_STAGES = np.int64(4)
+
+
+@njit(**_JIT)
+def _stages(w, n_lanes, t, h, n_stages):
+    """The RK4 stages of a step from (t, rows R_Y) by h for lanes 0..n_lanes-1, the step's start copied into rows
+    R_STAGE: k1 to k3 combined into rows R_K1V and R_K23, the last stage's accelerations left in R_ACC and its state
+    in R_STAGE, for :func:`_finish_step`.
+
+    One compiled loop over the stages, its right-hand side inlined once: a compiled call per stage, which takes the
+    work array, costs atomic reference counts on entry and exit.  A stage derivative is k = (stage velocity,
+    accelerations), so only accelerations are stored, and k2's position part is recomputed rather than stored (these
+    loops are bound by stores).  Each combination loop handles position row i with its velocity row NQ+i; the
+    operations are the scalar original's (stage = y + c k, then y + h/6 (k1 + 2 (k2 + k3) + k4)), so the rounding is
+    the same.
+    """
+    half = 0.5 * h
+    for stage in range(n_stages):
+        t_stage = t if stage == 0 else (t + h if stage == 3 else t + 0.5 * h)
+        _set_load_torques(w, t_stage, n_lanes)
+        for lane in range(n_lanes):
+            _rhs(w, lane, R_STAGE, R_ACC, t_stage)
+        if stage == 0:  # k1 = (y', a1); stage 2 at y + h/2 k1
+            for i in range(NQ):
+                for lane in range(n_lanes):
+                    a = w[_at(R_ACC + i, lane)]
+                    w[_at(R_K1V + i, lane)] = a
+                    w[_at(R_STAGE + i, lane)] = w[_at(R_Y + i, lane)] + half * w[_at(R_Y + NQ + i, lane)]
+                    w[_at(R_STAGE + NQ + i, lane)] = w[_at(R_Y + NQ + i, lane)] + half * a
+        elif stage == 1:  # k2 = (stage-2 velocity, a2); stage 3 at y + h/2 k2
+            for i in range(NQ):
+                for lane in range(n_lanes):
+                    v = w[_at(R_STAGE + NQ + i, lane)]
+                    a = w[_at(R_ACC + i, lane)]
+                    w[_at(R_K23 + NQ + i, lane)] = a
+                    w[_at(R_STAGE + i, lane)] = w[_at(R_Y + i, lane)] + half * v
+                    w[_at(R_STAGE + NQ + i, lane)] = w[_at(R_Y + NQ + i, lane)] + half * a
+        elif stage == 2:  # k2 + k3, the stage-2 velocity recomputed; stage 4 at y + h k3
+            for i in range(NQ):
+                for lane in range(n_lanes):
+                    v = w[_at(R_STAGE + NQ + i, lane)]
+                    a = w[_at(R_ACC + i, lane)]
+                    v2 = w[_at(R_Y + NQ + i, lane)] + half * w[_at(R_K1V + i, lane)]
+                    w[_at(R_K23 + i, lane)] = v2 + v
+                    w[_at(R_K23 + NQ + i, lane)] += a
+                    w[_at(R_STAGE + i, lane)] = w[_at(R_Y + i, lane)] + h * v
+                    w[_at(R_STAGE + NQ + i, lane)] = w[_at(R_Y + NQ + i, lane)] + h * a
+
+
 @njit(**_JIT)
 def _rk4(w, t, h, n_lanes, in_place):
     """One RK4 step of size h from (t, rows R_Y) into rows R_TRIAL, or into R_Y if ``in_place``,
-    for lanes 0..n_lanes-1.
-
-    A stage derivative is k = (stage velocity, accelerations), so only accelerations are stored, and
-    k2's position part is recomputed rather than stored (these loops are bound by stores).  Each
-    combination loop handles position row i with its velocity row NQ+i; the operations are the
-    scalar original's (stage = y + c k, then y + h/6 (k1 + 2 (k2 + k3) + k4)), so the rounding is the
-    same.
-    """
-    half = 0.5 * h
-    _set_load_torques(w, t, n_lanes)
-    for i in range(NY):  # stage 1 at y, copied so that every stage runs the one compiled _accelerations
+    for lanes 0..n_lanes-1."""
+    for i in range(NY):
         for lane in range(n_lanes):
             w[_at(R_STAGE + i, lane)] = w[_at(R_Y + i, lane)]
-    _accelerations(w, n_lanes, t)
-    for i in range(NQ):  # k1 = (y', a1); stage 2 at y + h/2 k1
-        for lane in range(n_lanes):
-            a = w[_at(R_ACC + i, lane)]
-            w[_at(R_K1V + i, lane)] = a
-            w[_at(R_STAGE + i, lane)] = w[_at(R_Y + i, lane)] + half * w[_at(R_Y + NQ + i, lane)]
-            w[_at(R_STAGE + NQ + i, lane)] = w[_at(R_Y + NQ + i, lane)] + half * a
-    _set_load_torques(w, t + 0.5 * h, n_lanes)
-    _accelerations(w, n_lanes, t + 0.5 * h)
-    for i in range(NQ):  # k2 = (stage-2 velocity, a2); stage 3 at y + h/2 k2
-        for lane in range(n_lanes):
-            v = w[_at(R_STAGE + NQ + i, lane)]
-            a = w[_at(R_ACC + i, lane)]
-            w[_at(R_K23 + NQ + i, lane)] = a
-            w[_at(R_STAGE + i, lane)] = w[_at(R_Y + i, lane)] + half * v
-            w[_at(R_STAGE + NQ + i, lane)] = w[_at(R_Y + NQ + i, lane)] + half * a
-    _accelerations(w, n_lanes, t + 0.5 * h)
-    for i in range(NQ):  # k2 + k3, the stage-2 velocity recomputed; stage 4 at y + h k3
-        for lane in range(n_lanes):
-            v = w[_at(R_STAGE + NQ + i, lane)]
-            a = w[_at(R_ACC + i, lane)]
-            v2 = w[_at(R_Y + NQ + i, lane)] + half * w[_at(R_K1V + i, lane)]
-            w[_at(R_K23 + i, lane)] = v2 + v
-            w[_at(R_K23 + NQ + i, lane)] += a
-            w[_at(R_STAGE + i, lane)] = w[_at(R_Y + i, lane)] + h * v
-            w[_at(R_STAGE + NQ + i, lane)] = w[_at(R_Y + NQ + i, lane)] + h * a
-    _set_load_torques(w, t + h, n_lanes)
-    _accelerations(w, n_lanes, t + h)
+    _stages(w, n_lanes, t, h, RK4_STAGES)
     if in_place:  # two inlined copies, so that each loop has constant rows
         _finish_step(w, h, n_lanes, R_Y)
     else:
@@ -538,7 +540,7 @@ def _copy_lane_rows(a, lane_a, b, lane_b, first_a, first_b, count):
 
 
 # --- driver ---------------------------------------------------------------------------------------
-@njit(**_JIT)
+@njit(**_JIT, inline="always")
 def _step_with_events(w, alone, t, h, n_lanes):
     """Advance all lanes of block ``w`` from t by h at that step; a lane whose step crosses an event is redone by
     the event path on the one-lane scratch block ``alone`` (each lane on its own, so that results do not depend on
@@ -579,7 +581,7 @@ def _advance(w, alone, fine, picked, group, t, h, n_lanes, n_run, events_possibl
     return t_end
 
 
-@njit(**_JIT)
+@njit(**_JIT, inline="always")
 def _step(w, alone, fine, picked, group, t, h, n_lanes, n_run):
     """Advance the ``n_lanes`` lanes of block ``w`` (run as ``n_run`` with its padding) from t by h.  A lane that
     settles after a switch of its effects, or whose step crosses an event while it may step finely, takes R_FINE_STEPS
@@ -639,7 +641,7 @@ def _step(w, alone, fine, picked, group, t, h, n_lanes, n_run):
     return t_end
 
 
-@njit(**_JIT)
+@njit(**_JIT, inline="always")
 def _fine_steps(w, alone, t, h, substeps, n_run):
     """Advance the ``n_run`` lanes of block ``w`` from t by h in ``substeps`` equal steps, each with its events."""
     for k in range(substeps):
@@ -670,7 +672,7 @@ def _step_count(w, lane, t, event):
     return w[_at(R_FINE_STEPS, lane)] if event else 1.0
 
 
-@njit(**_JIT)
+@njit(**_JIT, inline="always")
 def _any_plain(w, n_lanes, t):
     """Whether a lane of the block may take the plain step from t: one that does not step finely there."""
     for lane in range(n_lanes):
