@@ -147,12 +147,27 @@ def test_a_three_line_override_is_checked_merged_over_the_default(tmp_path, caps
     ("rig:\n  J1: 4.0\n", ("operating: missing required key (also missing: sampling, simulation, noise, scenarios, "
                           "calibration, diagnosis, hidden)")),
 ])
-def test_a_bad_config_gets_one_line_naming_the_file_and_field(tmp_path, capsys, text, problem):
+def test_a_bad_config_gets_one_line_naming_the_file_and_field(tmp_path, capsys, monkeypatch, text, problem):
     path = tmp_path / "my.yaml"
     if text is not None:
         path.write_text(text)
+    monkeypatch.chdir(tmp_path)  # no config/config.yaml beside it, so the line gives no hint to merge over it
     assert cli.main(["check-config", str(path)]) == 1
     assert capsys.readouterr().err == f"newdyn check-config: {path}: {problem}\n"
+
+
+@pytest.mark.parametrize("command", [["check-config"], ["check", str(ROOT / "measurements"), "--config"]])
+def test_an_override_checked_alone_is_told_to_give_the_default_first(tmp_path, capsys, monkeypatch, command):
+    """As snakemake --configfile takes it, an override is merged over config/config.yaml; checked alone it lacks what
+    the default has, and the line says so."""
+    monkeypatch.chdir(ROOT)
+    override = tmp_path / "my.yaml"
+    override.write_text("noise:\n  seeds: [7]\n")
+    assert cli.main([*command, str(override)]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith(f"newdyn {command[0]}: {override}: rig: missing required key (also missing: operating, ")
+    assert err.endswith("; to check an override as snakemake --configfile takes it, merged over the default, give "
+                        "config/config.yaml first\n")
 
 
 def test_a_config_that_is_no_mapping_is_not_merged(tmp_path, capsys):

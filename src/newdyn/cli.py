@@ -24,9 +24,9 @@ def check_measurements(paths: list[str], config_paths: list[str]) -> int:
     """Print one line per measurement file of ``paths`` (files, or folders as the workflow lists measurements/ and a
     machine's folder): OK with what the diagnosis will use, or its problem as the workflow would skip it; checked against
     the config of ``config_paths`` merged in order.  Returns the exit status: 1 if a file is bad, else 0."""
-    from . import catalog, config, io
+    from . import catalog, io
 
-    study = config.load_merged(config_paths)
+    study = _merged_config(config_paths)
     operating, channels = study["operating"], study["diagnosis"]["channels"]
     band_hz = study["diagnosis"]["noise_band_hz"]
     bad = 0
@@ -69,10 +69,24 @@ def _measurement_summary(measurement, path: str, channels: list[str], band_hz: f
 def check_config(paths: list[str]) -> None:
     """Print ``<files>: OK`` when the config files ``paths``, merged in order, make a good study (else
     :class:`newdyn.config.ConfigError` names the files, the field and the problem)."""
+    _merged_config(paths)
+    print(f"{', '.join(paths)}: OK")
+
+
+def _merged_config(paths: list[str]) -> dict:
+    """:func:`newdyn.config.load_merged` of ``paths``; where they lack a required key and leave out the default config
+    that is there, the line says how to check them as ``snakemake --configfile`` takes them: merged over the default."""
     from . import config
 
-    config.load_merged(paths)
-    print(f"{', '.join(paths)}: OK")
+    try:
+        return config.load_merged(paths)
+    except config.ConfigError as error:
+        default = Path(DEFAULT_CONFIG).resolve()
+        if (error.problem.startswith("missing required key") and default.is_file()
+                and default not in {Path(path).resolve() for path in paths}):
+            raise config.ConfigError(error.source, error.field, f"{error.problem}; to check an override as snakemake "
+                                     f"--configfile takes it, merged over the default, give {DEFAULT_CONFIG} first") from None
+        raise
 
 
 def simulate_scenario(spec: dict, output: str, code_hash: str) -> None:
