@@ -1,10 +1,11 @@
 """The user documentation: the site builds without a warning (so no link or anchor is broken), its tables of the
-rig and of the effects are the code's, its measurement examples make files a diagnosis takes, and nothing sends
-a user to a file outside the repository.
+rig and of the effects are the code's, its measurement examples make files a diagnosis takes, its worked example of
+an effect file is the file, and nothing sends a user to a file outside the repository.
 
 A table of docs/rig.md that no longer matches the code fails here with the table as it must read now: paste it in.
 """
 
+import ast
 import math
 import re
 import subprocess
@@ -154,3 +155,32 @@ def test_readme_links_reach_files_of_the_repository():
     assert len(targets) > 10
     missing = sorted({target for target in targets if target and not (ROOT / target).exists()})
     assert not missing, f"README.md links to files the repository does not have: {missing}"
+
+
+def _program(source: str) -> str:
+    """The program ``source`` holds, its docstrings (module, classes, functions) and comments aside."""
+    tree = ast.parse(source)
+    for node in ast.walk(tree):
+        body = getattr(node, "body", None)
+        if (isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef)) and body and isinstance(body[0], ast.Expr)
+                and isinstance(body[0].value, ast.Constant) and isinstance(body[0].value.value, str)):
+            node.body = body[1:]
+    return ast.dump(tree)
+
+
+def test_the_worked_example_of_an_effect_is_the_file_it_names():
+    """effects/README.md prints effects/coupling_backlash.py, imports included, so that it loads as printed."""
+    readme = (ROOT / "effects" / "README.md").read_text(encoding="utf-8")
+    printed = re.search(r"## Worked example.*?```python\n(.*?)```", readme, re.DOTALL).group(1)
+    assert _program(printed) == _program((ROOT / "effects" / "coupling_backlash.py").read_text(encoding="utf-8"))
+
+
+def test_the_architecture_page_names_every_module_in_words():
+    """docs/architecture.md's summary under the generated table names each module of the package (a subpackage by its
+    folder), so that a module added is placed in words too."""
+    text = (DOCS / "architecture.md").read_text(encoding="utf-8")
+    summary = text[text.index("In words, by what they do"):text.index("## Where to add things")]
+    named = {name.rstrip("/") for name in re.findall(r"`([a-z_]+/?)`", summary)}
+    modules = {path.relative_to(ROOT / "src" / "newdyn").parts[0].removesuffix(".py")
+               for path in (ROOT / "src" / "newdyn").glob("*") if path.suffix == ".py" or (path / "__init__.py").is_file()}
+    assert modules - {"__init__"} == named
