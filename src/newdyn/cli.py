@@ -82,7 +82,7 @@ def _merged_config(paths: list[str]) -> dict:
         return config.load_merged(paths)
     except config.ConfigError as error:
         default = Path(DEFAULT_CONFIG).resolve()
-        if (error.problem.startswith("missing required key") and default.is_file()
+        if (error.problem.startswith(config.MISSING_KEY) and default.is_file()
                 and default not in {Path(path).resolve() for path in paths}):
             raise config.ConfigError(error.source, error.field, f"{error.problem}; to check an override as snakemake "
                                      f"--configfile takes it, merged over the default, give {DEFAULT_CONFIG} first") from None

@@ -60,6 +60,10 @@ _TYPE_NAMES = {
 }
 
 
+#: The problem of a config that lacks a required key (what follows names the others missing).
+MISSING_KEY = "missing required key"
+
+
 class ConfigError(ValueError):
     """A config problem, reported as one line ``<file>: <dotted.field>: <problem>``."""
 
@@ -242,7 +246,7 @@ def _describe(error) -> tuple[list, str]:
 
     if kind == "required" and isinstance(instance, Mapping):
         missing = [k for k in value if k not in instance]
-        problem = "missing required key"
+        problem = MISSING_KEY
         if len(missing) > 1:
             problem += f" (also missing: {', '.join(missing[1:])})"
         return parts + [missing[0] if missing else "?"], problem
