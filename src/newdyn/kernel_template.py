@@ -53,8 +53,9 @@ J1, J2A, J2B, J3, J4 = _I["J1"], _I["J2a"], _I["J2b"], _I["J3"], _I["J4"]
 M1, M2, M3, M4, MB = _I["m1"], _I["m2"], _I["m3"], _I["m4"], _I["m_b"]
 KT1, KT2, KT3 = _I["kT1"], _I["kT2"], _I["kT3"]
 KS, KH, KC, KBX, KBY = _I["k_s"], _I["k_h"], _I["k_c"], _I["k_bx"], _I["k_by"]
-BETA, SLIP, U1, U4 = _I["beta"], _I["slip"], _I["u1"], _I["u4"]
+BETA, SLIP, U1, U4, PHI1, PHI4 = _I["beta"], _I["slip"], _I["u1"], _I["u4"], _I["phi1"], _I["phi4"]
 SPEED, T0, LOAD_AMP, LOAD_FREQ, LOAD_HARM = _I["speed_rpm"], _I["T0"], _I["load_amp"], _I["load_freq"], _I["load_harm"]
+LOAD_PHASE = _I["load_phase"]
 
 NQ = 21  # positions
 NY = 42  # state
@@ -220,8 +221,8 @@ def _rhs(w, lane, src, out, t):
 
 @njit(**_JIT, inline="always")
 def _load_torque(t, w, lane):
-    """T_l(t) = T0 [1 + a Σ_h sin(2π h f_l t)/h]; sin(hx) by the Chebyshev recurrence (one sin/cos)."""
-    x = 2.0 * math.pi * w[_at(LOAD_FREQ, lane)] * t
+    """T_l(t) = T0 [1 + a Σ_h sin(h (2π f_l t + φ_l))/h]; sin(hx) by the Chebyshev recurrence (one sin/cos)."""
+    x = 2.0 * math.pi * w[_at(LOAD_FREQ, lane)] * t + w[_at(LOAD_PHASE, lane)]
     s1, c1 = math.sin(x), math.cos(x)
     s_prev, s_h, total = 0.0, s1, 0.0
     for h in range(1, int(w[_at(LOAD_HARM, lane)]) + 1):
@@ -696,7 +697,7 @@ def _pad(w, n_lanes):
         w[_at(R_OPEN_STEPS, lane)] = 1.0
     for lane in range(n_run):
         same = lane > 0
-        for k in (T0, LOAD_AMP, LOAD_FREQ, LOAD_HARM):
+        for k in (T0, LOAD_AMP, LOAD_FREQ, LOAD_HARM, LOAD_PHASE):
             same = same and w[_at(k, lane)] == w[_at(k, lane - 1)]
         w[_at(R_SAME_LOAD, lane)] = 1.0 if same else 0.0
     return n_run

@@ -22,7 +22,7 @@ class Parameter:
     default: float
     unit: str
     description: str
-    group: str  # "rig", "operating" or "effect"
+    group: str  # "rig", "operating", "record" or "effect"
     lower: float = 0.0  # exclusive unless ``lower_inclusive``
     upper: float = math.inf
     lower_inclusive: bool = False
@@ -56,6 +56,7 @@ def _p(group: str, rows: list[tuple]) -> list[Parameter]:
 
 
 _NON_NEGATIVE = {"lower_inclusive": True}
+_ANGLE = {"lower": -math.inf, "upper": math.inf}  # any finite angle; only its value modulo 2π matters
 
 
 # Order matters: it is the layout of the kernel's parameter vector.
@@ -85,6 +86,8 @@ PARAMETERS: tuple[Parameter, ...] = tuple(
             ("slip", 0.02, "-", "induction-motor slip s at T0 (sets the torque slope c_m = T0/(s·Omega))", {"upper": 1.0}),
             ("u1", 4.8e-3, "kg·m", "imbalance m·e at the motor rotor (node m1, disk 1)", _NON_NEGATIVE),
             ("u4", 6.4e-3, "kg·m", "imbalance m·e at the load (node m4, disk 4)", _NON_NEGATIVE),
+            ("phi1", 0.0, "rad", "angle of the imbalance u1 on disk 1, from the disk's mark", _ANGLE),
+            ("phi4", 0.0, "rad", "angle of the imbalance u4 on disk 4, from the disk's mark", _ANGLE),
         ],
     )
     + _p(
@@ -97,6 +100,13 @@ PARAMETERS: tuple[Parameter, ...] = tuple(
             ("load_harm", 6.0, "-", "number of load harmonics H", {"lower": 1.0, "lower_inclusive": True, "integer": True}),
         ],
     )
+    + _p(
+        "record",
+        [
+            ("load_phase", 0.0, "rad", "phase of the load pulsation at t = 0: T_l = T0 [1 + a Σ sin(h (2π f_l t + φ_l)) / h]",
+             _ANGLE),
+        ],
+    )
 )
 
 PARAMETER_NAMES: tuple[str, ...] = tuple(p.name for p in PARAMETERS)
@@ -105,6 +115,11 @@ PARAMETER_INDEX: Mapping[str, int] = MappingProxyType({n: i for i, n in enumerat
 DEFAULTS: Mapping[str, float] = MappingProxyType({p.name: p.default for p in PARAMETERS})
 RIG_PARAMETERS = tuple(p.name for p in PARAMETERS if p.group == "rig")
 OPERATING_PARAMETERS = tuple(p.name for p in PARAMETERS if p.group == "operating")
+# What a recording leaves open beyond its operating condition, found from its data by the diagnosis
+# (newdyn.alignment): the load pulsation's phase.  Where the recording starts on the shaft's turn is the
+# imbalances' angles phi1 and phi4 (rotating the whole shaft by ψ is phi1 and phi4 by ψ).
+RECORD_PARAMETERS = tuple(p.name for p in PARAMETERS if p.group == "record")
+ANGLE_PARAMETERS = tuple(p.name for p in PARAMETERS if p.unit == "rad")
 
 # The torsional bodies' angles in shaft order, as the state holds them: motor rotor, motor shaft end, motor-side
 # coupling hub, load-side hub, load.

@@ -68,8 +68,11 @@ class Rig:
     c_m: float
     u1: float
     u4: float
+    phi1: float
+    phi4: float
     load_amp: float
     load_freq: float
+    load_phase: float
     harmonics: np.ndarray  # h = 1 … H
     K_lat: np.ndarray  # (16, 16) lateral stiffness
     C_lat: np.ndarray  # (16, 16) lateral damping β·K_lat
@@ -99,7 +102,8 @@ def prepare(values: Mapping[str, float] | None = None) -> Rig:
     M, C, K = model.linear_matrices(v)
     # The lateral part is exactly the healthy matrix form; the torsional part is written element by
     # element in rhs() because θ2 splits into 2a/2b.
-    names = ("J1", "J2a", "J2b", "J3", "J4", "m1", "m4", "kT1", "kT2", "kT3", "beta", "T0", "u1", "u4", "load_amp", "load_freq")
+    names = ("J1", "J2a", "J2b", "J3", "J4", "m1", "m4", "kT1", "kT2", "kT3", "beta", "T0", "u1", "u4", "phi1", "phi4", "load_amp", "load_freq",
+             "load_phase")
     present = []
     for kind, effect in effects.active().items():
         if v[slots.effect_slot(kind)] != 0.0:
@@ -121,9 +125,9 @@ def prepare(values: Mapping[str, float] | None = None) -> Rig:
 
 
 def load_torque(t: float, p: Rig) -> float:
-    """T_l(t) = T0 [1 + a Σ_{h=1..H} sin(2π h f_l t) / h]."""
+    """T_l(t) = T0 [1 + a Σ_{h=1..H} sin(h (2π f_l t + φ_l)) / h]."""
     h = p.harmonics
-    return p.T0 * (1.0 + p.load_amp * float(np.sin((2.0 * math.pi * p.load_freq * t) * h) @ (1.0 / h)))
+    return p.T0 * (1.0 + p.load_amp * float(np.sin((2.0 * math.pi * p.load_freq * t + p.load_phase) * h) @ (1.0 / h)))
 
 
 def _kinematics(place: str, t: float, y: np.ndarray, ref_angle: float, ref_speed: float, joint_torque: float):
@@ -200,9 +204,9 @@ def rhs(t: float, y: np.ndarray, rig: Rig | Mapping[str, float], modes: Sequence
 
     # Imbalanced disks: the 3×3 Lagrange system of rig.md, solved in closed form.  The θ̇² terms
     # cancel in θ̈ and reappear in ẍ, ÿ by back-substitution.
-    for (i, node), T, J, M, u in zip(_DISKS, (T1, T4), (p.J1, p.J4), (p.m1, p.m4), (p.u1, p.u4)):
+    for (i, node), T, J, M, u, phi in zip(_DISKS, (T1, T4), (p.J1, p.J4), (p.m1, p.m4), (p.u1, p.u4), (p.phi1, p.phi4)):
         theta, theta_d = ref_angle + q[i], ref_speed + v[i]
-        s, c = math.sin(theta), math.cos(theta)
+        s, c = math.sin(theta + phi), math.cos(theta + phi)  # the imbalance sits at angle phi on its disk
         Fx, Fy = F[node], F[8 + node]
         theta_dd = (T + u * (s * Fx - c * Fy) / M) / (J - u * u / M)
         acc[i] = theta_dd

@@ -19,11 +19,11 @@ from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 
-from .base import PLACES, TORSIONAL_BODIES, Effect, Kinematics, Parameter, RigValues, kernel_function, sincos
+from .base import PLACES, TORSIONAL_BODIES, Effect, Kinematics, Parameter, RigValues, kernel_function, shaft_angle, sincos
 from .check import problems
 
 __all__ = ["PLACES", "TORSIONAL_BODIES", "USER_FOLDER", "Effect", "EffectError", "Kinematics", "Parameter", "RigValues",
-           "active", "alone", "builtin", "including", "kernel_function", "load_file", "loaded", "sincos", "use"]
+           "active", "alone", "builtin", "including", "kernel_function", "load_file", "loaded", "shaft_angle", "sincos", "use"]
 
 LIBRARY = Path(__file__).resolve().parent / "library"
 #: Where a study's own effects live, relative to the directory Snakemake runs in.

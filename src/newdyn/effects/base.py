@@ -175,6 +175,14 @@ def sincos(x):
     return s, c
 
 
+def shaft_angle(name: str, description: str) -> Parameter:
+    """A parameter for where on a shaft an effect sits [rad], for an effect whose force depends on a shaft's angle (the
+    disks' angles ``s.theta1``, ``s.theta4`` are those of their marks): nobody measures it, so a diagnosis fits it and
+    a blind test draws it over the whole turn; 0 is the mark."""
+    return Parameter(name, "rad", description, default=0.0, prior=(-math.pi, math.pi), lower=-2 * math.pi, upper=2 * math.pi,
+                     lower_inclusive=True, upper_inclusive=True)
+
+
 @dataclass(frozen=True)
 class Parameter:
     """A named effect parameter: unit, physical bounds, default, and its diagnosis and blind-test ranges.
