@@ -66,9 +66,9 @@ def test_a_file_is_read_again_only_when_it_or_the_settings_change(folder, tmp_pa
     assert sorted(read) == ["empty.csv", "good.csv"]
 
 
-def test_a_record_off_the_rig_clocks_sample_grid_is_refused_in_one_line_and_rounded_stamps_pass(tmp_path):
-    """The search for a missing term simulates on the grid k/fs from t = 0, so t_first·fs must be whole (it crashed the
-    diagnosis before); stamps rounded to microseconds, within the time check's own tolerance, are on it."""
+def test_a_record_starting_between_the_model_grids_instants_is_taken_onto_its_grid(tmp_path):
+    """Discovery's search simulates on the grid k/fs from t = 0: whatever the recorder's first stamp, and stamps
+    rounded to microseconds, the model takes the record from the first instant of that grid after its warm-up."""
     fs = 3000.0
     times = 0.5 + np.arange(500) / fs
     y, _ = noise.add_noise(simulate({}, model.Sampling(fs, 0.5, 500), CHANNELS), CHANNELS, 40.0, 1)
@@ -77,11 +77,10 @@ def test_a_record_off_the_rig_clocks_sample_grid_is_refused_in_one_line_and_roun
     np.savetxt(tmp_path / "off_grid.csv", np.column_stack([times + 0.4 / fs, y.T]), delimiter=",", header="time,b1_x,w1",
                comments="", fmt="%.10g")
     good, problems = catalog.good_measurements(tmp_path, OPERATING, CHANNELS, 1000.0, tmp_path / "index.json")
-    assert list(good) == ["rounded"]
-    assert problems == [(f"{tmp_path / 'off_grid.csv'}: time starts at 0.5001333333 s, 1500.4 sample intervals after t = 0 "
-                        "where the search for a missing term needs a whole number (t_first·fs, as 0.5 s at 5000 Hz gives "
-                        "2500): put the stamps on the rig clock's grid k/fs (resample the record) "
-                        "(docs/measurements.md#time-the-rigs-clock)")]
+    assert sorted(good) == ["off_grid", "rounded"] and problems == []
+    for path in good.values():
+        sampling = catalog.checked_measurement(path, OPERATING, CHANNELS, 1000.0).sampling
+        assert sampling.fs == fs and sampling.t_first * fs == 1500
 
 
 @pytest.mark.parametrize("reserved", catalog.MACHINE_FOLDERS)

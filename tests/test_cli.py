@@ -49,7 +49,7 @@ def test_a_good_csv_is_ok_with_what_the_diagnosis_will_use(tmp_path, capsys):
     status, out, err = check(capsys, path)
     assert status == 0 and err == []
     assert out == [(f"{path}: OK: channels b1_x, w1, diagnosed on b1_x, w1 (without b2_x of diagnosis.channels); 5000 Hz, "
-                   "5000 samples, 1 s from t = 0.5 s; noise level from the noise floor above 1000 Hz (relative standard "
+                   "5000 samples, 1 s; noise level from the noise floor above 1000 Hz (relative standard "
                    "error 1.3%); operating condition speed_rpm 1480, T0 1613, load_amp 0.3, load_freq 12, load_harm 6")]
 
 
@@ -103,10 +103,10 @@ BAD_FILES = {
     "no header": (lambda p: (write_csv(p), p.write_text(p.read_text().split("\n", 1)[1]), p)[2],
                   ("has no header: its first line holds numbers; the first line must name the columns, time and then the "
                   "channels (time,b1_x,w1; docs/measurements.md#csv)")),
-    "off the sample grid": (lambda p: write_csv(p, times=SAMPLING.times + 0.5 / SAMPLING.fs),
-                            ("time starts at 0.5001 s, 2500.5 sample intervals after t = 0 where the search for a missing "
-                            "term needs a whole number (t_first·fs, as 0.5 s at 5000 Hz gives 2500): put the stamps on the "
-                            "rig clock's grid k/fs (resample the record) (docs/measurements.md#time-the-rigs-clock)")),
+    "speed far from the stated": (lambda p: (p.with_name("conditions.csv").write_text(f"recording,speed_rpm\n{p.stem},1300\n"),
+                                             write_csv(p))[1],
+                                  ("speed_rpm is 1300 rpm, but the data run at 1480.0 rpm (the mean of w1): state the speed "
+                                   "the machine ran at (or store w1 and w4 in rad/s)")),
     "a name the workflow refuses": (lambda p: write_csv(p.with_name("run 1.csv")),
                                     "names of files and folders may hold letters, digits, '_', '-' and '.' only"),
 }

@@ -18,7 +18,9 @@ OPERATING = {"speed_rpm": 1500.0, "T0": 1500.0, "load_amp": 0.2, "load_freq": 10
 
 def make_dataset(sigma=None):
     rng = np.random.default_rng(0)
-    y = rng.standard_normal((2, SAMPLING.n_samples)) * np.array([[1e-7], [0.4]]) + np.array([[0.0], [155.0]])
+    speed = 2 * np.pi * OPERATING["speed_rpm"] / 60  # a disk speed's mean, and a displacement's 1x line, the running speed
+    y = rng.standard_normal((2, SAMPLING.n_samples)) * np.array([[1e-7], [0.4]]) + np.array([[0.0], [speed]])
+    y[0] += 1e-6 * np.cos(speed * SAMPLING.times)
     return measurement_dataset(y, CHANNELS, SAMPLING, OPERATING, {"scenario": "x", "parameters": {"kT1": 3e6}}, sigma)
 
 
@@ -42,6 +44,26 @@ def test_csv_takes_operating_condition_from_defaults(tmp_path):
     m = read_measurement(tmp_path / "m.csv", OPERATING)
     np.testing.assert_allclose(m.y, ds["y"].values, rtol=1e-15)
     assert m.operating == OPERATING and m.sigma is None
+
+
+@pytest.mark.parametrize("start", [0.0, -2.5, 1234.5678])
+def test_the_recorders_clock_may_start_anywhere_and_the_model_compares_from_its_warm_up(tmp_path, start):
+    ds = _retime(make_dataset(), start + np.arange(SAMPLING.n_samples) / SAMPLING.fs)
+    write_netcdf(ds, tmp_path / "m.nc")
+    m = read_measurement(tmp_path / "m.nc", warm_up=0.3)
+    assert (m.sampling.fs, m.sampling.t_first, m.sampling.n_samples) == (SAMPLING.fs, 0.3, SAMPLING.n_samples)
+    assert read_measurement(tmp_path / "m.nc").sampling == SAMPLING  # rig.md's warm-up by default
+
+
+def test_a_speed_the_data_contradict_is_replaced_a_few_rpm_off_and_refused_far_off(tmp_path):
+    def written(stated):
+        write_netcdf(make_dataset().assign_attrs(speed_rpm=stated), tmp_path / "m.nc")
+        return tmp_path / "m.nc"
+
+    assert read_measurement(written(1503.0)).operating["speed_rpm"] == pytest.approx(1500.0, abs=0.5)  # noise: 0.17 rpm
+    assert read_measurement(written(1500.02)).operating["speed_rpm"] == 1500.02  # within what the data tell
+    with pytest.raises(MeasurementError, match=r"speed_rpm is 1400 rpm, but the data run at 1499.7 rpm \(the mean of w1\)"):
+        read_measurement(written(1400.0))
 
 
 def test_write_is_atomic(tmp_path, monkeypatch):
@@ -103,7 +125,6 @@ BAD_FILES = {
     "non-uniform time": (_nc(lambda ds: _retime(ds, SAMPLING.times ** 1.01)), "not uniform"),
     "shorter than a load cycle": (_csv(_cycle_csv(300)), "less than one load cycle"),
     "sampling rate out of reach": (_csv(_cycle_csv(200000, fs=2e6)), "sampling rate"),
-    "time before the model's start": (_nc(lambda ds: _retime(ds, SAMPLING.times - 1.0)), "before the model's start"),
     "operating attribute not a number": (_nc(lambda ds: ds.assign_attrs(T0="fast")), "attribute T0"),
     "operating attribute infinite": (_nc(lambda ds: ds.assign_attrs(speed_rpm=np.inf)), "attribute speed_rpm"),
     "ragged CSV": (_csv("time,b1_x,w1\n0.5,1,2\n0.5002,1\n0.5004,1,2\n"), "line 3 has 2 values where the header names 3 columns"),

@@ -18,19 +18,19 @@ from pathlib import Path
 from . import cache
 from .measurement_files import CONDITIONS, NAME, SUFFIXES
 
-CHECKS = ("io.py", "measurement_checks.py", "discovery/search.py")  # the modules whose code decides whether a file is good
+CHECKS = ("io.py", "running_speed.py", "measurement_checks.py")  # the modules whose code decides whether a file is good
 # The folders of a machine's own results (results/diagnosis/<machine>/), beside each of its recordings' results there:
 # no recording may take their names.
 MACHINE_FOLDERS = ("discovery", "figures")
 
 
 def good_measurements(folder: str | os.PathLike, operating: Mapping[str, float], channels: Sequence[str], band_hz: float,
-                      index: str | os.PathLike | None) -> tuple[dict[str, str], list[str]]:
+                      index: str | os.PathLike | None, rig: Mapping[str, float] | None = None) -> tuple[dict[str, str], list[str]]:
     """(name → path of every good measurement in ``folder``, one line per bad file naming it and its problem).
     ``index`` is the JSON file that remembers the checks; it is rewritten only when a check was made.  Without one,
-    every file is checked and nothing is remembered."""
-    settings = json.dumps({"operating": dict(operating), "channels": list(channels), "band_hz": band_hz, "checks": _checks_version()},
-                          sort_keys=True)
+    every file is checked and nothing is remembered.  With the ``rig``, each channel's level is checked too."""
+    settings = json.dumps({"operating": dict(operating), "channels": list(channels), "band_hz": band_hz, "checks": _checks_version(),
+                           "rig": dict(rig or {})}, sort_keys=True)
     document = cache.read_json(index) if index is not None else {}
     known = document.get("files", {}) if document.get("settings") == settings else {}
     by_name: dict[str, list[Path]] = {}
@@ -50,7 +50,7 @@ def good_measurements(folder: str | os.PathLike, operating: Mapping[str, float],
         stamp = [[stat.st_size, stat.st_mtime_ns] for stat in (p.stat() for p in (path, path.parent / CONDITIONS) if p.is_file())]
         entry = known.get(str(path))
         if entry is None or entry["stamp"] != stamp:
-            entry, changed = {"stamp": stamp, "problem": _problem(path, operating, channels, band_hz)}, True
+            entry, changed = {"stamp": stamp, "problem": _problem(path, operating, channels, band_hz, rig)}, True
         checked[str(path)] = entry
         problem = entry["problem"] or name_problem(path, name)
         if problem:
@@ -68,13 +68,16 @@ def _checks_version() -> str:
     return hashlib.sha256(b"".join((here / name).read_bytes() for name in CHECKS)).hexdigest()[:16]
 
 
-def checked_measurement(path: str | os.PathLike, operating: Mapping[str, float], channels: Sequence[str], band_hz: float):
+def checked_measurement(path: str | os.PathLike, operating: Mapping[str, float], channels: Sequence[str], band_hz: float,
+                        rig: Mapping[str, float] | None = None):
     """The measurement in ``path``, read and checked as the workflow does before a diagnosis (:func:`newdyn.io.
-    read_measurement`, :func:`newdyn.measurement_checks.check_measurement`); a bad one raises :class:`newdyn.io.MeasurementError`."""
+    read_measurement`, :func:`newdyn.measurement_checks.check_measurement`, its channels' levels against the ``rig``'s
+    where given); a bad one raises :class:`newdyn.io.MeasurementError`."""
     from . import io, measurement_checks
 
     measurement = io.read_measurement(path, operating)
-    measurement_checks.check_measurement(measurement, channels, band_hz, path)
+    values = None if rig is None else {**rig, **measurement.operating}
+    measurement_checks.check_measurement(measurement, channels, band_hz, path, values=values)
     return measurement
 
 
@@ -91,11 +94,11 @@ def name_problem(path: str | os.PathLike, name: str) -> str | None:
     return None
 
 
-def _problem(path: Path, operating, channels, band_hz) -> str | None:
+def _problem(path: Path, operating, channels, band_hz, rig) -> str | None:
     from . import io
 
     try:
-        checked_measurement(path, operating, channels, band_hz)
+        checked_measurement(path, operating, channels, band_hz, rig)
     except io.MeasurementError as error:
         return str(error)
     return None

@@ -32,7 +32,7 @@ def check_measurements(paths: list[str], config_paths: list[str]) -> int:
     bad = 0
     for path in map(Path, paths):
         if path.is_dir():
-            good, problems = catalog.good_measurements(path, operating, channels, band_hz, index=None)
+            good, problems = catalog.good_measurements(path, operating, channels, band_hz, index=None, rig=study["rig"])
             if not good and not problems:
                 problems = [f"{path}: holds no measurement file (.nc or .csv), nor a machine's folder of them"]
             found = [(str(file), None) for file in good.values()] + [(line.split(": ", 1)[0], line) for line in problems]
@@ -41,7 +41,7 @@ def check_measurements(paths: list[str], config_paths: list[str]) -> int:
         for file, problem in sorted(found):
             if problem is None:
                 try:
-                    print(_measurement_summary(catalog.checked_measurement(file, operating, channels, band_hz), file,
+                    print(_measurement_summary(catalog.checked_measurement(file, operating, channels, band_hz, study["rig"]), file,
                                                channels, band_hz))
                     continue
                 except io.MeasurementError as error:
@@ -61,8 +61,8 @@ def _measurement_summary(measurement, path: str, channels: list[str], band_hz: f
     sampling = measurement.sampling
     return (f"{path}: OK: channels {', '.join(measurement.channels)}, diagnosed on {', '.join(used)}"
             + (f" (without {', '.join(missing)} of diagnosis.channels)" if missing else "")
-            + f"; {sampling.fs:.6g} Hz, {sampling.n_samples} samples, {sampling.n_samples / sampling.fs:.6g} s from "
-              f"t = {sampling.t_first:.6g} s; noise level from {noise_source}; operating condition "
+            + f"; {sampling.fs:.6g} Hz, {sampling.n_samples} samples, {sampling.n_samples / sampling.fs:.6g} s; noise level "
+              f"from {noise_source}; operating condition "
             + ", ".join(f"{name} {value:g}" for name, value in measurement.operating.items()))
 
 
@@ -434,7 +434,8 @@ def diagnose_measurement(measurement_path: str, grid_paths: list[str], bank_path
     from .settings import Settings
 
     settings = Settings.from_config(spec)
-    measurement = io.read_measurement(measurement_path, {k: spec["operating"][k] for k in model.OPERATING_PARAMETERS})
+    measurement = io.read_measurement(measurement_path, {k: spec["operating"][k] for k in model.OPERATING_PARAMETERS},
+                                      spec["sampling"]["t_first"])
     start = time.perf_counter()
     result = diagnosis.diagnose(measurement, settings, calibration.grid_files(grid_paths), bank_path=bank_path)
     v = result.verdict
@@ -455,7 +456,7 @@ def diagnose_machine(name: str, measurement_paths: list[str], verdict_paths: lis
         raise SystemExit(f"newdyn diagnose-machine: {len(measurement_paths)} recordings but {len(verdict_paths)} verdicts")
     settings = Settings.from_config(spec)
     operating = {k: spec["operating"][k] for k in model.OPERATING_PARAMETERS}
-    recordings = [machine.Diagnosed(io.read_measurement(m, operating), json.loads(Path(v).read_text()))
+    recordings = [machine.Diagnosed(io.read_measurement(m, operating, spec["sampling"]["t_first"]), json.loads(Path(v).read_text()))
                   for m, v in zip(measurement_paths, verdict_paths)]
     start = time.perf_counter()
     found = machine.diagnose(name, recordings, settings)
@@ -510,7 +511,8 @@ def draw_hidden(spec: dict, output: str, code_hash: str) -> None:
     from . import hidden, study
 
     cases = hidden.draw_cases(spec["hidden"], spec["set"], spec["values"], study.hidden_ranges(spec),
-                              study.hidden_classes(spec), spec.get("sensors"), spec.get("channels", ()))
+                              study.hidden_classes(spec), spec.get("sensors"), spec.get("channels", ()),
+                              fs=_sampling(spec["sampling"]).fs)
     machines = spec["hidden"]["sets"][spec["set"]]
     if "recordings" in machines:
         cases = hidden.draw_recordings(cases, spec["set"], machines, spec["operating_range"], spec["channels"], spec["values"],

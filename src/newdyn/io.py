@@ -1,8 +1,11 @@
 """Measurement files (``docs/measurements.md``): write simulated ones, read and check users'.
 
-A measurement is ``y`` (channel, time) with coordinates ``time`` [s] (the rig's clock: the model starts
-at t = 0) and ``channel``; optional operating-condition attributes, ``snr_db`` or a per-channel
-``sigma``.  Every problem with a file is one :class:`MeasurementError` line naming the file.
+A measurement is ``y`` (channel, time) with coordinates ``time`` [s] (the recorder's clock: only the spacing of the
+stamps matters, the record may start anywhere) and ``channel``; optional operating-condition attributes, ``snr_db``
+or a per-channel ``sigma``.  The model compares its steady state with it: sample k is the model's state at
+``warm_up + k/fs`` (:func:`model_sampling`), and where on the shaft's turn and the load's cycle the record starts is
+found from the data (:mod:`newdyn.alignment`).  Every problem with a file is one :class:`MeasurementError` line naming
+the file.
 """
 
 from __future__ import annotations
@@ -19,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
-from . import model
+from . import model, running_speed
 from .measurement_files import CONDITIONS
 
 OPERATING_ATTRS = model.OPERATING_PARAMETERS  # speed_rpm, T0, load_amp, load_freq, load_harm
@@ -62,7 +65,7 @@ def measurement_dataset(
         attrs={"long_name": "measured signal", "units": json.dumps({c: model.CHANNEL_UNITS[c] for c in channels})},
     )
     ds = xr.Dataset({"y": data})
-    ds["time"].attrs.update(units="s", long_name="rig clock (model starts at t = 0)")
+    ds["time"].attrs.update(units="s", long_name="time")
     if sigma is not None:
         ds = ds.assign_coords(sigma=("channel", np.asarray(sigma, dtype=np.float64)))
         ds["sigma"].attrs.update(long_name="noise standard deviation", units="channel units")
@@ -139,8 +142,11 @@ def _finite_json(value):
     return value
 
 
-def read_measurement(path: str | os.PathLike, operating_defaults: Mapping[str, float] | None = None) -> Measurement:
-    """Read and check a ``.nc`` or ``.csv`` measurement; operating values missing from it take the defaults."""
+def read_measurement(path: str | os.PathLike, operating_defaults: Mapping[str, float] | None = None,
+                     warm_up: float = model.Sampling().t_first) -> Measurement:
+    """Read and check a ``.nc`` or ``.csv`` measurement; operating values missing from it take the defaults.  Its
+    sampling is the model's: the first sample ``warm_up`` (rounded up to the grid k/fs) after the model's start; its
+    running speed is the one its data show (:func:`newdyn.running_speed.measured`)."""
     path = Path(path)
     if not path.is_file():
         raise MeasurementError(path, "file not found")
@@ -174,7 +180,11 @@ def read_measurement(path: str | os.PathLike, operating_defaults: Mapping[str, f
                 raise MeasurementError(path, f"attribute {name} {problem}")
             operating[name] = float(value)
 
-    sampling = _check_time(path, times, operating)
+    sampling = _check_time(path, times, operating, warm_up)
+    stated = operating["speed_rpm"]
+    operating["speed_rpm"] = running_speed.measured(path, channels, y, sampling.fs, operating)
+    if operating["speed_rpm"] != stated:
+        attrs["stated_speed_rpm"] = stated
     snr = attrs.get("snr_db")
     if sigma is None and snr is not None and (isinstance(snr, str) or not math.isfinite(float(snr))):
         raise MeasurementError(path, f"attribute snr_db must be a finite number (got {snr!r})")
@@ -294,7 +304,25 @@ def _numbers(texts: Sequence[str]) -> bool:
     return True
 
 
-def _check_time(path: Path, times: np.ndarray, operating: Mapping[str, float]) -> model.Sampling:
+def _recorder_rate(times: np.ndarray) -> float:
+    """The sampling rate the recorder was set to: the one of fewest significant digits whose grid holds every stamp
+    within half the time check's tolerance (the stamps' last bits, or their rounding to microseconds, are not the rate)."""
+    dt = (times[-1] - times[0]) / (times.size - 1)
+    steps = np.arange(times.size)
+    for digits in range(1, 16):
+        fs = float(f"{1.0 / dt:.{digits}g}")
+        if np.max(np.abs(times - times[0] - steps / fs)) <= 0.5 * TIME_JITTER / fs:
+            return fs
+    return 1.0 / dt
+
+
+def model_sampling(fs: float, n_samples: int, warm_up: float) -> model.Sampling:
+    """Where the model takes a record of ``n_samples`` at ``fs``: from the first instant k/fs at or after ``warm_up``,
+    when its start-up has died out (the kernel and discovery's search step on that grid)."""
+    return model.Sampling(fs=fs, t_first=math.ceil(warm_up * fs - 1e-9) / fs, n_samples=n_samples)
+
+
+def _check_time(path: Path, times: np.ndarray, operating: Mapping[str, float], warm_up: float) -> model.Sampling:
     if times.size < 2:
         raise MeasurementError(path, f"only {times.size} sample(s)")
     if not np.all(np.isfinite(times)):
@@ -306,7 +334,7 @@ def _check_time(path: Path, times: np.ndarray, operating: Mapping[str, float]) -
     worst = np.max(np.abs(times - (times[0] + dt * np.arange(times.size))))
     if worst > TIME_JITTER * dt:
         raise MeasurementError(path, f"time is not uniform (a stamp is {worst / dt:.3g} sample intervals off the grid)")
-    fs = 1.0 / dt
+    fs = _recorder_rate(times)
     rotation_hz = operating["speed_rpm"] / 60.0
     if fs < 2.0 * rotation_hz:
         slow = f"sampling rate {fs:.4g} Hz is below twice the shaft's rotation frequency ({rotation_hz:.4g} Hz)"
@@ -319,8 +347,6 @@ def _check_time(path: Path, times: np.ndarray, operating: Mapping[str, float]) -
         raise MeasurementError(
             path, f"{times.size} samples span {times.size * dt:.4g} s, less than one load cycle (1/{load_freq:g} Hz)"
         )
-    if times[0] < 0:
-        raise MeasurementError(path, f"time starts at {times[0]:g} s, before the model's start at t = 0")
     if fs > FS_MAX:
         raise MeasurementError(path, f"sampling rate {fs:.6g} Hz is above the {FS_MAX:.0e} Hz the simulator reproduces")
-    return model.Sampling(fs=fs, t_first=float(times[0]), n_samples=int(times.size))
+    return model_sampling(fs, int(times.size), warm_up)

@@ -452,6 +452,7 @@ MEASUREMENTS, _bad = newdyn.catalog.good_measurements(
     config["diagnosis"]["channels"],
     config["diagnosis"]["noise_band_hz"],
     ".snakemake/newdyn/measurements.json",
+    config["rig"],
 )
 for _line in _bad:
     print(f"newdyn: skipping bad measurement: {_line}", file=sys.stderr)
