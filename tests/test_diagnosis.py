@@ -355,8 +355,9 @@ def test_a_whitened_pass_fits_what_the_white_pass_searched_from_that_searchs_opt
     assert again.verdict["verdict"] == diagnosed["stick_slip"].verdict["verdict"]
 
 
-def test_a_two_parameter_fit_from_the_banks_members_reaches_the_searchs_optimum_with_far_fewer_simulations():
-    """A breathing crack with a kT1 drift: least squares from the best of the bank's members on each search window
+def test_a_three_parameter_fit_from_the_banks_members_reaches_the_searchs_optimum_with_far_fewer_simulations():
+    """A breathing crack (its depth and where it sits) with a kT1 drift: least squares from the best of the bank's
+    members on each search window
     ends where it ends from the differential evolution there, and so does its one chain (as the diagnosis runs it)
     from the start that fits the longest search window best."""
     m = measurement("crack", fault("breathing_crack", alpha=0.35, kT3=2.5e6), seed=6)
@@ -365,7 +366,7 @@ def test_a_two_parameter_fit_from_the_banks_members_reaches_the_searchs_optimum_
     hyps = {h.name: h for h in SETTINGS.hypotheses()}
     assert not bank.needs_search(crack) and bank.needs_search(hyps["stick_slip"])  # stick-slip fits four parameters
     members = bank.member_sets(hyps, ["breathing_crack"], values, SAMPLING, channels, simulation.DEFAULT_MAX_STEP)["breathing_crack"]
-    assert members.unit.shape == (bank.MEMBERS, 2) and members.outputs.shape[1:] == (2, hypotheses.fit_windows(SAMPLING)[1])
+    assert members.unit.shape == (bank.MEMBERS, 3) and members.outputs.shape[1:] == (2, hypotheses.fit_windows(SAMPLING)[1])
     searched = hypotheses.fit(crack, m.y[:2], m.sigma[:2], values, SAMPLING, channels)
     started = hypotheses.fit(crack, m.y[:2], m.sigma[:2], values, SAMPLING, channels, members=members)
     one_chain = hypotheses.fit(crack, m.y[:2], m.sigma[:2], values, SAMPLING, channels, members=members, chains=1)

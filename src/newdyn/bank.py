@@ -1,11 +1,15 @@
 """What every diagnosis at one operating condition and record reuses, computed once per study and condition: the
-signature library (:mod:`newdyn.signatures`) and the members of each hypothesis with parameters.
+signature library (:mod:`newdyn.signatures`) and the members of each hypothesis with parameters.  The library is a
+property of the condition, not of where on the shaft's turn and the load's cycle a record starts, and is reused for
+any; members are compared with the record itself, so a record that starts elsewhere gets its own
+(:func:`with_members`).
 
 Members are quasi-random points (a scrambled Sobol sequence) of a hypothesis's prior box, simulated over the fits'
 first search windows.  A fit of a hypothesis with at most :data:`MAX_PARAMETERS` fitted parameters starts its least
 squares on each of those windows from the member that fits it best, instead of from a differential evolution there:
-:data:`MEMBERS` points put 32 on each axis of a two-parameter box, as dense as the search's own population.  A
-four-parameter box (stick-slip) gets fewer than six an axis, too few to find the truth's narrow basin (seeding the
+:data:`MEMBERS` points put 32 on each axis of a two-parameter box, as dense as the search's own population, and 10 on
+each of a three-parameter one (a crack's depth and where it sits, and a drift: smooth in each, the test suite's
+fit from members ends where a search's does).  A four-parameter box (stick-slip) gets fewer than six an axis, too few to find the truth's narrow basin (seeding the
 search with its best members led it astray): its fit starts from members only where another hypothesis already
 explains the data to the noise, its evidence then a lower bound (:func:`needs_search`), and searches everywhere else.
 """
@@ -23,7 +27,7 @@ from scipy.stats import qmc
 
 from . import calibration, hypotheses, model, sensors, signatures
 
-MAX_PARAMETERS = 2
+MAX_PARAMETERS = 3
 MEMBERS = 1024  # a power of two, as Sobol points balance best
 MEMBER_SEED = 1
 
@@ -63,14 +67,21 @@ def build(hyps: Mapping[str, hypotheses.Hypothesis], signature_entries, kinds: S
           priors: Mapping[str, calibration.NormalPrior], coarse: Mapping[str, np.ndarray], instruments: sensors.Instruments | None,
           max_step: float) -> xr.Dataset:
     """The bank: the signature library and, for each hypothesis of ``kinds`` with parameters, its members."""
-    bank = signatures.build(hyps, signature_entries, values, sampling, channels, grids, priors, coarse, instruments, max_step)
+    bank = with_members(signatures.build(hyps, signature_entries, values, sampling, channels, grids, priors, coarse, instruments,
+                                         max_step), hyps, kinds, values, sampling, channels, max_step)
+    bank_spec = spec(hyps, signature_entries, kinds, values, sampling, channels, grids, priors, instruments, max_step)
+    bank.attrs.update(title="newdyn study bank: the signature library and the members of each hypothesis with parameters",
+                      key=key(bank_spec), spec=json.dumps(bank_spec, sort_keys=True, default=str))
+    return bank
+
+
+def with_members(bank: xr.Dataset, hyps: Mapping[str, hypotheses.Hypothesis], kinds: Sequence[str], values: Mapping[str, float],
+                 sampling: model.Sampling, channels: Sequence[str], max_step: float) -> xr.Dataset:
+    """``bank`` with the members of each hypothesis of ``kinds`` at the rig ``values`` (in place of any it held)."""
     for kind, found in member_sets(hyps, kinds, values, sampling, channels, max_step).items():
         bank[f"members_{kind}"] = ((f"member_{kind}", f"parameter_{kind}"), found.unit)
         bank[f"member_outputs_{kind}"] = ((f"member_{kind}", "channel", "search_time"), found.outputs)
         bank = bank.assign_coords({f"parameter_{kind}": hyps[kind].parameters})
-    bank_spec = spec(hyps, signature_entries, kinds, values, sampling, channels, grids, priors, instruments, max_step)
-    bank.attrs.update(title="newdyn study bank: the signature library and the members of each hypothesis with parameters",
-                      key=key(bank_spec), spec=json.dumps(bank_spec, sort_keys=True, default=str))
     return bank
 
 

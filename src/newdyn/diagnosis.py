@@ -43,8 +43,8 @@ import xarray as xr
 from scipy.integrate import trapezoid
 from scipy.special import logsumexp
 
-from . import bank as bank_module
 from . import (
+    alignment,
     calibration,
     concurrency,
     hypotheses,
@@ -55,9 +55,11 @@ from . import (
     model,
     noise,
     residuals,
+    running_speed,
     slots,
     statement,
 )
+from . import bank as bank_module
 from . import posterior as posterior_module
 from . import sensors as sensors_module
 from . import signatures as signature_module
@@ -68,6 +70,10 @@ from .settings import Settings
 from .verdicts import SENSOR_PROBLEM
 
 log = logging.getLogger("newdyn")
+# How often the record's angles are found again under the best fit and the diagnosis run again from there: a fault the
+# nominal model lacks may pull them (most of all on a short record), and a fit at angles pulled off finds its values
+# off too, which the next pass corrects.
+REALIGNMENTS = 3
 
 
 def coloured_level(channels: Sequence[str], sigma: np.ndarray, source: str, colour: noise.Colour,
@@ -79,6 +85,26 @@ def coloured_level(channels: Sequence[str], sigma: np.ndarray, source: str, colo
     orders = ", ".join(f"{c} AR({len(found['ar'])})" for c, found in colour.summary(channels).items())
     coloured = np.any(colour.ar != 0, axis=1)
     return np.where(coloured, level, sigma), f"{source} for white channels; the best white-noise fit's residual without its lines for coloured ones ({orders})"
+
+
+def _realigned(fit: hypotheses.Fit, data, sigma, values, stated, record: alignment.Alignment, sampling, channels,
+               settings: Settings) -> alignment.Alignment | None:
+    """Where the record sits found again under ``fit``, its values free beside the angles (:func:`newdyn.alignment.
+    align_jointly`): None where the data do not place it elsewhere than ``record`` (found under the nominal model, whose
+    misfit a fault's shape may have pulled), else the new alignment; the ``stated`` angles where the data cannot tell
+    them from the found ones."""
+    names = list(record.values)
+    index = [slots.slot_index()[name] for name in names]
+    k = len(names)
+
+    def rows(x):
+        kernel = fit.hypothesis.parameter_rows(x[:, k:], values)
+        kernel[:, index] = x[:, :k]
+        return kernel
+
+    low, high = (np.array([getattr(p, side) for p in fit.hypothesis.priors]) for side in ("low", "high"))
+    return alignment.align_jointly(data, sigma, channels, sampling, settings.max_step, rows, names, stated, record.values,
+                                   fit.theta, low, high)
 
 
 def _grid_evidence(posterior: likelihood.GridPosterior) -> float:
@@ -109,24 +135,38 @@ class Diagnosis:
 
 def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mapping[str, str] | None = None,
              colour: noise.Colour | None = None, level: np.ndarray | None = None, bank_path: str | None = None,
-             searched: Mapping[str, hypotheses.Fit] | None = None) -> Diagnosis:
+             searched: Mapping[str, hypotheses.Fit] | None = None, record: alignment.Alignment | None = None,
+             realigned: int = 0) -> Diagnosis:
     """Diagnose ``measurement`` (already read and checked); ``grid_paths`` are the study's shared
     coarse-grid files per calibration parameter and ``bank_path`` its bank (:mod:`newdyn.bank`), each reused when its
     condition is the measurement's (else computed here).  ``colour``
     (with the coloured channels' σ ``level``) is the noise's, when a first pass found it; without it, a first pass
     fits under white noise and, when its best fit's residual reads coloured, the diagnosis runs again whitened, each
     hypothesis the first pass searched globally (its fits ``searched``) fitted from that search's optimum instead of
-    searching the same data again."""
-    check_measurement(measurement, settings.channels, settings.noise_band_hz)
+    searching the same data again.  ``record`` is where the recording sits on the shaft's turn and the load's cycle
+    (:mod:`newdyn.alignment`): found here under the nominal model when not given, and found again under the best
+    hypothesis's fit, the diagnosis run again from there when the data place the record elsewhere (``realigned`` times
+    so far, up to :data:`REALIGNMENTS`)."""
+    check_measurement(measurement, settings.channels, settings.noise_band_hz,
+                      values=slots.complete({**settings.rig, **measurement.operating}))
     configured, missing = settings, tuple(c for c in settings.channels if c not in measurement.channels)
     settings = replace(settings, channels=present_channels(measurement, settings.channels))
     rows = [measurement.channels.index(c) for c in settings.channels]
     channels, data, sampling = settings.channels, measurement.y[rows], measurement.sampling
     sigma, noise_source = noise_level(measurement, rows, settings.noise_band_hz)
-    values = slots.complete({**settings.rig, **measurement.operating})
+    stated = slots.complete({**settings.rig, **measurement.operating})
+    values = stated
     hyps = {h.name: h for h in settings.hypotheses()}
     if colour is not None:
         sigma, noise_source = coloured_level(channels, sigma, noise_source, colour, level)
+    clock = time.perf_counter()
+    if record is None:
+        record = alignment.align(data, sigma, channels, values, sampling, settings.max_step,
+                                 fit_speed=not any(c in running_speed.SPEEDS for c in measurement.channels))
+        log.info("%s: the record's angles %s (chi2 %.4g -> %.4g, %d simulations) in %.1f s", measurement.name,
+                 {k: round(v, 4) for k, v in record.values.items()}, record.chi2_stated, record.chi2_found,
+                 record.n_simulations, time.perf_counter() - clock)
+    values = {**values, **record.values}
     searched = searched or {}
     instruments = settings.instruments(sampling.fs, colour)  # as the datasheets say; out-of-spec ones are found per fit
 
@@ -134,7 +174,6 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
         p: calibration.coarse_models((grid_paths or {}).get(p), spec, values, sampling, channels, settings.max_step)
         for p, spec in settings.grids.items()
     }
-    clock = time.perf_counter()
 
     def stage(what):
         nonlocal clock
@@ -146,7 +185,7 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
                                                                        settings.chi2_max, settings.max_step, instruments)))
     stage(f"noise level from {noise_source}, grid calibrations of {', '.join(settings.grids)}")
 
-    bank = study_bank(bank_path, settings, hyps, values, sampling, coarse)
+    bank = study_bank(bank_path, settings, hyps, stated, sampling, coarse if values == stated else None, members_at=values)
     signatures = signature_module.distances(bank, calibrations, sigma, settings.priors)
     stage(f"{signatures.sizes['signature']} signatures")
 
@@ -170,8 +209,8 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
                           search=hypotheses.SEARCHED_FROM[2])
         else:
             # One chain: the start that fits the longest search window best, of the closest signature and the best
-            # member (or the search's best) on each search window.  Members of a fault of at most two parameters are
-            # points of a lattice as dense as a search's population, near one another; for a larger fault, its fit from
+            # member (or the search's best) on each search window.  Members of a fault of at most three parameters are
+            # points of a lattice dense enough that one start reaches the search's optimum; for a larger fault, its fit from
             # members is a lower bound on its evidence.  The other starts' chains reached the same optimum at the cost of
             # two more.
             fit = hypotheses.fit(hyps[kind], data, sigma, values, sampling, channels, [start], settings.max_step,
@@ -212,6 +251,14 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
             return diagnose(measurement, configured, grid_paths, found, level, bank_path,
                             {kind: fit for kind, fit in fits.items() if fit.search == hypotheses.SEARCHED_FROM[1]})
     colour = colour or noise.white(len(channels))
+    if realigned < REALIGNMENTS:
+        best = max(fits.values(), key=lambda fit: fit.log_evidence)
+        if best.hypothesis.kind != HEALTHY:
+            again = _realigned(best, data, sigma, values, stated, record, sampling, channels, settings)
+            if again is not None:
+                stage(f"the record's angles found again under {best.hypothesis.name}: {again.values}; again from there")
+                return diagnose(measurement, configured, grid_paths, colour if colour.ar.any() else None, level, bank_path,
+                                searched, again, realigned + 1)
 
     best_fault = max(settings.fault_ranges, key=lambda kind: fits[kind].log_evidence)
     discovery = None
@@ -254,6 +301,9 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
         verdict["missing_channels"] = _missing_channels(missing, verdict, fits, values, sampling, data, sigma, settings)
     verdict["noise"] = {"sigma": dict(zip(channels, sigma.tolist())), "source": noise_source,
                         "colour": colour.summary(channels)}
+    stated_speed = measurement.attrs.get("stated_speed_rpm", stated["speed_rpm"])
+    verdict["record"] = {**record.summary(), "found_under": "the best fit" if realigned else "the nominal model", "passes": realigned + 1,
+                         "speed_rpm": values["speed_rpm"], "stated_speed_rpm": stated_speed}
     # Discovery ran before the MCMC; a library fault whose polish explained the data after all drops it.
     if discovery is not None and not settings.searches(verdict["verdict"] != "unexplained"):
         discovery = None
@@ -311,10 +361,20 @@ def _compare_versions(verdict, fits, calibrations, effect_posterior, discovery: 
 
 
 def study_bank(path: str | None, settings: Settings, hyps: Mapping[str, hypotheses.Hypothesis], values: Mapping[str, float],
-               sampling: model.Sampling, coarse: Mapping[str, np.ndarray] | None = None) -> xr.Dataset:
+               sampling: model.Sampling, coarse: Mapping[str, np.ndarray] | None = None,
+               members_at: Mapping[str, float] | None = None) -> xr.Dataset:
     """The study's bank (:mod:`newdyn.bank`) at the rig ``values`` and record ``sampling``: the file at ``path`` (made
     by the workflow's bank rule) when it was made for them, else built here on the coarse grid runs ``coarse``
-    (simulated when not given)."""
+    (simulated when not given); its members at ``members_at`` where those differ from ``values`` (a record's own angles
+    and running speed)."""
+    bank = _condition_bank(path, settings, hyps, values, sampling, coarse)
+    if members_at is None or dict(members_at) == dict(values):
+        return bank
+    return bank_module.with_members(bank, hyps, list(settings.fault_ranges), members_at, sampling, settings.channels,
+                                    settings.max_step)
+
+
+def _condition_bank(path, settings: Settings, hyps, values, sampling, coarse) -> xr.Dataset:
     entries = signature_module.entries(hyps, list(settings.grids), settings.drift_sizes, settings.fault_ranges, settings.severities, values)
     instruments = settings.instruments(sampling.fs)  # the datasheets; the library's noise is white
     spec = bank_module.spec(hyps, entries, list(settings.fault_ranges), values, sampling, settings.channels, settings.grids,

@@ -48,13 +48,14 @@ class Diagnosed:
 
 
 def recording(diagnosed: Diagnosed, settings: Settings) -> hypotheses.Recording:
-    """A recording as the joint fits see it: on the channels and with the noise its own diagnosis used."""
+    """A recording as the joint fits see it: on the channels, with the noise and where on the shaft's turn and the load's
+    cycle (and at which speed) its own diagnosis found it."""
     m, v = diagnosed.measurement, diagnosed.verdict
     channels = tuple(v["channels"])
     colour = noise.Colour.from_summary(v["noise"].get("colour", {}), channels)
     return hypotheses.Recording(
         m.y[[m.channels.index(c) for c in channels]], np.array([v["noise"]["sigma"][c] for c in channels]),
-        slots.complete({**settings.rig, **m.operating}), m.sampling, channels,
+        slots.complete({**settings.rig, **m.operating, **v.get("record", {}).get("values", {})}), m.sampling, channels,
         replace(settings, channels=channels).instruments(m.sampling.fs, colour),
     )
 

@@ -1,0 +1,211 @@
+"""Where a recording sits on the machine's turn and on the load's cycle: the imbalances' angles ``phi1``, ``phi4`` and
+the load pulsation's phase ``load_phase`` (and, for a record without a disk speed, the running speed), found from the
+data before any fit.
+
+A recording starts at any moment: the shaft's angle at its first sample is folded into the imbalances' angles (turning
+the whole shaft by ψ is turning both by ψ; an effect fixed to a shaft, such as a crack, has its own angle), and the
+load's phase is its own parameter.  They enter the steady-state response almost linearly, which gives a closed-form
+first guess: the response to an imbalance at angle φ is cos φ times the response at 0 plus sin φ times the response at
+π/2, so four simulations of one imbalance each and one of the rig without imbalance per load phase on a grid give the
+misfit of every pair of angles on a fine grid as a quadratic form.  Least squares on the full simulator then polishes
+the best few grid points.
+
+Before any hypothesis is fitted, only the lines the angles set are compared (:func:`lines`): each displacement's
+once-per-revolution line and each torsional channel's load fundamental, as a keyphasor references a vibration's phase.
+A fault the nominal model lacks changes the rest of the waveform far more than these lines, so it cannot pull the
+angles to cover its misfit.  Under the best hypothesis's fit, which explains the whole waveform, the whole waveform is
+compared (:func:`waveform`).  Each channel's mean is left out of both: a probe's static gap is no angle's.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import optimize, stats
+
+from . import model, running_speed, simulation
+
+LOAD_PHASES = 48  # grid of the load's phase for the first guess
+ANGLES = 72  # grid of each imbalance angle for the first guess
+STARTS = 3  # the best distinct grid points polished by least squares
+JACOBIAN_STEP = 1e-4  # rad (and 1e-6 relative speed): far above the simulator's rounding, below the angles' precision
+# The stated angles stand unless moving them lowers χ² by more than noise alone would with this probability.
+KEEP_STATED = 1e-3
+SEGMENT_CYCLES = 3  # the lines are read over segments of at least this many load cycles, up to MAX_SEGMENTS of them,
+MAX_SEGMENTS = 4  # so that the once-per-revolution line's phase shows how fast the shaft turns
+
+Compared = Callable[[np.ndarray], np.ndarray]  # (..., channel, time) over σ -> (..., what is compared)
+
+
+@dataclass(frozen=True)
+class Alignment:
+    """The angles (and speed) found, and the χ² of what was compared (per compared number) at the stated values and at
+    the found ones."""
+
+    values: dict[str, float]
+    chi2_stated: float
+    chi2_found: float
+    n_simulations: int
+    compared: str  # "lines" or "waveform"
+
+    def summary(self) -> dict:
+        return {"values": self.values, "chi2_stated": self.chi2_stated, "chi2_found": self.chi2_found,
+                "n_simulations": self.n_simulations, "compared": self.compared}
+
+
+def _wrap(angle: float) -> float:
+    return float((angle + math.pi) % (2 * math.pi) - math.pi)
+
+
+def waveform(channels: Sequence[str], values: Mapping[str, float], sampling: model.Sampling) -> Compared:
+    """Every sample of every channel, its mean left out."""
+    return lambda y: (y - y.mean(axis=-1, keepdims=True)).reshape(*y.shape[:-2], -1)
+
+
+def lines(channels: Sequence[str], values: Mapping[str, float], sampling: model.Sampling) -> Compared:
+    """Each channel's line the angles set, in each segment of the record: a displacement's once-per-revolution line, a
+    torsional channel's load fundamental; as the coefficients of the segment's orthonormal cosine and sine at that
+    frequency beside a constant, so that white noise of σ 1 gives each coefficient σ 1."""
+    t = np.arange(sampling.n_samples) / sampling.fs
+    cycles = sampling.n_samples / sampling.fs * values["load_freq"]
+    segments = int(min(MAX_SEGMENTS, max(1, cycles // SEGMENT_CYCLES)))
+    bounds = np.linspace(0, sampling.n_samples, segments + 1).astype(int)
+    projections = []
+    for channel in channels:
+        hz = model.omega(values) / (2 * math.pi) if channel in running_speed.DISPLACEMENTS else values["load_freq"]
+        basis = np.zeros((sampling.n_samples, 3 * segments))
+        for s, (a, b) in enumerate(itertools.pairwise(bounds)):
+            piece = t[a:b]
+            basis[a:b, 3 * s: 3 * s + 3] = np.column_stack(
+                [np.ones_like(piece), np.cos(2 * math.pi * hz * piece), np.sin(2 * math.pi * hz * piece)])
+        q, _ = np.linalg.qr(basis)
+        projections.append(q[:, [k for k in range(3 * segments) if k % 3]])  # the lines' part beside the constant
+    return lambda y: np.concatenate([y[..., c, :] @ p for c, p in enumerate(projections)], axis=-1)
+
+
+def first_guess(target: np.ndarray, compare: Compared, sigma: np.ndarray, channels: Sequence[str], values: Mapping[str, float],
+                sampling: model.Sampling, max_step: float) -> list[dict[str, float]]:
+    """The :data:`STARTS` best (phi1, phi4, load_phase) of the grids, in distinct load phases, by the linearised
+    response; ``target`` is the data as compared."""
+    phases = np.arange(LOAD_PHASES) * 2 * math.pi / LOAD_PHASES
+    bare = {**values, "u1": 0.0, "u4": 0.0}
+    rows = [{**bare, "load_phase": p} for p in phases]
+    rows += [{**bare, "load_phase": 0.0, u: values[u], phi: angle}
+             for u, phi in (("u1", "phi1"), ("u4", "phi4")) for angle in (0.0, math.pi / 2)]
+    compared = compare(simulation.simulate_batch(rows, sampling, channels, max_step) / sigma[:, None])
+    basis = compared[LOAD_PHASES:] - compared[0]  # responses to u1 at 0, π/2 and u4 at 0, π/2
+    remainders = target[None] - compared[:LOAD_PHASES]
+    gram = basis @ basis.T
+    projections = remainders @ basis.T  # (load phase, 4)
+    norms = np.einsum("ij,ij->i", remainders, remainders)
+    grid = np.arange(ANGLES) * 2 * math.pi / ANGLES
+    a1, a4 = np.meshgrid(grid, grid, indexing="ij")
+    z = np.stack([np.cos(a1), np.sin(a1), np.cos(a4), np.sin(a4)], axis=-1).reshape(-1, 4)
+    cost = norms[:, None] - 2 * projections @ z.T + np.einsum("ij,jk,ik->i", z, gram, z)[None]
+    best_angles = np.argmin(cost, axis=1)
+    order = np.argsort(cost[np.arange(LOAD_PHASES), best_angles])
+    starts = []
+    for i in order:  # distinct load phases: at least an eighth of a turn apart from the ones taken
+        if all(abs(_wrap(phases[i] - s["load_phase"])) > math.pi / 4 for s in starts):
+            k = best_angles[i]
+            starts.append({"phi1": float(a1.ravel()[k]), "phi4": float(a4.ravel()[k]), "load_phase": float(phases[i])})
+        if len(starts) == STARTS:
+            break
+    return starts
+
+
+def align(data: np.ndarray, sigma: np.ndarray, channels: Sequence[str], values: Mapping[str, float],
+          sampling: model.Sampling, max_step: float, fit_speed: bool = False, compared: str = "lines") -> Alignment:
+    """The angles (and with ``fit_speed`` the speed) at which the model ``values`` fits ``data`` best in what is
+    ``compared`` (:func:`lines` or :func:`waveform`); the values' own angles where the data cannot tell them apart."""
+    names = ["phi1", "phi4", "load_phase"] + (["speed_rpm"] if fit_speed else [])
+    compare = {"lines": lines, "waveform": waveform}[compared](channels, values, sampling)
+    target = compare(data / sigma[:, None])
+    count = [0]
+
+    def residuals(rows: np.ndarray) -> np.ndarray:
+        points = [{**values, **dict(zip(names, row))} for row in rows]
+        count[0] += len(points)
+        return compare(simulation.simulate_batch(points, sampling, channels, max_step) / sigma[:, None]) - target[None]
+
+    def fun(x):
+        return residuals(x[None])[0]
+
+    def jac(x):
+        steps = np.full(len(x), JACOBIAN_STEP)
+        if fit_speed:
+            steps[-1] = x[-1] * 1e-6
+        found = residuals(np.vstack([x, x + np.diag(steps)]))
+        return ((found[1:] - found[0]) / steps[:, None]).T
+
+    stated = float(np.sum(fun(np.array([values[n] for n in names])) ** 2))
+    best = None
+    for start in first_guess(target, compare, sigma, channels, values, sampling, max_step):
+        x0 = np.array([start[n] for n in names[:3]] + ([values["speed_rpm"]] if fit_speed else []))
+        found = optimize.least_squares(fun, x0, jac=jac, method="trf", x_scale="jac", max_nfev=40)
+        if best is None or found.cost < best.cost:
+            best = found
+    chi2 = 2.0 * best.cost
+    if stated - chi2 < stats.chi2.isf(KEEP_STATED, len(names)):  # the data cannot tell them apart
+        best_values, chi2 = {n: float(values[n]) for n in names}, stated
+    else:
+        best_values = {n: (_wrap(v) if n != "speed_rpm" else float(v)) for n, v in zip(names, best.x)}
+    return Alignment(best_values, stated / target.size, chi2 / target.size, count[0], compared)
+
+
+def align_jointly(data: np.ndarray, sigma: np.ndarray, channels: Sequence[str], sampling: model.Sampling, max_step: float,
+                  rows: Callable[[np.ndarray], np.ndarray], names: Sequence[str], angles: Mapping[str, float],
+                  current: Mapping[str, float], theta: np.ndarray, low: np.ndarray, high: np.ndarray) -> Alignment | None:
+    """Where the record sits under a fitted hypothesis, its fitted values ``theta`` (in [``low``, ``high``]) free beside
+    the angles ``names``, on the whole waveform: ``rows`` makes kernel parameter rows of (angles, theta).  Returns the
+    alignment where the data place the angles farther from ``current`` than noise would (its χ² at ``current`` and at
+    the found angles), else None; the ``angles`` stated where the data cannot tell those from the found ones."""
+    compare = waveform(channels, {}, sampling)
+    target = compare(data / sigma[:, None])
+    k = len(names)
+    count = [0]
+
+    def residuals(x: np.ndarray) -> np.ndarray:
+        count[0] += len(x)
+        return compare(simulation.simulate_batch(rows(x), sampling, channels, max_step) / sigma[:, None]) - target[None]
+
+    def best(fixed: Mapping[str, float] | None) -> tuple[float, np.ndarray]:
+        """χ² and the angles at the best theta, the angles ``fixed`` (None: free)."""
+        free = np.arange(k + theta.size) if fixed is None else np.arange(k, k + theta.size)
+        x = np.concatenate([[(fixed or current)[n] for n in names], np.clip(theta, low, high)])
+        lower = np.concatenate([np.full(k, -np.inf), low])[free]
+        upper = np.concatenate([np.full(k, np.inf), high])[free]
+
+        def fun(z):
+            point = x.copy()
+            point[free] = z
+            return residuals(point[None])[0]
+
+        def jac(z):
+            steps = np.where(free < k, JACOBIAN_STEP, 1e-6 * np.maximum(np.abs(z), 1e-12))
+            steps = np.where((free >= k) & (z + steps > upper), -steps, steps)
+            points = np.tile(x, (len(z) + 1, 1))
+            points[:, free] = np.vstack([z, z + np.diag(steps)])
+            found = residuals(points)
+            return ((found[1:] - found[0]) / steps[:, None]).T
+
+        found = optimize.least_squares(fun, x[free], jac=jac, bounds=(lower, upper), method="trf", x_scale="jac", max_nfev=30)
+        x[free] = found.x
+        return 2.0 * found.cost, x[:k]
+
+    threshold = stats.chi2.isf(KEEP_STATED, k)
+    chi2_free, found_angles = best(None)
+    chi2_stated, _ = best(angles)
+    if chi2_stated - chi2_free < threshold:
+        found_angles, chi2_free = np.array([angles[n] for n in names]), chi2_stated
+    if all(found_angles[i] == current[n] for i, n in enumerate(names)):
+        return None
+    chi2_current, _ = best(current)
+    if chi2_current - chi2_free < threshold:
+        return None
+    found = {n: (_wrap(v) if n != "speed_rpm" else float(v)) for n, v in zip(names, found_angles)}
+    return Alignment(found, chi2_current / target.size, chi2_free / target.size, count[0], "waveform")

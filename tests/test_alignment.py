@@ -1,0 +1,99 @@
+"""Where a recording sits on the shaft's turn and the load's cycle, and the speed it runs at, found from its data."""
+
+import math
+
+import numpy as np
+import pytest
+
+from newdyn import alignment, io, model, noise, reference, running_speed, slots
+from newdyn.simulation import DEFAULT_MAX_STEP, simulate
+
+CHANNELS = ["b1_x", "b2_x", "w1"]
+SAMPLING = model.Sampling()  # the model's record: from the warm-up on
+# A machine's recording: its imbalances at angles nobody measured, the load at its own phase, started 0.8 s after
+# the model's start (so its shaft is turned on as well), running 3 rpm above its nameplate.
+RECORD = {"phi1": 2.3, "phi4": -1.9, "load_phase": 0.7}
+START, OFFSET_RPM = 0.8134, 3.0
+
+
+@pytest.fixture(scope="module")
+def recording():
+    truth = slots.complete({**RECORD, "speed_rpm": model.DEFAULTS["speed_rpm"] + OFFSET_RPM})
+    clean = simulate(truth, model.Sampling(SAMPLING.fs, START, SAMPLING.n_samples), CHANNELS)
+    noisy, sigma = noise.add_noise(clean, CHANNELS, 40.0, 5)
+    return clean, noisy, np.asarray(sigma)
+
+
+def test_the_running_speed_is_a_disk_speeds_mean_to_its_noise_and_the_once_per_revolution_line_near_it(recording):
+    _, noisy, _ = recording
+    true_rpm = model.DEFAULTS["speed_rpm"] + OFFSET_RPM
+    mean = running_speed.estimate(CHANNELS, noisy, SAMPLING.fs, 1480.0, 12.0)
+    assert (mean.channel, mean.how) == ("w1", "mean") and abs(mean.rpm - true_rpm) < 3 * mean.sd < 0.01
+    line = running_speed.estimate(["b1_x"], noisy[:1], SAMPLING.fs, 1480.0, 12.0)
+    assert line.how == "line" and abs(line.rpm - true_rpm) < 0.3  # the load's lines beside it: a start, not the value
+
+
+def test_a_record_is_aligned_to_the_noise_whatever_its_start_angles_and_speed(recording):
+    clean, noisy, sigma = recording
+    nameplate = slots.complete({})
+    speed = running_speed.measured("m.nc", CHANNELS, noisy, SAMPLING.fs, nameplate)
+    assert speed == pytest.approx(1483.0, abs=0.01)
+    found = alignment.align(noisy, sigma, CHANNELS, {**nameplate, "speed_rpm": speed}, SAMPLING, DEFAULT_MAX_STEP)
+    assert found.compared == "lines" and found.chi2_stated > 1e3 and found.chi2_found < 2.0  # noise: (24 - 3) / 24 ± 0.3
+    model_record = simulate({**nameplate, "speed_rpm": speed, **found.values}, SAMPLING, CHANNELS)
+    shown = model_record - model_record.mean(axis=1, keepdims=True) + clean.mean(axis=1, keepdims=True)
+    assert np.all(reference.relative_rms(shown, clean) < 0.1 * 10 ** (-40 / 20))  # a tenth of the noise
+    # The load's phase at the model's record start is the truth's, turned by the 0.3134 s between the two starts.
+    turned = RECORD["load_phase"] + 2 * math.pi * 12.0 * (START - SAMPLING.t_first)
+    assert abs(alignment._wrap(found.values["load_phase"] - turned)) < 0.01
+
+
+def test_a_record_of_displacements_alone_gets_its_speed_fitted_with_the_angles(recording):
+    _, noisy, sigma = recording
+    found = alignment.align(noisy[:2], sigma[:2], CHANNELS[:2], slots.complete({}), SAMPLING, DEFAULT_MAX_STEP,
+                            fit_speed=True)
+    assert found.values["speed_rpm"] == pytest.approx(1483.0, abs=0.01)
+    assert found.chi2_found < 2.0
+
+
+def test_a_record_on_the_models_own_clock_keeps_its_stated_angles():
+    clean = simulate(slots.complete({}), SAMPLING, CHANNELS)
+    noisy, sigma = noise.add_noise(clean, CHANNELS, 40.0, 2)
+    for compared in ("lines", "waveform"):
+        found = alignment.align(noisy, np.asarray(sigma), CHANNELS, slots.complete({}), SAMPLING, DEFAULT_MAX_STEP,
+                                compared=compared)
+        assert found.values == {"phi1": 0.0, "phi4": 0.0, "load_phase": 0.0} and found.chi2_found == found.chi2_stated
+
+
+def test_the_lines_hold_the_angles_where_a_fault_the_nominal_model_lacks_pulls_the_whole_waveform():
+    """A hardening coupling reshapes the speed's waveform: the nominal model's best waveform turns the load's phase to
+    cover it, the lines leave it almost where it is (a slipping joint moves even the load's fundamental: the
+    diagnosis finds the angles again under its fit)."""
+    truth = slots.complete({**RECORD, "cubic_coupling": 1.0, "cubic_coupling.gamma": 0.5})
+    noisy, sigma = noise.add_noise(simulate(truth, SAMPLING, CHANNELS), CHANNELS, 40.0, 3)
+    errors = {}
+    for compared in ("lines", "waveform"):
+        found = alignment.align(noisy, np.asarray(sigma), CHANNELS, slots.complete({}), SAMPLING, DEFAULT_MAX_STEP,
+                                compared=compared)
+        errors[compared] = abs(alignment._wrap(found.values["load_phase"] - RECORD["load_phase"]))
+    assert errors["lines"] < 0.25 * errors["waveform"]
+
+
+@pytest.mark.parametrize(("stated", "problem"), [
+    (1400.0, "speed_rpm is 1400 rpm, but the data run at 1483.0 rpm (the mean of w1)"),
+])
+def test_a_stated_speed_far_from_the_datas_is_one_line(recording, stated, problem):
+    _, noisy, _ = recording
+    with pytest.raises(io.MeasurementError, match=problem.replace("(", r"\(").replace(")", r"\)")):
+        running_speed.measured("m.nc", CHANNELS, noisy, SAMPLING.fs, {**slots.complete({}), "speed_rpm": stated})
+
+
+def test_a_disk_speed_and_a_displacement_that_disagree_are_one_line(recording):
+    _, noisy, _ = recording
+    slow = noisy.copy()
+    slow[2] *= 1300.0 / 1483.0
+    with pytest.raises(io.MeasurementError, match="w1's mean says 1300.0 rpm where the once-per-revolution line of b1_x"):
+        running_speed.measured("m.nc", CHANNELS, slow, SAMPLING.fs, slots.complete({}))
+    in_rpm = noisy.copy()
+    in_rpm[2] *= 60 / (2 * math.pi)  # a unit, for the level checks to name
+    assert running_speed.measured("m.nc", CHANNELS, in_rpm, SAMPLING.fs, slots.complete({})) == 1480.0
