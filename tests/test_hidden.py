@@ -11,7 +11,7 @@ import xarray as xr
 import yaml
 from matplotlib.figure import Figure
 
-from newdyn import effects, faults, hidden, io, model, plots, signatures, slots, study
+from newdyn import effects, faults, hidden, io, model, noise, plots, signatures, simulation, slots, study
 from newdyn.settings import Settings
 
 BASE = slots.complete()
@@ -112,6 +112,69 @@ def test_inadmissible_draws_are_redrawn_deterministically():
         draw("one", section, {}, ["stick_slip"])
 
 
+RECORD = ("phi1", "phi4", "load_phase", "start", "speed_offset_rpm")
+
+
+def _in_ranges(record, fs=5000.0):
+    for name in ("phi1", "phi4", "load_phase"):
+        if name in record:
+            assert -math.pi <= record[name] < math.pi, (name, record[name])
+    assert 0.5 <= record["start"] < 1.5 and record["start"] * fs == pytest.approx(round(record["start"] * fs), abs=1e-6)
+    assert -5.0 <= record["speed_offset_rpm"] <= 5.0 and record["speed_offset_rpm"] != 0.0
+
+
+def test_every_case_draws_what_a_real_machine_leaves_open(blind):
+    """Angles, load phase, start and speed offset: reproducible from the seed, in their ranges, each case its own."""
+    assert [c["record"] for c in draw("blind")] == [c["record"] for c in blind]
+    for case in blind:
+        assert tuple(case["record"]) == RECORD
+        _in_ranges(case["record"])
+    for name in RECORD:
+        drawn = [c["record"][name] for c in blind]
+        assert len(set(drawn)) == len(blind), name
+    for name in ("phi1", "phi4", "load_phase", "speed_offset_rpm"):  # spread over the whole range, either sign
+        assert min(c["record"][name] for c in blind) < 0 < max(c["record"][name] for c in blind)
+    assert max(c["record"]["start"] for c in blind) - min(c["record"]["start"] for c in blind) > 0.5
+    assert [c["record"] for c in draw("other")] != [c["record"] for c in blind]
+    # the record's start lies on the grid of the rate the set is drawn for; the rest of the record does not depend on it
+    slow = hidden.draw_cases(HIDDEN, "blind", BASE, RANGES, CLASSES, fs=2133.0)
+    for fast, case in zip(blind, slow):
+        _in_ranges(case["record"], fs=2133.0)
+        assert {k: v for k, v in case["record"].items() if k != "start"} == {k: v for k, v in fast["record"].items() if k != "start"}
+
+
+def test_the_record_leaves_every_other_draw_as_it_was(blind):
+    """Drawn from a stream of its own: classes, parameter values and noise seeds are those drawn before it existed
+    (pinned from the code without it)."""
+    assert [c["class"] for c in blind] == [
+        "cubic_coupling", "breathing_crack", "parameter_change", "parameter_change", "healthy", "stick_slip", "loose_bearing",
+        "stick_slip", "healthy", "cubic_coupling", "loose_bearing", "healthy", "cubic_coupling", "breathing_crack",
+        "cubic_coupling", "stick_slip", "parameter_change", "breathing_crack", "parameter_change", "healthy",
+        "breathing_crack", "stick_slip", "loose_bearing", "loose_bearing"]
+    assert (blind[0]["truth"], blind[0]["noise_seed"]) == ({"gamma": 0.3520007662677691}, 1388764162)
+    assert (blind[2]["truth"], blind[2]["noise_seed"]) == ({"kT2": 932111.5050045272}, 1596297866)
+    assert (blind[3]["truth"], blind[3]["noise_seed"]) == ({"kT1": 2687619.3128597084}, 1480113845)
+
+
+@pytest.fixture
+def order_force(request):
+    """An effect with a parameter of negative range: the open-world bench's order force, cos(n θ1 + phase) on m1."""
+    request.addfinalizer(lambda: effects.use([]))
+    effects.use(["ow_order_m1_x"], folder=Path(__file__).resolve().parents[1] / "bench" / "open_world" / "effects")
+    return effects.active()["ow_order_m1_x"]
+
+
+def test_an_effects_angle_is_drawn_through_its_range_either_sign(order_force):
+    low, high = dict(hidden.default_ranges()["ow_order_m1_x"])["phase"]
+    assert low < 0 < high
+    section = {**HIDDEN, "sets": {"orders": {"cases": 12, "seed": 4}}}
+    cases = hidden.draw_cases(section, "orders", BASE, classes=["ow_order_m1_x"])
+    phases = [c["truth"]["phase"] for c in cases]
+    assert all(low <= phase <= high for phase in phases) and min(phases) < 0 < max(phases)
+    assert all(faults.fault_problems("ow_order_m1_x", c["truth"], BASE) == [] for c in cases)
+    assert hidden.recorded_values(cases[0], BASE)["ow_order_m1_x.phase"] == phases[0]
+
+
 def _texts(value):
     """The ways a drawn number could be spelled in a file."""
     return {repr(value), f"{value:g}", f"{value:.6g}", f"{value:.4g}", f"{value:.3e}", json.dumps(value)}
@@ -143,28 +206,69 @@ def test_measurement_file_carries_no_truth(tmp_path):
         for value in [*case["truth"].values(), *case["scenario"]["overrides"].values(), case["noise_seed"]]:
             for spelling in _texts(value):
                 assert spelling.lower() not in text, (case["name"], spelling)
+        for value in case["record"].values():
+            assert repr(value) not in text and f"{value:.6g}" not in text, (case["name"], value)
         assert ds.attrs["code_hash"] == "abc123"
-        for name in model.OPERATING_PARAMETERS:
+        for name in model.OPERATING_PARAMETERS:  # the nameplate: the speed the machine runs at is not stated
             assert float(ds.attrs[name]) == BASE[name]
+        assert case["record"]["speed_offset_rpm"] != 0.0
+        # the recorder's clock: from 0, at the sampling's rate, wherever in the model's time the record starts
+        np.testing.assert_allclose(ds["time"].values, np.arange(sampling.n_samples) / sampling.fs, rtol=0, atol=1e-12)
+        assert ds["time"].values[0] == 0.0 and case["record"]["start"] >= 0.5
 
         measurement = io.read_measurement(path)
         assert measurement.channels == model.CHANNELS and len(measurement.channels) == 11
         assert measurement.sigma is None and "snr_db" not in measurement.attrs
         assert measurement.sampling.n_samples == sampling.n_samples
-        assert measurement.sampling.t_first == sampling.t_first
         assert measurement.sampling.fs == pytest.approx(sampling.fs, rel=1e-12)
-        assert measurement.operating == {name: BASE[name] for name in model.OPERATING_PARAMETERS}
 
     # The signal itself is the case's: 40 dB noise around its clean simulation, reproducible from the seed.
-    from newdyn import simulation
-
     case = next(c for c in cases if c["class"] == "loose_bearing")
-    clean = simulation.simulate(hidden.case_values(case, BASE), sampling, model.CHANNELS)
+    clean = simulation.simulate(_recorded(case, BASE), model.Sampling(sampling.fs, case["record"]["start"], sampling.n_samples))
     y = io.read_measurement(tmp_path / f"{case['name']}.nc").y
     ratio = np.std(y - clean, axis=1) / np.std(clean, axis=1)
     np.testing.assert_allclose(ratio, 0.01, rtol=0.1)
     hidden.write_case_measurement(case, BASE, sampling, 40.0, tmp_path / "again.nc")
     np.testing.assert_array_equal(io.read_measurement(tmp_path / "again.nc").y, y)
+
+
+def _recorded(case, nameplate, recording=None):
+    """The values a case's file was simulated with, built by hand: the case at its nameplate, with its record's angles
+    and load phase and the nameplate speed plus the offset."""
+    record = {**case["record"], **(recording["record"] if recording else {})}
+    at = {**nameplate, **(recording["condition"] if recording else {})}
+    at = {**at, "phi1": record["phi1"], "phi4": record["phi4"], "load_phase": record["load_phase"],
+          "speed_rpm": at["speed_rpm"] + record["speed_offset_rpm"]}
+    return faults.scenario_values(case["scenario"], at)
+
+
+def _y(path):
+    with xr.open_dataset(path, engine="netcdf4") as ds:
+        return ds["y"].values, ds["time"].values, dict(ds.attrs)
+
+
+def test_a_case_is_simulated_with_its_record_and_written_from_time_zero(tmp_path, blind):
+    """The file is the case simulated at its drawn angles, load phase and running speed from its drawn start, its own
+    noise added, stamped from 0 with the nameplate speed; instruments still read each channel late by their delay."""
+    case = next(c for c in blind if c["class"] == "stick_slip")
+    sampling = model.Sampling(fs=5000.0, t_first=0.5, n_samples=1000)
+    record = case["record"]
+    at = model.Sampling(sampling.fs, record["start"], sampling.n_samples)
+    values = _recorded(case, BASE)
+    assert values["speed_rpm"] != BASE["speed_rpm"] and values["load_phase"] == record["load_phase"]
+    hidden.write_case_measurement(case, BASE, sampling, 40.0, tmp_path / "case.nc")
+    y, time, attrs = _y(tmp_path / "case.nc")
+    assert time[0] == 0.0 and float(attrs["speed_rpm"]) == BASE["speed_rpm"]
+    clean = simulation.simulate(values, at)
+    np.testing.assert_array_equal(y, noise.add_noise(clean, model.CHANNELS, 40.0, case["noise_seed"])[0])
+    # the old clock (the model's own, at zero phases and the nameplate speed) is not what is written
+    assert not np.allclose(clean, simulation.simulate(hidden.case_values(case, BASE), sampling))
+
+    late = {**case, "instruments": {"b1_x": {"offset": 0.0, "gain": 1.0, "delay": 3e-4}}}
+    hidden.write_case_measurement(late, BASE, sampling, 40.0, tmp_path / "late.nc")
+    b1_x = model.CHANNELS.index("b1_x")
+    clean[b1_x] = simulation.simulate(values, model.Sampling(sampling.fs, record["start"] - 3e-4, sampling.n_samples), ["b1_x"])[0]
+    np.testing.assert_array_equal(_y(tmp_path / "late.nc")[0], noise.add_noise(clean, model.CHANNELS, 40.0, case["noise_seed"])[0])
 
 
 def test_truth_file_round_trip(tmp_path, blind):
@@ -390,8 +494,6 @@ def test_a_measurement_through_instruments_is_offset_scaled_and_late():
     read = hidden._through_instruments(case, BASE, sampling, 1e-4)
     exact = hidden._through_instruments({"scenario": {"overrides": {}}}, BASE, sampling, 1e-4)
     late = model.Sampling(sampling.fs, sampling.t_first - 3e-4, sampling.n_samples)
-    from newdyn import simulation
-
     assert np.array_equal(exact, simulation.simulate(BASE, sampling, model.CHANNELS, 1e-4))
     b1_x = model.CHANNELS.index("b1_x")
     assert np.allclose(read[b1_x], 2e-8 + 1.01 * simulation.simulate(BASE, late, ["b1_x"], 1e-4)[0], rtol=0, atol=1e-15)
@@ -440,18 +542,34 @@ def test_a_machine_set_draws_recordings_that_the_workflow_can_name_before_the_dr
     assert again == fleet
 
 
-def test_every_hidden_machines_finding_shows_in_one_of_its_recordings(fleet):
-    """Checked here independently of the draw: the truth against the nominal model at each recording's condition."""
-    from newdyn import noise, simulation
+def test_a_machines_angles_are_shared_by_its_recordings_and_the_rest_is_each_recordings_own(fleet):
+    plain = hidden.draw_cases({**MACHINES, "sets": {"fleet": {"cases": 7, "seed": 11}}}, "fleet", BASE, RANGES, CLASSES)
+    for case, alone in zip(fleet, plain):
+        assert case["record"] == {"phi1": alone["record"]["phi1"], "phi4": alone["record"]["phi4"]}  # the machine's
+        records = [r["record"] for r in case["recordings"]]
+        for record in records:
+            assert tuple(record) == ("load_phase", "start", "speed_offset_rpm")
+            _in_ranges(record, SHORT.fs)
+        for name in ("load_phase", "start", "speed_offset_rpm"):
+            assert len({record[name] for record in records}) == len(records), (case["name"], name)
+    assert len({case["record"]["phi1"] for case in fleet}) == len(fleet)
+    # the conditions are those drawn before the record existed (pinned from the code without it)
+    assert fleet[0]["recordings"][0] == {
+        "name": "r1", "condition": {"T0": 884.0037509941055, "load_amp": 0.2961886147653513, "speed_rpm": 1062.2576226929748},
+        "channels": ["b1_x", "w1"], "noise_seed": 226417662, "record": fleet[0]["recordings"][0]["record"]}
 
+
+def test_every_hidden_machines_finding_shows_in_one_of_its_recordings(fleet):
+    """Checked here independently of the draw: the truth against the nominal model at each recording's condition and
+    record."""
     for case in fleet:
         if case["class"] == "healthy":
             continue
         excess = []
         for r in case["recordings"]:
-            at = {**BASE, **r["condition"]}
-            truth = simulation.simulate(hidden.case_values(case, at), SHORT, r["channels"])
-            nominal = simulation.simulate(at, SHORT, r["channels"])
+            at = model.Sampling(SHORT.fs, r["record"]["start"], SHORT.n_samples)
+            truth = simulation.simulate(_recorded(case, BASE, r), at, r["channels"])
+            nominal = simulation.simulate(_recorded({**case, "scenario": {"overrides": {}}}, BASE, r), at, r["channels"])
             excess.append(float(np.mean(((truth - nominal) / noise.noise_sigma(truth, 40.0)[:, None]) ** 2)))
         assert max(excess) >= hidden.VISIBLE_CHI2 - 1, (case["name"], excess)
 
@@ -463,10 +581,15 @@ def test_a_machines_recording_file_holds_its_channels_at_its_condition_and_no_tr
     hidden.write_recording_measurement(case, r["name"], BASE, SHORT, 40.0, path)
     m = io.read_measurement(path)
     assert m.channels == tuple(r["channels"]) and m.sigma is None
-    assert all(m.operating[p] == pytest.approx(v) for p, v in r["condition"].items())
-    with xr.open_dataset(path, engine="netcdf4") as ds:
-        text = json.dumps({k: str(v) for k, v in ds.attrs.items()}).lower()
+    y, time, attrs = _y(path)
+    assert all(float(attrs[p]) == v for p, v in r["condition"].items())  # the nameplate speed
+    text = json.dumps({k: str(v) for k, v in attrs.items()}).lower()
     assert "stick" not in text and "t_max" not in text and "seed" not in text
+    assert all(repr(v) not in text for v in [*case["record"].values(), *r["record"].values()])
+    # simulated at its condition and record from its start, written from 0
+    np.testing.assert_allclose(time, np.arange(SHORT.n_samples) / SHORT.fs, rtol=0, atol=1e-12)
+    clean = simulation.simulate(_recorded(case, BASE, r), model.Sampling(SHORT.fs, r["record"]["start"], SHORT.n_samples), r["channels"])
+    np.testing.assert_array_equal(y, noise.add_noise(clean, r["channels"], 40.0, r["noise_seed"])[0])
 
 
 def test_the_machine_score_sets_each_recordings_own_verdict_beside_the_machines():
@@ -481,3 +604,19 @@ def test_the_machine_score_sets_each_recordings_own_verdict_beside_the_machines(
                                             "m_02/r1": {"verdict": "healthy"}, "m_02/r2": {"verdict": "healthy"}})
     assert (alone["recordings"], alone["correct"], alone["accuracy"]) == (4, 3, 0.75)
     assert [row["recording"] for row in alone["rows"] if not row["correct"]] == ["m_01/r2"]
+
+
+def test_an_angle_on_the_shaft_is_scored_relative_to_the_imbalance_on_it():
+    """Where a record starts turns the whole shaft: a crack found at angle a + ψ beside imbalance 4 at φ4 + ψ is the
+    truth (a, φ4), whatever ψ, across the circle's seam too."""
+    case = {"name": "c_01", "class": "breathing_crack", "truth": {"alpha": 0.3, "angle": 3.0},
+            "record": {"phi1": 0.1, "phi4": 0.5}}
+    turn = 2.9  # the shaft's angle at the record's start
+    found = 3.0 + turn - 2 * math.pi  # reported on the other side of the seam
+    verdict = {"verdict": "new_dynamics", "effect": "breathing_crack", "record": {"values": {"phi4": 0.5 + turn}},
+               "parameters": {"alpha": {"mean": 0.31, "hdi_low": 0.29, "hdi_high": 0.33},
+                              "angle": {"mean": found + 0.01, "hdi_low": found - 0.02, "hdi_high": found + 0.03, "sd": 0.01}}}
+    errors = {e["parameter"]: e for e in hidden._parameter_errors(case, verdict)}
+    assert errors["angle"]["truth"] == pytest.approx(2.5) and errors["angle"]["mean"] == pytest.approx(2.51)
+    assert errors["angle"]["in_hdi"] is True and errors["angle"]["relative_error"] is None
+    assert errors["alpha"]["in_hdi"] is True

@@ -4,7 +4,10 @@ The generator's effects live in ``bench/open_world/effects/`` (periodic torques 
 frequencies, torques and forces at shaft orders, dry friction, a loose bearing where the library has
 none); only this script loads them, the diagnosis never does.  Each case is drawn by the blind test's own
 machinery (:func:`newdyn.hidden.draw_cases`, from the effects' ``hidden`` ranges) and written as a
-measurement file with nothing of its truth.
+measurement file with nothing of its truth: like every hidden case, with the imbalances' angles, the load's phase,
+the first sample's model time and the running speed's offset from the nameplate drawn (its ``record``,
+:func:`newdyn.hidden.draw_record`; each recording of a machine its own but the angles), its time stamps from 0 and
+the nameplate speed; a line at an order is expected at the order of the running speed.
 
     python bench/open_world/run.py draw <study>/measurements <truth.json> [--cases 12] [--seed 2026]
     (cd <study> && snakemake --cores 2 results/diagnosis/open_01/verdict.json ...)
@@ -38,6 +41,7 @@ from newdyn import effects, hidden, model, slots
 
 FOLDER = Path(__file__).resolve().parent / "effects"
 SNR_DB = 40.0
+SAMPLING = model.Sampling()  # the rate and length of every file (the start is each record's)
 FREQUENCY_TOLERANCE = 0.01
 CHI2_MAX = 1.1
 
@@ -51,18 +55,18 @@ def generators() -> dict[str, type[effects.Effect]]:
 def draw(measurements: Path, truth_path: Path, cases: int, seed: int) -> None:
     found = generators()
     section = {"sets": {"open": {"cases": cases, "seed": seed, "classes": list(found)}}}
-    drawn = hidden.draw_cases(section, "open", model.DEFAULTS)
+    drawn = hidden.draw_cases(section, "open", model.DEFAULTS, fs=SAMPLING.fs)
     base = slots.complete()
-    speed_hz = base["speed_rpm"] / 60.0
     for case in drawn:
         effect = found[case["class"]]
         truth = case["truth"]
+        speed_hz = (base["speed_rpm"] + case["record"]["speed_offset_rpm"]) / 60.0  # running, not nameplate
         case["expected"] = {
             "term": effect.family, "acts_on": effect.acts_on,
             "frequency_hz": truth.get("frequency", math.floor(truth["order"] + 0.5) * speed_hz if "order" in truth else None),
             "order": math.floor(truth["order"] + 0.5) if "order" in truth else None,
         }
-        hidden.write_case_measurement(case, base, model.Sampling(), SNR_DB, measurements / f"{case['name']}.nc")
+        hidden.write_case_measurement(case, base, SAMPLING, SNR_DB, measurements / f"{case['name']}.nc")
         print(case["name"], case["class"], json.dumps(case["truth"]))
     truth_path.write_text(json.dumps(drawn, indent=1) + "\n")
 
@@ -119,23 +123,26 @@ RECORDINGS = ("a", "b")
 def draw_machines(measurements: Path, truth_path: Path, cases: int, seed: int) -> None:
     found = {name: effect for name, effect in generators().items() if effect.family in LINE_FAMILIES}
     section = {"sets": {"open_machines": {"cases": cases, "seed": seed, "classes": list(found)}}}
-    drawn = hidden.draw_cases(section, "open_machines", model.DEFAULTS)
+    drawn = hidden.draw_cases(section, "open_machines", model.DEFAULTS, fs=SAMPLING.fs)
     base = slots.complete()
     rng = np.random.default_rng([seed, 1])
     machines = []
-    for number, case in enumerate(drawn, start=1):
-        name = f"owm_{number:02d}"
+    for index, case in enumerate(drawn):
+        name = f"owm_{index + 1:02d}"
         speeds = (base["speed_rpm"], model.PARAMETER_BY_NAME["speed_rpm"].rounded(rng.uniform(*SECOND_SPEED_RPM)))
-        case = {**case, "name": name, "recordings": [
+        records = [hidden.draw_record(seed, index, SAMPLING.fs, k) for k in range(len(RECORDINGS))]
+        case = {**case, "name": name, "record": {n: case["record"][n] for n in hidden.MACHINE_ANGLES}, "recordings": [
             {"name": recording, "condition": {"speed_rpm": speed}, "channels": list(model.CHANNELS),
-             "noise_seed": int(rng.integers(0, 2**31 - 1))} for recording, speed in zip(RECORDINGS, speeds)]}
+             "noise_seed": int(rng.integers(0, 2**31 - 1)), "record": record}
+            for recording, speed, record in zip(RECORDINGS, speeds, records)]}
         truth = case["truth"]
         order = math.floor(truth["order"] + 0.5) if "order" in truth else None
+        running = [speed + record["speed_offset_rpm"] for speed, record in zip(speeds, records)]
         case["expected"] = {"term": found[case["class"]].family, "acts_on": found[case["class"]].acts_on, "order": order,
-                            "frequency_hz": [truth["frequency"] if order is None else order * speed / 60.0 for speed in speeds]}
+                            "frequency_hz": [truth["frequency"] if order is None else order * rpm / 60.0 for rpm in running]}
         (measurements / name).mkdir(parents=True, exist_ok=True)
         for recording in RECORDINGS:
-            hidden.write_recording_measurement(case, recording, base, model.Sampling(), SNR_DB, measurements / name / f"{recording}.nc")
+            hidden.write_recording_measurement(case, recording, base, SAMPLING, SNR_DB, measurements / name / f"{recording}.nc")
         print(name, case["class"], json.dumps(truth), speeds)
         machines.append(case)
     truth_path.write_text(json.dumps(machines, indent=1) + "\n")

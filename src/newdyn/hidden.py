@@ -5,8 +5,8 @@ random rig parameter and size, and every active effect (:mod:`newdyn.effects`, o
 classes) at random parameter values, in equal shares.  :func:`draw_cases` draws them,
 :func:`write_truth` puts the truth into the set's only file that holds it,
 :func:`write_case_measurement` writes each case as a measurement file with nothing but the signal,
-the operating condition and provenance (no scenario, fault, class, parameter value or noise level),
-and :func:`score` compares the diagnoses' verdicts with the truth.
+the operating condition and provenance (no scenario, fault, class, parameter value, record or noise
+level), and :func:`score` compares the diagnoses' verdicts with the truth.
 
 A set with ``instruments`` sees every case through imperfect instruments: each channel with a datasheet in
 ``diagnosis.sensors`` gets an offset, gain and delay drawn from that datasheet's Normal prior (from a stream of
@@ -19,6 +19,14 @@ subset of the compared channels, with its own noise; redrawn until the machine's
 least (the nominal model's reduced χ² there ≥ :data:`VISIBLE_CHI2`), since a finding no recording shows is no one's
 to find.  Each recording is a measurement ``<machine>/r<k>``; the machine's verdict is scored like a case's, and
 beside it each recording's own verdict, as if it had been diagnosed alone (:func:`score_recordings`).
+
+Every case also draws what a real machine leaves open (:func:`draw_record`, from a stream of its own, so that every
+other draw is what it would be without it): the imbalances' angles ``phi1`` and ``phi4`` (the machine's, shared by a
+machine's recordings) and, for each recording, the load pulsation's phase ``load_phase``, the model time ``start`` of
+its first sample (on the sampling grid) and the running speed's offset ``speed_offset_rpm`` from the nameplate.  The
+file's time stamps start at 0 and its ``speed_rpm`` states the nameplate: a generator that shares the model's clock,
+phases and speed would prove nothing about a diagnosis that has to find them.  The truth holds them as the case's
+(and each recording's) ``record``; no verdict is scored on them.
 
 An effect's draw ranges default to its parameters' ``hidden`` ranges (:attr:`Parameter.draw_range`,
 in its file, with how they were measured; ``hidden.faults`` in the config overrides them): each
@@ -42,6 +50,15 @@ OUT_OF_SPEC_SDS = (10.0, 30.0)  # an out-of-spec instrument error, in its datash
 MAX_DRAWS = 1000  # tries per case before a range is declared to admit no valid draw
 CHI2_MAX = 1.1  # a fault's fit explains the data when its reduced χ² is at most this
 VISIBLE_CHI2 = 2.0  # a hidden machine's finding lifts the nominal model's reduced χ² to this in one recording at least
+# What a real machine leaves open, drawn for every case (draw_record): angles uniform in ANGLE_RANGE [rad] — the
+# imbalances' (a machine's) and the load pulsation's phase (a recording's) —, the model time of a recording's first
+# sample in START_RANGE [s] on the sampling grid, and the running speed's offset from the nameplate [rpm].
+RECORD_STREAM = 4  # the tag of a case's record stream: [seed, case index, RECORD_STREAM(, recording + 1)]
+ANGLE_RANGE = (-math.pi, math.pi)
+START_RANGE = (0.5, 1.5)
+SPEED_OFFSET_RPM = (-5.0, 5.0)
+MACHINE_ANGLES = tuple(n for n in model.ANGLE_PARAMETERS if n in model.RIG_PARAMETERS)  # phi1, phi4
+RECORDING_ANGLES = tuple(n for n in model.ANGLE_PARAMETERS if n in model.RECORD_PARAMETERS)  # load_phase
 
 
 def fault_classes() -> tuple[str, ...]:
@@ -79,6 +96,7 @@ def draw_cases(
     classes: Sequence[str] | None = None,
     datasheets: Mapping[str, Mapping[str, float]] | None = None,
     compared: Sequence[str] = (),
+    fs: float = simulation.DEFAULT_SAMPLING.fs,
 ) -> list[dict]:
     """The cases of hidden set ``set_name``, deterministic from the set's seed.
 
@@ -92,8 +110,9 @@ def draw_cases(
     channels an ``out_of_spec`` error may fall on.
 
     Each case is ``{"name": "<set>_01", "class", "scenario": {"overrides", "fault"?}, "truth",
-    "noise_seed"}`` (and ``instruments``, ``out_of_spec``); ``scenario`` goes to :func:`faults.scenario_values`, ``truth`` holds the drifted
-    parameter and its value, or the effect's drawn parameters (every parameter of its range).
+    "noise_seed", "record"}`` (and ``instruments``, ``out_of_spec``); ``scenario`` goes to :func:`faults.scenario_values`, ``truth`` holds the drifted
+    parameter and its value, or the effect's drawn parameters (every parameter of its range); ``record`` is
+    :func:`draw_record`'s at sampling rate ``fs`` (of a machine set's case only the machine's angles).
     Classes (the set's own ``classes``, else ``classes``) come in equal shares (the remainder to
     classes picked by the seed), shuffled.  A draw that is not admissible on ``base_values`` is
     redrawn from the same stream.
@@ -119,7 +138,25 @@ def draw_cases(
         bad = set(instrument_streams[0].choice(n, int(spec.get("out_of_spec", 0)), replace=False).tolist())
         for i, (case, rng) in enumerate(zip(cases, instrument_streams[1:])):
             case.update(_draw_instruments(datasheets or {}, compared, rng, i in bad))
+    for i, case in enumerate(cases):
+        record = draw_record(seed, i, fs)
+        case["record"] = {name: record[name] for name in MACHINE_ANGLES} if "recordings" in spec else record
     return cases
+
+
+def draw_record(seed: int, case_index: int, fs: float, recording: int | None = None) -> dict[str, float]:
+    """What a real machine leaves open, from the stream ``[seed, case_index, RECORD_STREAM]`` of its own: the case's
+    :data:`MACHINE_ANGLES` and its recording's :data:`RECORDING_ANGLES` (uniform in :data:`ANGLE_RANGE`), ``start`` (the
+    model time of the first sample, uniform on the grid k/``fs`` in :data:`START_RANGE`) and ``speed_offset_rpm``
+    (uniform in :data:`SPEED_OFFSET_RPM`); of a machine's ``recording`` (0, 1, …, stream tagged ``recording + 1``)
+    only the recording's."""
+    rng = np.random.default_rng([seed, case_index, RECORD_STREAM, *(() if recording is None else (recording + 1,))])
+    names = RECORDING_ANGLES if recording is not None else MACHINE_ANGLES + RECORDING_ANGLES
+    record = {name: float(rng.uniform(*ANGLE_RANGE)) for name in names}
+    first, end = (math.ceil(t * fs - 1e-9) for t in START_RANGE)
+    record["start"] = int(rng.integers(first, end)) / fs
+    record["speed_offset_rpm"] = float(rng.uniform(*SPEED_OFFSET_RPM))
+    return record
 
 
 def _draw_instruments(datasheets: Mapping[str, Mapping[str, float]], compared: Sequence[str], rng: np.random.Generator,
@@ -172,18 +209,53 @@ def case_values(case: Mapping, base_values: Mapping[str, float]) -> dict[str, fl
     return faults.scenario_values(case["scenario"], base_values)
 
 
+def case_record(case: Mapping, recording: Mapping | None = None) -> dict[str, float]:
+    """The record a case's file (or its machine's ``recording``'s) was simulated with."""
+    return {**case["record"], **(recording["record"] if recording is not None else {})}
+
+
+def recorded_values(case: Mapping, nameplate: Mapping[str, float], recording: Mapping | None = None) -> dict[str, float]:
+    """All model values a case (or its machine's ``recording``) was simulated with: the case's at ``nameplate`` (the base
+    values, with the recording's condition), with the record's angles and the running speed nameplate + offset."""
+    record = case_record(case, recording)
+    at = slots.complete({**nameplate, **(recording["condition"] if recording is not None else {})})
+    at.update({name: record[name] for name in MACHINE_ANGLES + RECORDING_ANGLES})
+    at["speed_rpm"] += record["speed_offset_rpm"]
+    return case_values(case, at)
+
+
+def _simulated_sampling(record: Mapping[str, float], sampling: model.Sampling) -> model.Sampling:
+    """The model times of a record's samples: ``sampling``'s rate and length from the record's ``start``."""
+    return model.Sampling(sampling.fs, record["start"], sampling.n_samples)
+
+
+def _written_sampling(sampling: model.Sampling) -> model.Sampling:
+    """A file's time stamps: the recorder's clock, from 0."""
+    return model.Sampling(sampling.fs, 0.0, sampling.n_samples)
+
+
+def _operating(values: Mapping[str, float], nameplate_rpm: float) -> dict[str, float]:
+    """A file's operating condition: the simulated one, with the nameplate speed."""
+    return {**{name: values[name] for name in model.OPERATING_PARAMETERS}, "speed_rpm": nameplate_rpm}
+
+
 def draw_recordings(cases: Sequence[Mapping], set_name: str, spec: Mapping, operating_range: Mapping[str, Sequence[float]],
                     compared: Sequence[str], base_values: Mapping[str, float], sampling: model.Sampling, snr_db: float,
                     max_step: float = simulation.DEFAULT_MAX_STEP) -> list[dict]:
     """The cases of a machine set (``spec["recordings"]``), each with its ``recordings``: name, ``condition``,
-    ``channels`` and ``noise_seed``, redrawn from the machine's own stream until its finding shows in one of them."""
+    ``channels``, ``noise_seed`` and ``record`` (:func:`draw_record`, at ``sampling``'s rate); the conditions, channels
+    and noise seeds redrawn from the machine's own stream until its finding shows in one of them."""
     names = recording_names(set_name, spec)
-    streams = [np.random.default_rng(s) for s in np.random.SeedSequence([int(spec["seed"]), 3]).spawn(len(cases))]
+    seed = int(spec["seed"])
+    streams = [np.random.default_rng(s) for s in np.random.SeedSequence([seed, 3]).spawn(len(cases))]
     base = slots.complete(base_values)
     machines = []
-    for case, rng in zip(cases, streams):
+    for i, (case, rng) in enumerate(zip(cases, streams)):
+        case = {**case, "record": {name: case["record"][name] for name in MACHINE_ANGLES}}
+        records = [draw_record(seed, i, sampling.fs, k) for k in range(len(names[case["name"]]))]
         for _ in range(MAX_DRAWS):
-            recordings = [_draw_recording(name.split("/")[1], operating_range, compared, rng) for name in names[case["name"]]]
+            recordings = [{**_draw_recording(name.split("/")[1], operating_range, compared, rng), "record": record}
+                          for name, record in zip(names[case["name"]], records)]
             if case["class"] == HEALTHY or any(_visible(case, r, base, sampling, snr_db, max_step) for r in recordings):
                 break
         else:
@@ -202,10 +274,12 @@ def _draw_recording(name: str, operating_range: Mapping[str, Sequence[float]], c
 
 def _visible(case: Mapping, recording: Mapping, base: Mapping[str, float], sampling: model.Sampling, snr_db: float,
              max_step: float) -> bool:
-    """Whether the case's finding lifts the nominal model's reduced χ² to :data:`VISIBLE_CHI2` in ``recording``."""
-    at = {**base, **recording["condition"]}
-    truth, nominal = (simulation.simulate(values, sampling, recording["channels"], max_step)
-                      for values in (case_values(case, at), at))
+    """Whether the case's finding lifts the nominal model's reduced χ² to :data:`VISIBLE_CHI2` in ``recording`` (both
+    with the recording's record)."""
+    simulated = _simulated_sampling(case_record(case, recording), sampling)
+    healthy = {**case, "scenario": {"overrides": {}}}
+    truth, nominal = (simulation.simulate(recorded_values(c, base, recording), simulated, recording["channels"], max_step)
+                      for c in (case, healthy))
     sigma = noise.noise_sigma(truth, snr_db)
     return 1.0 + float(np.mean(((truth - nominal) / sigma[:, None]) ** 2)) >= VISIBLE_CHI2
 
@@ -234,14 +308,16 @@ def write_case_measurement(
     code_hash: str = "",
     max_step: float = simulation.DEFAULT_MAX_STEP,
 ) -> None:
-    """Simulate every channel of ``case``, add noise at ``snr_db`` from its noise seed, and write a
-    measurement file that carries the signal, the operating condition and provenance, nothing else:
-    no scenario, class, parameter value or noise level (σ or SNR)."""
-    values = case_values(case, base_values)
-    noisy, _ = noise.add_noise(_through_instruments(case, values, sampling, max_step), model.CHANNELS, snr_db, int(case["noise_seed"]))
+    """Simulate every channel of ``case`` with its record (:func:`recorded_values`, from its ``start`` at ``sampling``'s
+    rate and length), add noise at ``snr_db`` from its noise seed, and write a measurement file that carries the signal
+    (time stamps from 0), the operating condition (the nameplate speed) and provenance, nothing else: no scenario, class,
+    parameter value, record or noise level (σ or SNR)."""
+    values = recorded_values(case, base_values)
+    simulated = _simulated_sampling(case_record(case), sampling)
+    noisy, _ = noise.add_noise(_through_instruments(case, values, simulated, max_step), model.CHANNELS, snr_db, int(case["noise_seed"]))
     attrs = {"title": f"newdyn blind-test measurement {case['name']}", **provenance.attributes(code_hash)}
-    operating = {name: values[name] for name in model.OPERATING_PARAMETERS}
-    io.write_netcdf(io.measurement_dataset(noisy, model.CHANNELS, sampling, operating, attrs), output)
+    operating = _operating(values, slots.complete(base_values)["speed_rpm"])
+    io.write_netcdf(io.measurement_dataset(noisy, model.CHANNELS, _written_sampling(sampling), operating, attrs), output)
 
 
 def write_recording_measurement(case: Mapping, recording: str, base_values: Mapping[str, float], sampling: model.Sampling,
@@ -250,12 +326,12 @@ def write_recording_measurement(case: Mapping, recording: str, base_values: Mapp
     """One recording of a hidden machine as a measurement file: its channels at its condition with its noise, and
     nothing of the truth (as :func:`write_case_measurement`)."""
     drawn = next(r for r in case["recordings"] if r["name"] == recording)
-    values = case_values(case, {**base_values, **drawn["condition"]})
-    clean = simulation.simulate(values, sampling, drawn["channels"], max_step)
+    values = recorded_values(case, base_values, drawn)
+    clean = simulation.simulate(values, _simulated_sampling(case_record(case, drawn), sampling), drawn["channels"], max_step)
     noisy, _ = noise.add_noise(clean, drawn["channels"], snr_db, int(drawn["noise_seed"]))
     attrs = {"title": f"newdyn blind-test recording {case['name']}/{recording}", **provenance.attributes(code_hash)}
-    operating = {name: values[name] for name in model.OPERATING_PARAMETERS}
-    io.write_netcdf(io.measurement_dataset(noisy, drawn["channels"], sampling, operating, attrs), output)
+    operating = _operating(values, slots.complete({**base_values, **drawn["condition"]})["speed_rpm"])
+    io.write_netcdf(io.measurement_dataset(noisy, drawn["channels"], _written_sampling(sampling), operating, attrs), output)
 
 
 def _through_instruments(case: Mapping, values: Mapping[str, float], sampling: model.Sampling, max_step: float) -> np.ndarray:
@@ -407,14 +483,35 @@ def _parameter_errors(case: Mapping, verdict: Mapping) -> list[dict]:
         if summary is None or _float(summary.get("mean")) is None:
             continue
         mean, low, high = _float(summary.get("mean")), _float(summary.get("hdi_low")), _float(summary.get("hdi_high"))
+        angle = _is_shaft_angle(case["class"], name)
+        if angle:
+            # Where the record starts turns the whole shaft, the found imbalance angles with it: an angle on the shaft
+            # is the truth only relative to the imbalance on the same shaft.
+            turn = _float((verdict.get("record") or {}).get("values", {}).get("phi4"))
+            if turn is None:
+                continue
+            truth = truth - case["record"]["phi4"]
+            miss = mean - turn - truth
+            turn -= _wrapped(miss) - miss  # onto the truth's turn of the circle
+            mean, low, high = (None if v is None else v - turn for v in (mean, low, high))
         errors.append({
             "case": case["name"], "class": case["class"], "parameter": name, "truth": float(truth),
             "mean": mean, "sd": _float(summary.get("sd")), "hdi_low": low, "hdi_high": high,
-            "relative_error": (mean - truth) / abs(truth) if truth != 0 else None,
+            "relative_error": (mean - truth) / abs(truth) if truth != 0 and not angle else None,
             "in_hdi": None if low is None or high is None else bool(low <= truth <= high),
             "source": source,
         })
     return errors
+
+
+def _is_shaft_angle(kind: str, name: str) -> bool:
+    """Whether ``name`` is an effect's angle on a shaft (:func:`newdyn.effects.shaft_angle`)."""
+    effect = effects.active().get(kind)
+    return effect is not None and name in effect.parameter_names() and effect.parameter(name).unit == "rad"
+
+
+def _wrapped(angle: float) -> float:
+    return (angle + math.pi) % (2 * math.pi) - math.pi
 
 
 def _float(value) -> float | None:
