@@ -57,6 +57,8 @@ def number(x: float) -> str:
 
 
 def allowed(lower: float, upper: float, lower_inclusive: bool, upper_inclusive: bool, integer: bool = False) -> str:
+    if math.isinf(lower) and math.isinf(upper):
+        return "any finite number"
     low = f"{'≥' if lower_inclusive else '>'} {number(lower)}"
     text = low if math.isinf(upper) else f"{number(lower)} {'≤' if lower_inclusive else '<'} x {'≤' if upper_inclusive else '<'} {number(upper)}"
     return f"whole number {low}" if integer else text
