@@ -1,5 +1,7 @@
 """Grid calibration on simulated measurements: the issue's expected results on a reduced record."""
 
+import logging
+
 import numpy as np
 import pytest
 
@@ -210,3 +212,25 @@ def test_the_studys_grid_files_are_found_by_their_parameter_and_reused(tmp_path,
         assert "simulating its grid" not in caplog.text
         calibration.coarse_models(found["kT3"], grids["kT1"], model.DEFAULTS, sampling, CHANNELS)
         assert "simulating its grid" in caplog.text
+
+
+def test_a_study_grid_is_reused_for_a_record_at_its_condition_and_angles_and_simulated_again_at_others(tmp_path, caplog):
+    """The workflow's coarse grid (written by the grid-models command) stands for a record at the study's condition;
+    a record whose imbalances or load the diagnosis found at other angles gets its grid simulated at those."""
+    from newdyn import cli, slots
+
+    caplog.set_level(logging.INFO, logger="newdyn")
+    grid = calibration.GridSpec("kT1", 2.5e6, 3.5e6, 5)
+    spec = {"parameter": "kT1", "grid": {"low": grid.low, "high": grid.high, "points": grid.points},
+            "sampling": {"fs": SAMPLING.fs, "t_first": SAMPLING.t_first, "n_samples": 500}, "channels": CHANNELS,
+            "values": slots.complete({}), "max_step": 1e-4}
+    cli.simulate_grid_models(spec, str(tmp_path / "kT1.nc"), "h")
+    window = model.Sampling(SAMPLING.fs, SAMPLING.t_first, 500)
+    stored = calibration.coarse_models(str(tmp_path / "kT1.nc"), grid, slots.complete({}), window, CHANNELS)
+    assert "simulating its grid" not in caplog.text
+    turned = calibration.coarse_models(str(tmp_path / "kT1.nc"), grid, slots.complete({"load_phase": 1.0}), window, CHANNELS)
+    assert "simulating its grid" in caplog.text
+    np.testing.assert_array_equal(stored, calibration.simulate_grid({}, "kT1", grid.axis, window, CHANNELS))
+    from newdyn.reference import relative_rms
+
+    assert np.all(relative_rms(turned, stored)[:, CHANNELS.index("w1")] > 0.1)  # the load's phase turned: w1 another

@@ -1,6 +1,7 @@
 """Diagnosis of a measurement against known truths, on the short record of the CI config (0.1 s)."""
 
 import json
+import math
 import re
 import threading
 from dataclasses import fields, replace
@@ -12,6 +13,7 @@ import yaml
 
 import newdyn.study
 from newdyn import (
+    alignment,
     bank,
     calibration,
     concurrency,
@@ -147,10 +149,10 @@ def test_stick_slip_is_new_dynamics_and_adding_it_brings_chi2_to_the_noise(diagn
     assert (v["verdict"], v["effect"]) == ("new_dynamics", "stick_slip")
     assert v["chi2_before"] > 10 and v["chi2_after"] <= 1.1
     assert search_of(v, "stick_slip") == "differential evolution"  # nothing else explains it: its fit decides
-    assert search_of(v, "breathing_crack") == "members"
+    assert search_of(v, "breathing_crack") == "differential evolution"  # its depth, angle, drift and the load's phase
     assert v["where_it_fails"] and all(f["channel"] in SETTINGS.channels for f in v["where_it_fails"])
     assert v["statement"].startswith("new dynamics: stick_slip added to the model, with T_max = ")
-    assert set(v["parameters"]) == {*effects.active()["stick_slip"].parameter_names(), *SETTINGS.drift}
+    assert set(v["parameters"]) == {*effects.active()["stick_slip"].parameter_names(), *SETTINGS.drift, "load_phase"}
     assert all(p["hdi_low"] <= p["mean"] <= p["hdi_high"] for p in v["parameters"].values())
     assert v["parameters"]["T_max"]["mean"] == pytest.approx(1854.95, rel=0.05)
     kT1 = d.effect_posterior.posterior["kT1"].values
@@ -346,7 +348,9 @@ def test_a_whitened_pass_fits_what_the_white_pass_searched_from_that_searchs_opt
     globally starts its least squares from that search's optimum, and ends there in a tenth of the simulations."""
     first = diagnosed["stick_slip"].fits["stick_slip"]
     assert first.search == hypotheses.SEARCHED_FROM[1]
-    again = diagnosis.diagnose(measurement("stick_slip", STICK_SLIP), SETTINGS, searched={"stick_slip": first})
+    record = alignment.Alignment(diagnosed["stick_slip"].verdict["record"]["values"], math.nan, math.nan, 0, "lines")
+    again = diagnosis.diagnose(measurement("stick_slip", STICK_SLIP), SETTINGS, searched={"stick_slip": first}, record=record,
+                               realigned=diagnosis.REALIGNMENTS)  # where the first pass placed the record
     refit = again.fits["stick_slip"]
     assert search_of(again.verdict, "stick_slip") == hypotheses.SEARCHED_FROM[2]
     assert search_of(again.verdict, "breathing_crack") == "members"

@@ -35,6 +35,9 @@ STARTS = 3  # the best distinct grid points polished by least squares
 JACOBIAN_STEP = 1e-4  # rad (and 1e-6 relative speed): far above the simulator's rounding, below the angles' precision
 # The stated angles stand unless moving them lowers χ² by more than noise alone would with this probability.
 KEEP_STATED = 1e-3
+# An effect's fit finds the load's phase beside its own values, this far either side of where the lines put it: a fault
+# that reshapes the torsional response moves even the load's fundamental.
+FIT_HALF_WIDTH = math.pi
 SEGMENT_CYCLES = 3  # the lines are read over segments of at least this many load cycles, up to MAX_SEGMENTS of them,
 MAX_SEGMENTS = 4  # so that the once-per-revolution line's phase shows how fast the shaft turns
 
@@ -163,7 +166,8 @@ def align_jointly(data: np.ndarray, sigma: np.ndarray, channels: Sequence[str], 
     """Where the record sits under a fitted hypothesis, its fitted values ``theta`` (in [``low``, ``high``]) free beside
     the angles ``names``, on the whole waveform: ``rows`` makes kernel parameter rows of (angles, theta).  Returns the
     alignment where the data place the angles farther from ``current`` than noise would (its χ² at ``current`` and at
-    the found angles), else None; the ``angles`` stated where the data cannot tell those from the found ones."""
+    the found angles), else None; the ``angles`` stated where the data cannot tell those from the found ones (and then
+    wherever ``current`` is)."""
     compare = waveform(channels, {}, sampling)
     target = compare(data / sigma[:, None])
     k = len(names)
@@ -200,12 +204,24 @@ def align_jointly(data: np.ndarray, sigma: np.ndarray, channels: Sequence[str], 
     threshold = stats.chi2.isf(KEEP_STATED, k)
     chi2_free, found_angles = best(None)
     chi2_stated, _ = best(angles)
-    if chi2_stated - chi2_free < threshold:
+    stated = chi2_stated - chi2_free < threshold
+    if stated:  # the file's own angles stand, wherever the lines had put them
         found_angles, chi2_free = np.array([angles[n] for n in names]), chi2_stated
     if all(found_angles[i] == current[n] for i, n in enumerate(names)):
         return None
     chi2_current, _ = best(current)
-    if chi2_current - chi2_free < threshold:
+    if not stated and chi2_current - chi2_free < threshold:
         return None
     found = {n: (_wrap(v) if n != "speed_rpm" else float(v)) for n, v in zip(names, found_angles)}
     return Alignment(found, chi2_current / target.size, chi2_free / target.size, count[0], "waveform")
+
+
+def load_phase_occam(values: Mapping[str, float], sigma: np.ndarray, channels: Sequence[str], sampling: model.Sampling,
+                     max_step: float, half_width: float) -> float:
+    """The Occam factor (log) of the load's phase under the model ``values``: its Laplace width over a uniform prior
+    ``half_width`` either side, log(√(2π) σ_φ / (2 half_width)), σ_φ from the whole waveform's sensitivity to it."""
+    step = JACOBIAN_STEP
+    rows = [{**values, "load_phase": values["load_phase"] + side * step} for side in (-1.0, 1.0)]
+    low, high = simulation.simulate_batch(rows, sampling, channels, max_step) / sigma[:, None]
+    sd = 1.0 / math.sqrt(float(np.sum(((high - low) / (2 * step)) ** 2)))
+    return math.log(math.sqrt(2 * math.pi) * sd / (2 * half_width))

@@ -79,6 +79,7 @@ def with_members(bank: xr.Dataset, hyps: Mapping[str, hypotheses.Hypothesis], ki
                  sampling: model.Sampling, channels: Sequence[str], max_step: float) -> xr.Dataset:
     """``bank`` with the members of each hypothesis of ``kinds`` at the rig ``values`` (in place of any it held)."""
     for kind, found in member_sets(hyps, kinds, values, sampling, channels, max_step).items():
+        bank = bank.drop_vars([f"members_{kind}", f"member_outputs_{kind}", f"parameter_{kind}"], errors="ignore")
         bank[f"members_{kind}"] = ((f"member_{kind}", f"parameter_{kind}"), found.unit)
         bank[f"member_outputs_{kind}"] = ((f"member_{kind}", "channel", "search_time"), found.outputs)
         bank = bank.assign_coords({f"parameter_{kind}": hyps[kind].parameters})

@@ -318,7 +318,8 @@ def _measurement_inputs(measurement_path: str, spec: dict, need_sigma: bool = Tr
     needed), and the healthy model at its condition."""
     from . import io, model
 
-    measurement = io.read_measurement(measurement_path, {k: spec["values"][k] for k in model.OPERATING_PARAMETERS})
+    # The study's own simulations, calibrated on the model's clock as the paper does.
+    measurement = io.read_measurement(measurement_path, {k: spec["values"][k] for k in model.OPERATING_PARAMETERS}, None)
     missing = [c for c in spec["channels"] if c not in measurement.channels]
     if missing:
         raise io.MeasurementError(measurement_path, f"has no channel {missing[0]} to calibrate on")
@@ -435,7 +436,7 @@ def diagnose_measurement(measurement_path: str, grid_paths: list[str], bank_path
 
     settings = Settings.from_config(spec)
     measurement = io.read_measurement(measurement_path, {k: spec["operating"][k] for k in model.OPERATING_PARAMETERS},
-                                      spec["sampling"]["t_first"])
+                                      _warm_up(spec))
     start = time.perf_counter()
     result = diagnosis.diagnose(measurement, settings, calibration.grid_files(grid_paths), bank_path=bank_path)
     v = result.verdict
@@ -456,7 +457,7 @@ def diagnose_machine(name: str, measurement_paths: list[str], verdict_paths: lis
         raise SystemExit(f"newdyn diagnose-machine: {len(measurement_paths)} recordings but {len(verdict_paths)} verdicts")
     settings = Settings.from_config(spec)
     operating = {k: spec["operating"][k] for k in model.OPERATING_PARAMETERS}
-    recordings = [machine.Diagnosed(io.read_measurement(m, operating, spec["sampling"]["t_first"]), json.loads(Path(v).read_text()))
+    recordings = [machine.Diagnosed(io.read_measurement(m, operating, _warm_up(spec)), json.loads(Path(v).read_text()))
                   for m, v in zip(measurement_paths, verdict_paths)]
     start = time.perf_counter()
     found = machine.diagnose(name, recordings, settings)
@@ -552,6 +553,14 @@ def score_hidden(truth: str, verdict_paths: list[str], output: str, table: str, 
     name = Path(truth).parent.name
     plots.blind_test_figure(result, figure, f"hidden set {name}", code_hash, [truth, *verdict_paths])
     log.info("hidden set %s: top-1 accuracy %.3f", name, result["accuracy"])
+
+
+def _warm_up(spec: dict) -> float:
+    """How long the model runs before it is compared with a recording: the study's warm-up, or longer where the rig
+    needs it to forget its initial state (:func:`newdyn.model.settling_time`)."""
+    from . import model
+
+    return max(float(spec["sampling"]["t_first"]), model.settling_time({**spec["rig"], **spec["operating"]}))
 
 
 def _sampling(window: dict):

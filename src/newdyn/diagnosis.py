@@ -87,13 +87,20 @@ def coloured_level(channels: Sequence[str], sigma: np.ndarray, source: str, colo
     return np.where(coloured, level, sigma), f"{source} for white channels; the best white-noise fit's residual without its lines for coloured ones ({orders})"
 
 
+def _with_load_phase(hypothesis: hypotheses.Hypothesis, phase: float) -> hypotheses.Hypothesis:
+    """``hypothesis`` with the load's phase fitted beside its own values, within
+    :data:`newdyn.alignment.FIT_HALF_WIDTH` of ``phase``."""
+    width = alignment.FIT_HALF_WIDTH
+    return replace(hypothesis, priors=(*hypothesis.priors, hypotheses.Prior("load_phase", phase - width, phase + width)))
+
+
 def _realigned(fit: hypotheses.Fit, data, sigma, values, stated, record: alignment.Alignment, sampling, channels,
                settings: Settings) -> alignment.Alignment | None:
     """Where the record sits found again under ``fit``, its values free beside the angles (:func:`newdyn.alignment.
     align_jointly`): None where the data do not place it elsewhere than ``record`` (found under the nominal model, whose
     misfit a fault's shape may have pulled), else the new alignment; the ``stated`` angles where the data cannot tell
     them from the found ones."""
-    names = list(record.values)
+    names = [name for name in record.values if name not in fit.hypothesis.parameters]  # its fit finds the others
     index = [slots.slot_index()[name] for name in names]
     k = len(names)
 
@@ -103,8 +110,12 @@ def _realigned(fit: hypotheses.Fit, data, sigma, values, stated, record: alignme
         return kernel
 
     low, high = (np.array([getattr(p, side) for p in fit.hypothesis.priors]) for side in ("low", "high"))
-    return alignment.align_jointly(data, sigma, channels, sampling, settings.max_step, rows, names, stated, record.values,
-                                   fit.theta, low, high)
+    found = alignment.align_jointly(data, sigma, channels, sampling, settings.max_step, rows, names, stated, record.values,
+                                    fit.theta, low, high)
+    if found is None:
+        return None
+    own = {name: fit.values[name] for name in record.values if name in fit.hypothesis.parameters}  # its fit's own finding
+    return replace(found, values={**record.values, **own, **found.values})
 
 
 def _grid_evidence(posterior: likelihood.GridPosterior) -> float:
@@ -167,6 +178,8 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
                  {k: round(v, 4) for k, v in record.values.items()}, record.chi2_stated, record.chi2_found,
                  record.n_simulations, time.perf_counter() - clock)
     values = {**values, **record.values}
+    library = hyps
+    hyps = {**library, **{kind: _with_load_phase(library[kind], values["load_phase"]) for kind in settings.fault_ranges}}
     searched = searched or {}
     instruments = settings.instruments(sampling.fs, colour)  # as the datasheets say; out-of-spec ones are found per fit
 
@@ -185,7 +198,8 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
                                                                        settings.chi2_max, settings.max_step, instruments)))
     stage(f"noise level from {noise_source}, grid calibrations of {', '.join(settings.grids)}")
 
-    bank = study_bank(bank_path, settings, hyps, stated, sampling, coarse if values == stated else None, members_at=values)
+    bank = study_bank(bank_path, settings, library, stated, sampling, coarse if values == stated else None, members_at=values,
+                      member_hypotheses=hyps)
     signatures = signature_module.distances(bank, calibrations, sigma, settings.priors)
     stage(f"{signatures.sizes['signature']} signatures")
 
@@ -197,6 +211,10 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
     fits = {HEALTHY: hypotheses.fit(hyps[HEALTHY], data, sigma, values, sampling, channels, max_step=settings.max_step,
                                     instruments=instruments)}
     fits.update({f"{PARAMETER_CHANGE}:{p}": _drift_fit(hyps[f"{PARAMETER_CHANGE}:{p}"], cal, instruments) for p, cal in calibrations.items()})
+    # Healthy and the drifts take the load's phase where the lines put it: the Occam factor the effects' fits pay for
+    # finding it themselves is theirs too, so that the evidences compare on one footing.
+    occam = alignment.load_phase_occam(values, sigma, channels, sampling, settings.max_step, alignment.FIT_HALF_WIDTH)
+    fits = {name: replace(fit, log_evidence=fit.log_evidence + occam) for name, fit in fits.items()}
     closest = signatures.mean("parameter")
 
     def fault_fit(kind, search_globally=False, stop=None):
@@ -362,16 +380,17 @@ def _compare_versions(verdict, fits, calibrations, effect_posterior, discovery: 
 
 def study_bank(path: str | None, settings: Settings, hyps: Mapping[str, hypotheses.Hypothesis], values: Mapping[str, float],
                sampling: model.Sampling, coarse: Mapping[str, np.ndarray] | None = None,
-               members_at: Mapping[str, float] | None = None) -> xr.Dataset:
+               members_at: Mapping[str, float] | None = None,
+               member_hypotheses: Mapping[str, hypotheses.Hypothesis] | None = None) -> xr.Dataset:
     """The study's bank (:mod:`newdyn.bank`) at the rig ``values`` and record ``sampling``: the file at ``path`` (made
     by the workflow's bank rule) when it was made for them, else built here on the coarse grid runs ``coarse``
-    (simulated when not given); its members at ``members_at`` where those differ from ``values`` (a record's own angles
-    and running speed)."""
+    (simulated when not given); with ``members_at``, the members of ``member_hypotheses`` (the fits' own, which find the
+    load's phase) there (a record's own angles and running speed)."""
     bank = _condition_bank(path, settings, hyps, values, sampling, coarse)
-    if members_at is None or dict(members_at) == dict(values):
+    if members_at is None:
         return bank
-    return bank_module.with_members(bank, hyps, list(settings.fault_ranges), members_at, sampling, settings.channels,
-                                    settings.max_step)
+    return bank_module.with_members(bank, member_hypotheses or hyps, list(settings.fault_ranges), members_at, sampling,
+                                    settings.channels, settings.max_step)
 
 
 def _condition_bank(path, settings: Settings, hyps, values, sampling, coarse) -> xr.Dataset:

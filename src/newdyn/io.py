@@ -143,10 +143,11 @@ def _finite_json(value):
 
 
 def read_measurement(path: str | os.PathLike, operating_defaults: Mapping[str, float] | None = None,
-                     warm_up: float = model.Sampling().t_first) -> Measurement:
+                     warm_up: float | None = model.Sampling().t_first) -> Measurement:
     """Read and check a ``.nc`` or ``.csv`` measurement; operating values missing from it take the defaults.  Its
     sampling is the model's: the first sample ``warm_up`` (rounded up to the grid k/fs) after the model's start; its
-    running speed is the one its data show (:func:`newdyn.running_speed.measured`)."""
+    running speed is the one its data show (:func:`newdyn.running_speed.measured`).  With ``warm_up`` None the file is
+    one of the study's own simulations, on the model's clock at its stated condition (the study's calibrations)."""
     path = Path(path)
     if not path.is_file():
         raise MeasurementError(path, "file not found")
@@ -181,10 +182,11 @@ def read_measurement(path: str | os.PathLike, operating_defaults: Mapping[str, f
             operating[name] = float(value)
 
     sampling = _check_time(path, times, operating, warm_up)
-    stated = operating["speed_rpm"]
-    operating["speed_rpm"] = running_speed.measured(path, channels, y, sampling.fs, operating)
-    if operating["speed_rpm"] != stated:
-        attrs["stated_speed_rpm"] = stated
+    if warm_up is not None:
+        stated = operating["speed_rpm"]
+        operating["speed_rpm"] = running_speed.measured(path, channels, y, sampling.fs, operating)
+        if operating["speed_rpm"] != stated:
+            attrs["stated_speed_rpm"] = stated
     snr = attrs.get("snr_db")
     if sigma is None and snr is not None and (isinstance(snr, str) or not math.isfinite(float(snr))):
         raise MeasurementError(path, f"attribute snr_db must be a finite number (got {snr!r})")
@@ -322,7 +324,7 @@ def model_sampling(fs: float, n_samples: int, warm_up: float) -> model.Sampling:
     return model.Sampling(fs=fs, t_first=math.ceil(warm_up * fs - 1e-9) / fs, n_samples=n_samples)
 
 
-def _check_time(path: Path, times: np.ndarray, operating: Mapping[str, float], warm_up: float) -> model.Sampling:
+def _check_time(path: Path, times: np.ndarray, operating: Mapping[str, float], warm_up: float | None) -> model.Sampling:
     if times.size < 2:
         raise MeasurementError(path, f"only {times.size} sample(s)")
     if not np.all(np.isfinite(times)):
@@ -349,4 +351,8 @@ def _check_time(path: Path, times: np.ndarray, operating: Mapping[str, float], w
         )
     if fs > FS_MAX:
         raise MeasurementError(path, f"sampling rate {fs:.6g} Hz is above the {FS_MAX:.0e} Hz the simulator reproduces")
+    if warm_up is None:  # the model's own clock
+        if times[0] < 0:
+            raise MeasurementError(path, f"time starts at {times[0]:g} s, before the model's start at t = 0")
+        return model.Sampling(fs=fs, t_first=float(times[0]), n_samples=int(times.size))
     return model_sampling(fs, int(times.size), warm_up)

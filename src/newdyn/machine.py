@@ -25,7 +25,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from . import comparison, concurrency, hypotheses, instrument_checks, io, model, next_condition, noise, sensors, slots
+from . import alignment, comparison, concurrency, hypotheses, instrument_checks, io, model, next_condition, noise, sensors, slots
 from .discovery import effect_file, force, search, verify
 from .hypotheses import HEALTHY
 from .settings import Settings
@@ -67,13 +67,21 @@ def diagnose(name: str, recordings: Sequence[Diagnosed], settings: Settings) -> 
     hyps = {h.name: h for h in settings.hypotheses()}
     own = [{row["hypothesis"]: row for row in r.verdict["ranking"]} for r in recordings]
 
+    seen_by = {n: [_at_own_load_phase(s, rows[n]) for s, rows in zip(seen, own)] for n in hyps}
+    # Each recording's own diagnosis weighed every hypothesis with the Occam factor of the load's phase it found; the
+    # joint fits take each recording's phase from there, and so its factor too.
+    occam = sum(alignment.load_phase_occam(s.base, s.sigma, s.channels, s.sampling, settings.max_step, alignment.FIT_HALF_WIDTH)
+                for s in seen)
+
     def joint(hypothesis):
         starts = joint_starts([rows[hypothesis.name]["parameters"] for rows in own], hypothesis.parameters)
-        return instrument_checks.joint_checked(hypotheses.fit_joint(hypothesis, seen, starts, settings.max_step), seen,
+        mine = seen_by[hypothesis.name]
+        fit = instrument_checks.joint_checked(hypotheses.fit_joint(hypothesis, mine, starts, settings.max_step), mine,
                                               settings.evidence_margin)
+        return replace(fit, log_evidence=fit.log_evidence + occam)
 
     fits = concurrency.in_parallel({n: lambda h=h: joint(h) for n, h in hyps.items()})
-    ranking = sorted((_row(fits[n], [rows[n] for rows in own], seen, settings) for n in hyps), key=lambda row: -row["log_evidence"])
+    ranking = sorted((_row(fits[n], [rows[n] for rows in own], seen_by[n], settings) for n in hyps), key=lambda row: -row["log_evidence"])
     # As for one recording (newdyn.diagnosis): a finding that shows in no recording is passed over for the model without it.
     top = next(row for row in ranking if row["class"] == HEALTHY or row["finding_visible"] or not row["explains"])
     if top["explains"]:
@@ -84,7 +92,7 @@ def diagnose(name: str, recordings: Sequence[Diagnosed], settings: Settings) -> 
     else:
         verdict, effect, equivalent = "unexplained", None, []
         after = min(ranking, key=lambda row: max(row["chi2"]))["hypothesis"]
-    lines = _recording_lines(recordings, seen, fits, next(row for row in ranking if row["hypothesis"] == after), settings)
+    lines = _recording_lines(recordings, seen_by[after], fits, next(row for row in ranking if row["hypothesis"] == after), settings)
     discovery, found_file = (_discovery(name, recordings, ranking, fits, seen, settings) if settings.searches(verdict != "unexplained")
                              else (None, None))
     result = {
@@ -97,6 +105,13 @@ def diagnose(name: str, recordings: Sequence[Diagnosed], settings: Settings) -> 
         **({"discovery": discovery} if discovery is not None else {}),
     }
     return MachineDiagnosis({"statement": statement(result, settings.chi2_max), **result}, found_file)
+
+
+def _at_own_load_phase(seen: hypotheses.Recording, row: Mapping) -> hypotheses.Recording:
+    """A recording at the load's phase its own fit of a hypothesis found (an effect's fit finds it beside its values,
+    each recording its own: a fault that reshapes the torsional response moves the load's fundamental that placed it)."""
+    found = row.get("parameters", {}).get("load_phase")
+    return seen if found is None else replace(seen, base={**seen.base, "load_phase": float(found["map"])})
 
 
 # Two recordings' optima of a parameter agree where they are this many standard deviations of their difference apart

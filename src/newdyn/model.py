@@ -207,6 +207,20 @@ def natural_frequencies(values: Mapping[str, float] | None = None, damped: bool 
     return np.sort(lam.imag[lam.imag > 1e-9 * np.abs(lam).max()]) / (2 * np.pi)
 
 
+SETTLING_TIMES = 5  # time constants of the slowest mode the model runs before it is compared with a recording
+
+
+def settling_time(values: Mapping[str, float] | None = None) -> float:
+    """How long the linearized rig takes to forget its initial state [s]: :data:`SETTLING_TIMES` time constants of its
+    most slowly decaying mode (an undamped one never forgets it and is left out).  A recording is in steady state; the model, started from rig.md's state, is compared with
+    it from then on (the reference rig: 0.48 s, after which the start-up is below 3e-4 of a channel's std in b1, b2 and
+    the torsional channels, 1.5e-3 in b3, b4; tests/test_physics.py)."""
+    M, C, K = linear_matrices(values)
+    n = M.shape[0]
+    decay = -np.linalg.eigvals(np.block([[np.zeros((n, n)), np.eye(n)], [-np.linalg.solve(M, K), -np.linalg.solve(M, C)]])).real
+    return SETTLING_TIMES / float(np.min(decay[decay > 1e-9 * np.max(decay)]))
+
+
 def initial_state(values: Mapping[str, float]) -> np.ndarray:
     """State at t = 0 (rig.md): speeds Omega, θ4 = 0, shafts pre-twisted by T0, lateral at rest.
 

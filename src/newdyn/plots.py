@@ -312,7 +312,7 @@ def model_overlays(
 ) -> Figure:
     """Where the best-fitting models fail: per channel, data and best fits over the first ``window``
     seconds (left), and the PSD of the data and of each fit's residual against the noise floor (right)."""
-    measurement = io.read_measurement(measurement_path)
+    measurement = io.read_measurement(measurement_path, warm_up=None)  # a study simulation, on the model's clock
     results = [_load(path) for path in grid_result_paths]
     times, fs = measurement.sampling.times, measurement.sampling.fs
     for path, result in zip(grid_result_paths, results):
