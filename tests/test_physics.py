@@ -307,7 +307,7 @@ def test_a_record_started_later_is_the_rig_with_its_angles_and_load_phase_turned
     def shifted(turn, warm_up):
         values = {**base, "phi1": turn, "phi4": turn, "load_phase": 2 * np.pi * base["load_freq"] * tau}
         if kind == "breathing_crack":
-            values["breathing_crack.angle"] = -turn
+            values["breathing_crack.angle"] = turn
         return simulate(values, model.Sampling(5000.0, warm_up, 5000), model.CHANNELS)
 
     def worst(turn, warm_up, later):
