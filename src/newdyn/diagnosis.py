@@ -386,14 +386,16 @@ def study_bank(path: str | None, settings: Settings, hyps: Mapping[str, hypothes
     by the workflow's bank rule) when it was made for them, else built here on the coarse grid runs ``coarse``
     (simulated when not given); with ``members_at``, the members of ``member_hypotheses`` (the fits' own, which find the
     load's phase) there (a record's own angles and running speed)."""
-    bank = _condition_bank(path, settings, hyps, values, sampling, coarse)
+    bank = _condition_bank(path, settings, hyps, values, sampling, coarse, members=members_at is None)
     if members_at is None:
         return bank
     return bank_module.with_members(bank, member_hypotheses or hyps, list(settings.fault_ranges), members_at, sampling,
                                     settings.channels, settings.max_step)
 
 
-def _condition_bank(path, settings: Settings, hyps, values, sampling, coarse) -> xr.Dataset:
+def _condition_bank(path, settings: Settings, hyps, values, sampling, coarse, members: bool) -> xr.Dataset:
+    """The study's bank at the condition ``values`` from ``path`` where it was made for them, else built here (its
+    ``members`` only where they are wanted at that condition)."""
     entries = signature_module.entries(hyps, list(settings.grids), settings.drift_sizes, settings.fault_ranges, settings.severities, values)
     instruments = settings.instruments(sampling.fs)  # the datasheets; the library's noise is white
     spec = bank_module.spec(hyps, entries, list(settings.fault_ranges), values, sampling, settings.channels, settings.grids,
@@ -405,8 +407,8 @@ def _condition_bank(path, settings: Settings, hyps, values, sampling, coarse) ->
         log.info("%s was made for another condition or settings: the bank is built here", path)
     if coarse is None:
         coarse = {p: calibration.simulate_grid(values, p, g.axis, sampling, settings.channels, settings.max_step) for p, g in settings.grids.items()}
-    return bank_module.build(hyps, entries, list(settings.fault_ranges), values, sampling, settings.channels, settings.grids,
-                             settings.priors, coarse, instruments, settings.max_step)
+    return bank_module.build(hyps, entries, list(settings.fault_ranges) if members else [], values, sampling, settings.channels,
+                             settings.grids, settings.priors, coarse, instruments, settings.max_step)
 
 
 def _drift_fit(hypothesis: hypotheses.Hypothesis, cal: calibration.Calibration, instruments) -> hypotheses.Fit:
