@@ -45,7 +45,7 @@ def test_a_record_is_aligned_to_the_noise_whatever_its_start_angles_and_speed(re
     assert np.all(reference.relative_rms(shown, clean) < 0.1 * 10 ** (-40 / 20))  # a tenth of the noise
     # The load's phase at the model's record start is the truth's, turned by the 0.3134 s between the two starts.
     turned = RECORD["load_phase"] + 2 * math.pi * 12.0 * (START - SAMPLING.t_first)
-    assert abs(alignment._wrap(found.values["load_phase"] - turned)) < 0.01
+    assert abs(model.wrap_angle(found.values["load_phase"] - turned)) < 0.01
 
 
 def test_a_record_of_displacements_alone_gets_its_speed_fitted_with_the_angles(recording):
@@ -75,7 +75,7 @@ def test_the_lines_hold_the_angles_where_a_fault_the_nominal_model_lacks_pulls_t
     for compared in ("lines", "waveform"):
         found = alignment.align(noisy, np.asarray(sigma), CHANNELS, slots.complete({}), SAMPLING, DEFAULT_MAX_STEP,
                                 compared=compared)
-        errors[compared] = abs(alignment._wrap(found.values["load_phase"] - RECORD["load_phase"]))
+        errors[compared] = abs(model.wrap_angle(found.values["load_phase"] - RECORD["load_phase"]))
     assert errors["lines"] < 0.25 * errors["waveform"]
 
 

@@ -60,8 +60,9 @@ class Alignment:
                 "n_simulations": self.n_simulations, "compared": self.compared}
 
 
-def _wrap(angle: float) -> float:
-    return float((angle + math.pi) % (2 * math.pi) - math.pi)
+def _found(names: Sequence[str], x: Sequence[float]) -> dict[str, float]:
+    """Found values by name, each angle on the circle's turn."""
+    return {n: (float(v) if n == "speed_rpm" else model.wrap_angle(v)) for n, v in zip(names, x)}
 
 
 def waveform(channels: Sequence[str], values: Mapping[str, float], sampling: model.Sampling) -> Compared:
@@ -113,7 +114,7 @@ def first_guess(target: np.ndarray, compare: Compared, sigma: np.ndarray, channe
     order = np.argsort(cost[np.arange(LOAD_PHASES), best_angles])
     starts = []
     for i in order:  # distinct load phases: at least an eighth of a turn apart from the ones taken
-        if all(abs(_wrap(phases[i] - s["load_phase"])) > math.pi / 4 for s in starts):
+        if all(abs(model.wrap_angle(phases[i] - s["load_phase"])) > math.pi / 4 for s in starts):
             k = best_angles[i]
             starts.append({"phi1": float(a1.ravel()[k]), "phi4": float(a4.ravel()[k]), "load_phase": float(phases[i])})
         if len(starts) == STARTS:
@@ -156,7 +157,7 @@ def align(data: np.ndarray, sigma: np.ndarray, channels: Sequence[str], values: 
     if stated - chi2 < stats.chi2.isf(KEEP_STATED, len(names)):  # the data cannot tell them apart
         best_values, chi2 = {n: float(values[n]) for n in names}, stated
     else:
-        best_values = {n: (_wrap(v) if n != "speed_rpm" else float(v)) for n, v in zip(names, best.x)}
+        best_values = _found(names, best.x)
     return Alignment(best_values, stated / target.size, chi2 / target.size, count[0], compared)
 
 
@@ -212,8 +213,7 @@ def align_jointly(data: np.ndarray, sigma: np.ndarray, channels: Sequence[str], 
     chi2_current, _ = best(current)
     if not stated and chi2_current - chi2_free < threshold:
         return None
-    found = {n: (_wrap(v) if n != "speed_rpm" else float(v)) for n, v in zip(names, found_angles)}
-    return Alignment(found, chi2_current / target.size, chi2_free / target.size, count[0], "waveform")
+    return Alignment(_found(names, found_angles), chi2_current / target.size, chi2_free / target.size, count[0], "waveform")
 
 
 def load_phase_occam(values: Mapping[str, float], sigma: np.ndarray, channels: Sequence[str], sampling: model.Sampling,

@@ -492,7 +492,7 @@ def _parameter_errors(case: Mapping, verdict: Mapping) -> list[dict]:
                 continue
             truth = truth - case["record"]["phi4"]
             miss = mean - turn - truth
-            turn -= _wrapped(miss) - miss  # onto the truth's turn of the circle
+            turn -= model.wrap_angle(miss) - miss  # onto the truth's turn of the circle
             mean, low, high = (None if v is None else v - turn for v in (mean, low, high))
         errors.append({
             "case": case["name"], "class": case["class"], "parameter": name, "truth": float(truth),
@@ -508,10 +508,6 @@ def _is_shaft_angle(kind: str, name: str) -> bool:
     """Whether ``name`` is an effect's angle on a shaft (:func:`newdyn.effects.shaft_angle`)."""
     effect = effects.active().get(kind)
     return effect is not None and name in effect.parameter_names() and effect.parameter(name).unit == "rad"
-
-
-def _wrapped(angle: float) -> float:
-    return (angle + math.pi) % (2 * math.pi) - math.pi
 
 
 def _float(value) -> float | None:

@@ -200,11 +200,15 @@ def natural_frequencies(values: Mapping[str, float] | None = None, damped: bool 
 
         w2 = eigh(K, M, eigvals_only=True)
         return np.sort(np.sqrt(w2[w2 > 1e-6 * w2.max()])) / (2 * np.pi)
+    lam = _eigenvalues(M, C, K)
+    return np.sort(lam.imag[lam.imag > 1e-9 * np.abs(lam).max()]) / (2 * np.pi)
+
+
+def _eigenvalues(M: np.ndarray, C: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """The state-space eigenvalues of M q'' + C q' + K q = 0."""
     n = M.shape[0]
     Minv = np.linalg.inv(M)
-    A = np.block([[np.zeros((n, n)), np.eye(n)], [-Minv @ K, -Minv @ C]])
-    lam = np.linalg.eigvals(A)
-    return np.sort(lam.imag[lam.imag > 1e-9 * np.abs(lam).max()]) / (2 * np.pi)
+    return np.linalg.eigvals(np.block([[np.zeros((n, n)), np.eye(n)], [-Minv @ K, -Minv @ C]]))
 
 
 SETTLING_TIMES = 5  # time constants of the slowest mode the model runs before it is compared with a recording
@@ -212,13 +216,16 @@ SETTLING_TIMES = 5  # time constants of the slowest mode the model runs before i
 
 def settling_time(values: Mapping[str, float] | None = None) -> float:
     """How long the linearized rig takes to forget its initial state [s]: :data:`SETTLING_TIMES` time constants of its
-    most slowly decaying mode (an undamped one never forgets it and is left out).  A recording is in steady state; the model, started from rig.md's state, is compared with
-    it from then on (the reference rig: 0.48 s, after which the start-up is below 3e-4 of a channel's std in b1, b2 and
+    most slowly decaying mode (an undamped one never forgets it and is left out).  A recording is in steady state; the
+    model, started from rig.md's state, is compared with it from then on (the reference rig: 0.48 s, after which the start-up is below 3e-4 of a channel's std in b1, b2 and
     the torsional channels, 1.5e-3 in b3, b4; tests/test_physics.py)."""
-    M, C, K = linear_matrices(values)
-    n = M.shape[0]
-    decay = -np.linalg.eigvals(np.block([[np.zeros((n, n)), np.eye(n)], [-np.linalg.solve(M, K), -np.linalg.solve(M, C)]])).real
+    decay = -_eigenvalues(*linear_matrices(values)).real
     return SETTLING_TIMES / float(np.min(decay[decay > 1e-9 * np.max(decay)]))
+
+
+def wrap_angle(angle: float) -> float:
+    """``angle`` [rad] on the circle's turn [−π, π)."""
+    return float((angle + math.pi) % (2 * math.pi) - math.pi)
 
 
 def initial_state(values: Mapping[str, float]) -> np.ndarray:
