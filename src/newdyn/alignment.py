@@ -27,12 +27,13 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import optimize, stats
 
-from . import model, running_speed, simulation
+from . import likelihood, model, running_speed, simulation
 
 LOAD_PHASES = 48  # grid of the load's phase for the first guess
 ANGLES = 72  # grid of each imbalance angle for the first guess
 STARTS = 3  # the best distinct grid points polished by least squares
-JACOBIAN_STEP = 1e-4  # rad (and 1e-6 relative speed): far above the simulator's rounding, below the angles' precision
+JACOBIAN_STEP = 1e-4  # rad: far above the simulator's rounding, below the angles' precision
+RELATIVE_STEP = 1e-6  # of a speed or a hypothesis's value, for the same reasons
 # The stated angles stand unless moving them lowers χ² by more than noise alone would with this probability.
 KEEP_STATED = 1e-3
 # An effect's fit finds the load's phase beside its own values, this far either side of where the lines put it: a fault
@@ -142,7 +143,7 @@ def align(data: np.ndarray, sigma: np.ndarray, channels: Sequence[str], values: 
     def jac(x):
         steps = np.full(len(x), JACOBIAN_STEP)
         if fit_speed:
-            steps[-1] = x[-1] * 1e-6
+            steps[-1] = x[-1] * RELATIVE_STEP
         found = residuals(np.vstack([x, x + np.diag(steps)]))
         return ((found[1:] - found[0]) / steps[:, None]).T
 
@@ -163,9 +164,11 @@ def align(data: np.ndarray, sigma: np.ndarray, channels: Sequence[str], values: 
 
 def align_jointly(data: np.ndarray, sigma: np.ndarray, channels: Sequence[str], sampling: model.Sampling, max_step: float,
                   rows: Callable[[np.ndarray], np.ndarray], names: Sequence[str], angles: Mapping[str, float],
-                  current: Mapping[str, float], theta: np.ndarray, low: np.ndarray, high: np.ndarray) -> Alignment | None:
+                  current: Mapping[str, float], theta: np.ndarray, low: np.ndarray, high: np.ndarray,
+                  instruments=None) -> Alignment | None:
     """Where the record sits under a fitted hypothesis, its fitted values ``theta`` (in [``low``, ``high``]) free beside
-    the angles ``names``, on the whole waveform: ``rows`` makes kernel parameter rows of (angles, theta).  Returns the
+    the angles ``names``, on the whole waveform as the fit saw it (through its ``instruments``, whose delays take up what
+    the angles need not): ``rows`` makes kernel parameter rows of (angles, theta).  Returns the
     alignment where the data place the angles farther from ``current`` than noise would (its χ² at ``current`` and at
     the found angles), else None; the ``angles`` stated where the data cannot tell those from the found ones (and then
     wherever ``current`` is)."""
@@ -176,7 +179,10 @@ def align_jointly(data: np.ndarray, sigma: np.ndarray, channels: Sequence[str], 
 
     def residuals(x: np.ndarray) -> np.ndarray:
         count[0] += len(x)
-        return compare(simulation.simulate_batch(rows(x), sampling, channels, max_step) / sigma[:, None]) - target[None]
+        outputs = simulation.simulate_batch(rows(x), sampling, channels, max_step)
+        if instruments is None:
+            return compare(outputs / sigma[:, None]) - target[None]
+        return likelihood.standardized_residuals(data, outputs, sigma, instruments).reshape(len(x), -1)
 
     def best(fixed: Mapping[str, float] | None) -> tuple[float, np.ndarray]:
         """χ² and the angles at the best theta, the angles ``fixed`` (None: free)."""
@@ -191,7 +197,7 @@ def align_jointly(data: np.ndarray, sigma: np.ndarray, channels: Sequence[str], 
             return residuals(point[None])[0]
 
         def jac(z):
-            steps = np.where(free < k, JACOBIAN_STEP, 1e-6 * np.maximum(np.abs(z), 1e-12))
+            steps = np.where(free < k, JACOBIAN_STEP, RELATIVE_STEP * np.maximum(np.abs(z), 1e-12))
             steps = np.where((free >= k) & (z + steps > upper), -steps, steps)
             points = np.tile(x, (len(z) + 1, 1))
             points[:, free] = np.vstack([z, z + np.diag(steps)])
@@ -213,15 +219,29 @@ def align_jointly(data: np.ndarray, sigma: np.ndarray, channels: Sequence[str], 
     chi2_current, _ = best(current)
     if not stated and chi2_current - chi2_free < threshold:
         return None
-    return Alignment(_found(names, found_angles), chi2_current / target.size, chi2_free / target.size, count[0], "waveform")
+    return Alignment(_found(names, found_angles), chi2_current / data.size, chi2_free / data.size, count[0], "waveform")
 
 
 def load_phase_occam(values: Mapping[str, float], sigma: np.ndarray, channels: Sequence[str], sampling: model.Sampling,
-                     max_step: float, half_width: float) -> float:
-    """The Occam factor (log) of the load's phase under the model ``values``: its Laplace width over a uniform prior
-    ``half_width`` either side, log(√(2π) σ_φ / (2 half_width)), σ_φ from the whole waveform's sensitivity to it."""
-    step = JACOBIAN_STEP
-    rows = [{**values, "load_phase": values["load_phase"] + side * step} for side in (-1.0, 1.0)]
-    low, high = simulation.simulate_batch(rows, sampling, channels, max_step) / sigma[:, None]
-    sd = 1.0 / math.sqrt(float(np.sum(((high - low) / (2 * step)) ** 2)))
-    return math.log(math.sqrt(2 * math.pi) * sd / (2 * half_width))
+                     max_step: float, half_width: float, data: np.ndarray | None = None, fitted: Mapping[str, float] | None = None,
+                     instruments=None) -> float:
+    """What integrating the load's phase over a uniform prior ``half_width`` either side of ``values["load_phase"]`` adds
+    (log) to an evidence found with the phase held there and the ``fitted`` parameters (name -> difference step)
+    integrated: by the Laplace approximation, ½ g²/S + ½ log 2π − ½ log S − log(2 half_width), S the phase's curvature
+    given the fitted parameters (its Schur complement in the whole waveform's Gauss–Newton Hessian) and g the gradient
+    of the log-likelihood along the phase with them moving too; with no ``data``, the phase is taken where it is best
+    (g = 0).  A drift of a torsional stiffness moves the load response's phase: held where the nominal model put it, the
+    drift would fit worse and pay a narrower phase's factor than an effect that finds the phase beside its values."""
+    steps = {"load_phase": JACOBIAN_STEP, **(fitted or {})}
+    rows = [{**values, name: values[name] + side * step} for name, step in steps.items() for side in (-1.0, 1.0)]
+    outputs = simulation.simulate_batch(rows + ([] if data is None else [dict(values)]), sampling, channels, max_step)
+    r = likelihood.standardized_residuals(np.zeros_like(outputs[0]) if data is None else data, outputs, sigma,
+                                          instruments).reshape(len(outputs), -1)
+    jacobian = ((r[1 : 2 * len(steps) : 2] - r[0 : 2 * len(steps) : 2]) / (2 * np.array(list(steps.values())))[:, None]).T
+    hessian = jacobian.T @ jacobian
+    gradient = np.zeros(len(steps)) if data is None else -(jacobian.T @ r[-1])
+    given = hessian[1:, 1:]
+    coupling = hessian[0, 1:]
+    schur = hessian[0, 0] - (coupling @ np.linalg.solve(given, coupling) if len(given) else 0.0)
+    along = gradient[0] - (coupling @ np.linalg.solve(given, gradient[1:]) if len(given) else 0.0)
+    return float(0.5 * along**2 / schur + 0.5 * math.log(2 * math.pi / schur) - math.log(2 * half_width))

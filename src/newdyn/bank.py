@@ -98,7 +98,7 @@ def member_sets(hyps: Mapping[str, hypotheses.Hypothesis], kinds: Sequence[str],
         span = np.array([p.high for p in hypothesis.priors]) - low
         unit = qmc.Sobol(len(low), seed=MEMBER_SEED).random(MEMBERS)
         outputs = hypotheses.evaluate(hypothesis, low + unit * span, values, window, channels, max_step)
-        found[kind] = hypotheses.Members(unit, outputs.astype(np.float32))
+        found[kind] = hypotheses.Members(unit, outputs.astype(np.float32), tuple(hypothesis.parameters))
     return found
 
 
@@ -106,4 +106,5 @@ def members(bank: xr.Dataset, kind: str) -> hypotheses.Members | None:
     """A hypothesis's members in ``bank`` (None when it has none)."""
     if f"members_{kind}" not in bank:
         return None
-    return hypotheses.Members(bank[f"members_{kind}"].values, bank[f"member_outputs_{kind}"].values)
+    return hypotheses.Members(bank[f"members_{kind}"].values, bank[f"member_outputs_{kind}"].values,
+                              tuple(str(name) for name in bank[f"parameter_{kind}"].values))

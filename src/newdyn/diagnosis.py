@@ -111,7 +111,7 @@ def _realigned(fit: hypotheses.Fit, data, sigma, values, stated, record: alignme
 
     low, high = (np.array([getattr(p, side) for p in fit.hypothesis.priors]) for side in ("low", "high"))
     found = alignment.align_jointly(data, sigma, channels, sampling, settings.max_step, rows, names, stated, record.values,
-                                    fit.theta, low, high)
+                                    fit.theta, low, high, fit.instruments)
     if found is None:
         return None
     own = {name: fit.values[name] for name in record.values if name in fit.hypothesis.parameters}  # its fit's own finding
@@ -198,8 +198,10 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
                                                                        settings.chi2_max, settings.max_step, instruments)))
     stage(f"noise level from {noise_source}, grid calibrations of {', '.join(settings.grids)}")
 
-    bank = study_bank(bank_path, settings, library, stated, sampling, coarse if values == stated else None, members_at=values,
-                      member_hypotheses=hyps)
+    # The signature library is the condition's, reused wherever the record is and whatever speed the data corrected the
+    # nameplate's to; the members are the record's own.
+    nameplate = {**stated, "speed_rpm": measurement.attrs.get("stated_speed_rpm", stated["speed_rpm"])}
+    bank = study_bank(bank_path, settings, library, nameplate, sampling, coarse if values == nameplate else None, members_at=values)
     signatures = signature_module.distances(bank, calibrations, sigma, settings.priors)
     stage(f"{signatures.sizes['signature']} signatures")
 
@@ -211,10 +213,12 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
     fits = {HEALTHY: hypotheses.fit(hyps[HEALTHY], data, sigma, values, sampling, channels, max_step=settings.max_step,
                                     instruments=instruments)}
     fits.update({f"{PARAMETER_CHANGE}:{p}": _drift_fit(hyps[f"{PARAMETER_CHANGE}:{p}"], cal, instruments) for p, cal in calibrations.items()})
-    # Healthy and the drifts take the load's phase where the lines put it: the Occam factor the effects' fits pay for
-    # finding it themselves is theirs too, so that the evidences compare on one footing.
-    occam = alignment.load_phase_occam(values, sigma, channels, sampling, settings.max_step, alignment.FIT_HALF_WIDTH)
-    fits = {name: replace(fit, log_evidence=fit.log_evidence + occam) for name, fit in fits.items()}
+    # Healthy and the drifts were fitted at the load's phase where the lines put it; the effects' fits find it beside
+    # their values.  The phase integrated out at each one's best values puts the evidences on one footing.
+    phase_terms = concurrency.in_parallel({name: lambda fit=fit: alignment.load_phase_occam(
+        {**values, **fit.values}, sigma, channels, sampling, settings.max_step, alignment.FIT_HALF_WIDTH, data,
+        {p: alignment.RELATIVE_STEP * abs(v) for p, v in fit.values.items()}, instruments) for name, fit in fits.items()})
+    fits = {name: replace(fit, log_evidence=fit.log_evidence + phase_terms[name]) for name, fit in fits.items()}
     closest = signatures.mean("parameter")
 
     def fault_fit(kind, search_globally=False, stop=None):
@@ -245,7 +249,7 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
     # could take the verdict only by fitting better than what already fits to the noise, and its members' fit stands as
     # a lower bound on its evidence (the ranking's search says so).  Its members' fit runs beside the smaller faults'
     # on the chance that something explains the data; if nothing does, it is stopped and searches instead.
-    large = [kind for kind in settings.fault_ranges if bank_module.needs_search(hyps[kind]) and kind not in searched]
+    large = [kind for kind in settings.fault_ranges if bank_module.needs_search(library[kind]) and kind not in searched]
 
     def explaining(candidates):
         return [name for name, fit in candidates.items() if _explains(fit, calibrations, settings.chi2_max)]
@@ -319,9 +323,8 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
         verdict["missing_channels"] = _missing_channels(missing, verdict, fits, values, sampling, data, sigma, settings)
     verdict["noise"] = {"sigma": dict(zip(channels, sigma.tolist())), "source": noise_source,
                         "colour": colour.summary(channels)}
-    stated_speed = measurement.attrs.get("stated_speed_rpm", stated["speed_rpm"])
     verdict["record"] = {**record.summary(), "found_under": "the best fit" if realigned else "the nominal model", "passes": realigned + 1,
-                         "speed_rpm": values["speed_rpm"], "stated_speed_rpm": stated_speed}
+                         "speed_rpm": values["speed_rpm"], "stated_speed_rpm": nameplate["speed_rpm"]}
     # Discovery ran before the MCMC; a library fault whose polish explained the data after all drops it.
     if discovery is not None and not settings.searches(verdict["verdict"] != "unexplained"):
         discovery = None
@@ -380,16 +383,16 @@ def _compare_versions(verdict, fits, calibrations, effect_posterior, discovery: 
 
 def study_bank(path: str | None, settings: Settings, hyps: Mapping[str, hypotheses.Hypothesis], values: Mapping[str, float],
                sampling: model.Sampling, coarse: Mapping[str, np.ndarray] | None = None,
-               members_at: Mapping[str, float] | None = None,
-               member_hypotheses: Mapping[str, hypotheses.Hypothesis] | None = None) -> xr.Dataset:
+               members_at: Mapping[str, float] | None = None) -> xr.Dataset:
     """The study's bank (:mod:`newdyn.bank`) at the rig ``values`` and record ``sampling``: the file at ``path`` (made
     by the workflow's bank rule) when it was made for them, else built here on the coarse grid runs ``coarse``
-    (simulated when not given); with ``members_at``, the members of ``member_hypotheses`` (the fits' own, which find the
-    load's phase) there (a record's own angles and running speed)."""
-    bank = _condition_bank(path, settings, hyps, values, sampling, coarse, members=members_at is None)
-    if members_at is None:
+    (simulated when not given); with ``members_at`` other than ``values``, the members there instead (a record's own
+    angles, load phase and running speed: the fits find the load's phase from the members' best)."""
+    at_condition = members_at is None or dict(members_at) == dict(values)
+    bank = _condition_bank(path, settings, hyps, values, sampling, coarse, members=at_condition)
+    if at_condition:
         return bank
-    return bank_module.with_members(bank, member_hypotheses or hyps, list(settings.fault_ranges), members_at, sampling,
+    return bank_module.with_members(bank, hyps, list(settings.fault_ranges), members_at, sampling,
                                     settings.channels, settings.max_step)
 
 

@@ -190,6 +190,7 @@ class Members(NamedTuple):
 
     unit: np.ndarray  # (member, parameter) in prior-box units: (θ − low) / (high − low)
     outputs: np.ndarray  # (member, channel, sample) over the longest search window
+    parameters: tuple[str, ...]  # the columns of ``unit``: a fit may have more (the load's phase), held at the base's value
 
 
 @dataclass(frozen=True)
@@ -351,9 +352,13 @@ def fit(
     u_starts = [((np.array(theta) - low) / span, 0) for theta in given]  # (start, index of its first window)
     searched_from = None if not search else SEARCHED_FROM[0] if members is not None else SEARCHED_FROM[1]
     if search and members is not None:
+        # A parameter the members do not vary (the load's phase) is where they were simulated: the base's value.
+        unit = np.tile([0.0 if p.name in members.parameters else (base[p.name] - p.low) / (p.high - p.low) for p in hypothesis.priors],
+                       (len(members.unit), 1))
+        unit[:, [hypothesis.parameters.index(name) for name in members.parameters]] = members.unit
         for first, n_samples in enumerate(windows[:SEARCHES]):
-            misfit = residuals_of(members.unit, members.outputs[..., :n_samples], n_samples)
-            u_starts.append((members.unit[int(np.argmin(np.sum(misfit**2, axis=1)))], first))
+            misfit = residuals_of(unit, members.outputs[..., :n_samples], n_samples)
+            u_starts.append((unit[int(np.argmin(np.sum(misfit**2, axis=1)))], first))
     elif search:
         for first, n_samples in enumerate(windows[:SEARCHES]):
             evolved = optimize.differential_evolution(

@@ -68,17 +68,24 @@ def diagnose(name: str, recordings: Sequence[Diagnosed], settings: Settings) -> 
     own = [{row["hypothesis"]: row for row in r.verdict["ranking"]} for r in recordings]
 
     seen_by = {n: [_at_own_load_phase(s, rows[n]) for s, rows in zip(seen, own)] for n in hyps}
-    # Each recording's own diagnosis weighed every hypothesis with the Occam factor of the load's phase it found; the
-    # joint fits take each recording's phase from there, and so its factor too.
-    occam = sum(alignment.load_phase_occam(s.base, s.sigma, s.channels, s.sampling, settings.max_step, alignment.FIT_HALF_WIDTH)
-                for s in seen)
+    # The joint fits take each recording's load phase from its own diagnosis, and with it the phase's integral: for
+    # healthy and a drift, at the joint values, as each recording's own diagnosis integrated it at its own (an effect's
+    # own fit found the phase beside its values; here it is held where that fit put it, at the phase's width there).
+    def phase_terms(fit, mine):
+        if fit.hypothesis.verdict_class == "new_dynamics":
+            return sum(alignment.load_phase_occam(s.base, s.sigma, s.channels, s.sampling, settings.max_step, alignment.FIT_HALF_WIDTH)
+                       for s in mine)
+        return sum(alignment.load_phase_occam({**s.base, **fit.values}, s.sigma, s.channels, s.sampling, settings.max_step,
+                                              alignment.FIT_HALF_WIDTH, s.data,
+                                              {p: alignment.RELATIVE_STEP * abs(v) for p, v in fit.values.items()}, s.instruments)
+                   for s in mine)
 
     def joint(hypothesis):
         starts = joint_starts([rows[hypothesis.name]["parameters"] for rows in own], hypothesis.parameters)
         mine = seen_by[hypothesis.name]
         fit = instrument_checks.joint_checked(hypotheses.fit_joint(hypothesis, mine, starts, settings.max_step), mine,
                                               settings.evidence_margin)
-        return replace(fit, log_evidence=fit.log_evidence + occam)
+        return replace(fit, log_evidence=fit.log_evidence + phase_terms(fit, mine))
 
     fits = concurrency.in_parallel({n: lambda h=h: joint(h) for n, h in hyps.items()})
     ranking = sorted((_row(fits[n], [rows[n] for rows in own], seen_by[n], settings) for n in hyps), key=lambda row: -row["log_evidence"])
