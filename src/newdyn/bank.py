@@ -1,8 +1,9 @@
 """What every diagnosis at one operating condition and record reuses, computed once per study and condition: the
 signature library (:mod:`newdyn.signatures`) and the members of each hypothesis with parameters.  The library is a
-property of the condition, not of where on the shaft's turn and the load's cycle a record starts, and is reused for
-any; members are compared with the record itself, so a record that starts elsewhere gets its own
-(:func:`with_members`).
+property of the condition, not of where on the shaft's turn and the load's cycle a record starts, nor of a few rpm
+the data correct the nameplate's speed by, and is reused for any; members are compared with the record itself, so a
+record that starts elsewhere gets its own (:func:`with_members`), at the load's phase the record's lines give (the
+fits free the phase from the best member: a box dimension for it would thin every axis of the others).
 
 Members are quasi-random points (a scrambled Sobol sequence) of a hypothesis's prior box, simulated over the fits'
 first search windows.  A fit of a hypothesis with at most :data:`MAX_PARAMETERS` fitted parameters starts its least
