@@ -439,6 +439,16 @@ def test_an_unexplained_verdict_says_where_the_residual_remains():
     assert "stick_slip, leaves 3.2" in text and "w1 0-10 Hz (x12" in text and "b1_x at load-cycle phase 0.25-0.5" in text
 
 
+def test_a_new_dynamics_verdict_says_when_its_intervals_did_not_converge():
+    parameters = {"T_max": {"mean": 1942.0, "hdi_low": 1940.0, "hdi_high": 1944.0}}
+    verdict = {"verdict": "new_dynamics", "effect": "stick_slip", "equivalent": [], "parameters": parameters, "chi2_before": 7.3,
+               "chi2_after": 1.02, "converged": True, "effect_fit": {"method": "mcmc", "reason": ""}}
+    assert statement.statement(verdict, 1.1).endswith("brings reduced chi2 from 7.3 to 1.02")
+    stopped = {**verdict, "converged": False, "effect_fit": {"method": "mcmc", "reason": "R-hat 1.045 > 1.01 after 8 rounds"}}
+    assert statement.statement(stopped, 1.1).endswith(
+        "to 1.02; these intervals are not reliable: the MCMC did not converge (R-hat 1.045 > 1.01 after 8 rounds)")
+
+
 def test_effect_mcmc_rounds_default_to_the_calibrations_and_can_be_set_apart():
     assert SETTINGS.mcmc["max_rounds"] == CONFIG["calibration"]["mcmc"]["max_rounds"]
     config = {**CONFIG, "diagnosis": {**CONFIG["diagnosis"], "mcmc": {**CONFIG["diagnosis"]["mcmc"], "max_rounds": 5}}}

@@ -61,11 +61,18 @@ def _model_sentence(verdict: Mapping, chi2_max: float) -> str:
         return (f"parameter change: {fitted} brings reduced chi2 from {before:.3g} to {after:.3g}"
                 + (f"; a drift of {' or '.join(others)} explains the data equally well (see identifiability)" if others else ""))
     if kind == "new_dynamics":
-        return f"new dynamics: {effect} added to the model, with {fitted}, brings reduced chi2 from {before:.3g} to {after:.3g}"
+        return (f"new dynamics: {effect} added to the model, with {fitted}, brings reduced chi2 from {before:.3g} to {after:.3g}"
+                + (_unreliable(verdict["effect_fit"]) if verdict.get("converged") is False else ""))
     where = "; ".join(_finding(f) for f in verdict["remaining"][:3]) or "no single band or load phase"
     return (f"unexplained: no hypothesis of the library brings reduced chi2 to {chi2_max:g} or below; the closest, "
             f"{verdict['models']['after']}, leaves {after:.3g}, above the noise in {where}"
             + (f"; {verify.in_words(verdict['discovery'], before)}" if verdict.get("discovery", {}).get("candidates") else ""))
+
+
+def _unreliable(effect_fit: Mapping) -> str:
+    """What an unconverged posterior's intervals are worth, in words."""
+    method = "MCMC" if effect_fit["method"] == "mcmc" else effect_fit["method"]
+    return f"; these intervals are not reliable: the {method} did not converge ({effect_fit.get('reason') or 'its diagnostics failed'})"
 
 
 def _finding(finding: Mapping) -> str:
