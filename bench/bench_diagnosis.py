@@ -42,9 +42,13 @@ def revision_env(repo: Path) -> dict:
 
 
 def prepare(folder: Path, revision: str) -> Path:
-    """A worktree of ``revision`` in ``folder`` (kept if there)."""
+    """A worktree of ``revision`` in ``folder``: one kept there is moved to ``revision`` (its results stay, and the
+    workflow reruns what the code change touches)."""
     if not folder.exists():
         run("git", "-C", ROOT, "worktree", "add", "--detach", folder, revision)
+    else:
+        run("git", "-C", folder, "checkout", "--detach", subprocess.run(["git", "-C", ROOT, "rev-parse", revision], capture_output=True,
+                                                                         text=True, check=True).stdout.strip())
     return folder
 
 
