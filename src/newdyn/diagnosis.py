@@ -172,8 +172,10 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
         sigma, noise_source = coloured_level(channels, sigma, noise_source, colour, level)
     clock = time.perf_counter()
     if record is None:
+        # A displacement's once-per-revolution line times the speed by its phase, whatever the probe's gain; a disk
+        # speed's mean only to its sensor's gain (a datasheet's 0.1 % is 1.5 rpm, 0.14 rad over a 1-s record).
         record = alignment.align(data, sigma, channels, values, sampling, settings.max_step,
-                                 fit_speed=not any(c in running_speed.SPEEDS for c in measurement.channels))
+                                 fit_speed=any(c in running_speed.DISPLACEMENTS for c in channels))
         log.info("%s: the record's angles %s (chi2 %.4g -> %.4g, %d simulations) in %.1f s", measurement.name,
                  {k: round(v, 4) for k, v in record.values.items()}, record.chi2_stated, record.chi2_found,
                  record.n_simulations, time.perf_counter() - clock)
