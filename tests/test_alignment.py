@@ -56,6 +56,18 @@ def test_a_record_of_displacements_alone_gets_its_speed_fitted_with_the_angles(r
     assert found.chi2_found < 2.0
 
 
+def test_a_disk_speed_read_through_its_sensors_gain_is_corrected_by_the_shafts_line(recording):
+    """A tachometer within its datasheet's 0.1 % still reads 1.5 rpm off: its mean starts the speed's fit, which the
+    once-per-revolution line's phase ends at the truth."""
+    _, noisy, sigma = recording
+    read = noisy * np.array([1.0, 1.0, 1.001])[:, None]
+    start = running_speed.measured("m.nc", CHANNELS, read, SAMPLING.fs, slots.complete({}))
+    assert start == pytest.approx(1483.0 * 1.001, abs=0.01)
+    found = alignment.align(read, sigma, CHANNELS, {**slots.complete({}), "speed_rpm": start}, SAMPLING, DEFAULT_MAX_STEP,
+                            fit_speed=True)
+    assert found.values["speed_rpm"] == pytest.approx(1483.0, abs=0.01)
+
+
 def test_a_record_on_the_models_own_clock_keeps_its_stated_angles():
     clean = simulate(slots.complete({}), SAMPLING, CHANNELS)
     noisy, sigma = noise.add_noise(clean, CHANNELS, 40.0, 2)
