@@ -57,8 +57,8 @@ def test_a_record_of_displacements_alone_gets_its_speed_fitted_with_the_angles(r
 
 
 def test_a_disk_speed_read_through_its_sensors_gain_is_corrected_by_the_shafts_line(recording):
-    """A tachometer within its datasheet's 0.1 % still reads 1.5 rpm off: its mean starts the speed's fit, which the
-    once-per-revolution line's phase ends at the truth."""
+    """A tachometer within its datasheet's 0.1 % still reads 1.5 rpm off: from its mean, a speed fitted with the angles
+    on a 1-s record ends at the truth (within 5 % of the start: a short record's line alone may not hold it)."""
     _, noisy, sigma = recording
     read = noisy * np.array([1.0, 1.0, 1.001])[:, None]
     start = running_speed.measured("m.nc", CHANNELS, read, SAMPLING.fs, slots.complete({}))

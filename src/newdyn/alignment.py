@@ -61,6 +61,15 @@ class Alignment:
                 "n_simulations": self.n_simulations, "compared": self.compared}
 
 
+def _bounds(names: Sequence[str], stated: Mapping[str, float]) -> tuple[np.ndarray, np.ndarray]:
+    """Where the record's values may go: the angles anywhere on the turn, the speed within
+    :data:`newdyn.running_speed.FAR` of the stated one (farther, the file is refused): a waveform compared without its
+    means does not see a disk speed's level, and a short record's shaft line alone may not hold the speed."""
+    margin = np.array([running_speed.FAR * stated[n] if n == "speed_rpm" else np.inf for n in names])
+    centre = np.array([stated[n] if n == "speed_rpm" else 0.0 for n in names])
+    return centre - margin, centre + margin
+
+
 def _found(names: Sequence[str], x: Sequence[float]) -> dict[str, float]:
     """Found values by name, each angle on the circle's turn."""
     return {n: (float(v) if n == "speed_rpm" else model.wrap_angle(v)) for n, v in zip(names, x)}
@@ -151,7 +160,7 @@ def align(data: np.ndarray, sigma: np.ndarray, channels: Sequence[str], values: 
     best = None
     for start in first_guess(target, compare, sigma, channels, values, sampling, max_step):
         x0 = np.array([start[n] for n in names[:3]] + ([values["speed_rpm"]] if fit_speed else []))
-        found = optimize.least_squares(fun, x0, jac=jac, method="trf", x_scale="jac", max_nfev=40)
+        found = optimize.least_squares(fun, x0, jac=jac, bounds=_bounds(names, values), method="trf", x_scale="jac", max_nfev=40)
         if best is None or found.cost < best.cost:
             best = found
     chi2 = 2.0 * best.cost
@@ -188,8 +197,8 @@ def align_jointly(data: np.ndarray, sigma: np.ndarray, channels: Sequence[str], 
         """χ² and the angles at the best theta, the angles ``fixed`` (None: free)."""
         free = np.arange(k + theta.size) if fixed is None else np.arange(k, k + theta.size)
         x = np.concatenate([[(fixed or current)[n] for n in names], np.clip(theta, low, high)])
-        lower = np.concatenate([np.full(k, -np.inf), low])[free]
-        upper = np.concatenate([np.full(k, np.inf), high])[free]
+        lower = np.concatenate([_bounds(names, angles)[0], low])[free]
+        upper = np.concatenate([_bounds(names, angles)[1], high])[free]
 
         def fun(z):
             point = x.copy()
@@ -222,7 +231,7 @@ def align_jointly(data: np.ndarray, sigma: np.ndarray, channels: Sequence[str], 
     return Alignment(_found(names, found_angles), chi2_current / data.size, chi2_free / data.size, count[0], "waveform")
 
 
-def load_phase_occam(values: Mapping[str, float], sigma: np.ndarray, channels: Sequence[str], sampling: model.Sampling,
+def load_phase_integral(values: Mapping[str, float], sigma: np.ndarray, channels: Sequence[str], sampling: model.Sampling,
                      max_step: float, half_width: float, data: np.ndarray | None = None, fitted: Mapping[str, float] | None = None,
                      instruments=None) -> float:
     """What integrating the load's phase over a uniform prior ``half_width`` either side of ``values["load_phase"]`` adds

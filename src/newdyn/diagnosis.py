@@ -172,10 +172,8 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
         sigma, noise_source = coloured_level(channels, sigma, noise_source, colour, level)
     clock = time.perf_counter()
     if record is None:
-        # A displacement's once-per-revolution line times the speed by its phase, whatever the probe's gain; a disk
-        # speed's mean only to its sensor's gain (a datasheet's 0.1 % is 1.5 rpm, 0.14 rad over a 1-s record).
         record = alignment.align(data, sigma, channels, values, sampling, settings.max_step,
-                                 fit_speed=any(c in running_speed.DISPLACEMENTS for c in channels))
+                                 fit_speed=not any(c in running_speed.SPEEDS for c in measurement.channels))
         log.info("%s: the record's angles %s (chi2 %.4g -> %.4g, %d simulations) in %.1f s", measurement.name,
                  {k: round(v, 4) for k, v in record.values.items()}, record.chi2_stated, record.chi2_found,
                  record.n_simulations, time.perf_counter() - clock)
@@ -217,7 +215,7 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
     fits.update({f"{PARAMETER_CHANGE}:{p}": _drift_fit(hyps[f"{PARAMETER_CHANGE}:{p}"], cal, instruments) for p, cal in calibrations.items()})
     # Healthy and the drifts were fitted at the load's phase where the lines put it; the effects' fits find it beside
     # their values.  The phase integrated out at each one's best values puts the evidences on one footing.
-    phase_terms = concurrency.in_parallel({name: lambda fit=fit: alignment.load_phase_occam(
+    phase_terms = concurrency.in_parallel({name: lambda fit=fit: alignment.load_phase_integral(
         {**values, **fit.values}, sigma, channels, sampling, settings.max_step, alignment.FIT_HALF_WIDTH, data,
         {p: alignment.RELATIVE_STEP * abs(v) for p, v in fit.values.items()}, instruments) for name, fit in fits.items()})
     fits = {name: replace(fit, log_evidence=fit.log_evidence + phase_terms[name]) for name, fit in fits.items()}

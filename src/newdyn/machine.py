@@ -73,9 +73,9 @@ def diagnose(name: str, recordings: Sequence[Diagnosed], settings: Settings) -> 
     # own fit found the phase beside its values; here it is held where that fit put it, at the phase's width there).
     def phase_terms(fit, mine):
         if fit.hypothesis.verdict_class == "new_dynamics":
-            return sum(alignment.load_phase_occam(s.base, s.sigma, s.channels, s.sampling, settings.max_step, alignment.FIT_HALF_WIDTH)
+            return sum(alignment.load_phase_integral(s.base, s.sigma, s.channels, s.sampling, settings.max_step, alignment.FIT_HALF_WIDTH)
                        for s in mine)
-        return sum(alignment.load_phase_occam({**s.base, **fit.values}, s.sigma, s.channels, s.sampling, settings.max_step,
+        return sum(alignment.load_phase_integral({**s.base, **fit.values}, s.sigma, s.channels, s.sampling, settings.max_step,
                                               alignment.FIT_HALF_WIDTH, s.data,
                                               {p: alignment.RELATIVE_STEP * abs(v) for p, v in fit.values.items()}, s.instruments)
                    for s in mine)

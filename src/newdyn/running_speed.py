@@ -5,8 +5,7 @@ A disk speed channel's mean is Ω in steady state (the motor delivers on average
 has one, the speed the file or the config states is kept where the data cannot tell it from theirs (within
 :data:`AGREE_SDS` of the mean's standard error), else replaced by the data's.  A file of displacements alone shows
 the speed in the shaft's once-per-revolution line, whatever the channels' unit or gain, but only to the load's lines
-beside it: its stated speed is kept here.  Wherever a displacement is recorded, the speed is fitted with the angles
-from what this module gives (:mod:`newdyn.alignment`): a disk speed's mean is Ω only to its sensor's gain.  A stated speed that
+beside it: its stated speed is kept here and fitted with the angles (:mod:`newdyn.alignment`).  A stated speed that
 the data put farther than :data:`FAR` from theirs is a bad file, not a speed to correct silently.
 """
 
