@@ -71,7 +71,7 @@ def test_quadrature_splits_its_cells_only_where_its_lattice_disagrees_with_the_l
     def log_posterior(theta):
         evaluated.append(len(theta))
         log_likelihood = gaussian(mean, cov)(theta)
-        return log_likelihood, log_likelihood
+        return log_likelihood, log_likelihood, np.empty((len(theta), 0))
 
     theta, log_weight, *_, found = posterior._quadrature(log_posterior, posterior._Whitened.of(mean, too_wide**2 * cov), np.zeros(0))
     first_lattice = (2 * round(posterior.HALF_WIDTH / posterior.STEP) + 1) ** 2
@@ -209,3 +209,31 @@ def test_the_same_seed_gives_the_same_draws(k):
     run = [posterior.sample(gaussian(np.zeros(k), np.eye(k)), box([-9] * k, [9] * k), list("abc"[:k]), np.zeros(k), np.eye(k), SETTINGS)
            for _ in range(2)]
     np.testing.assert_array_equal(run[0].posterior["a"].values, run[1].posterior["a"].values)
+
+
+@pytest.mark.parametrize(("narrower", "method"), [(1.0, "importance sampling"), (4.0, "quadrature")])
+def test_a_nuisance_integrated_out_by_the_likelihood_moves_the_others_by_its_curvature_and_is_drawn_from_its_conditional(
+        narrower, method):
+    # log p(θ, φ) = −½ θ'Σ⁻¹θ − ½ S(θ) (φ − a θ₀)², S(θ) = s₀ exp(c θ₁): integrating φ out adds ½ log 2π/S(θ) = −½ c θ₁ +
+    # const, which moves θ's mean to −½ c Σ e₁; given θ, φ is normal about a θ₀ with variance 1/S(θ).
+    cov, a, s0, c = np.array([[1.0, 0.5], [0.5, 2.0]]), 3.0, 400.0, 0.8
+
+    def profiled(theta):
+        curvature = s0 * np.exp(c * theta[:, 1])
+        return posterior.Profiled(gaussian(np.zeros(2), cov)(theta), 0.5 * np.log(2 * np.pi / curvature),
+                                  (a * theta[:, 0])[:, None], (1 / np.sqrt(curvature))[:, None])
+
+    idata = posterior.sample(profiled, box([-20, -20], [20, 20]), ["t0", "t1"], np.zeros(2), cov / narrower**2, SETTINGS,
+                             nuisance=["phi"])
+    assert idata.attrs["method"] == method and idata.attrs["converged"] == 1
+    mean = cov @ np.array([0.0, -0.5 * c])
+    got_mean, got_sd = moments(idata, ["t0", "t1"])
+    np.testing.assert_array_less(np.abs(got_mean - mean), 4 * np.sqrt(np.diag(cov) / SETTINGS.batch))
+    np.testing.assert_allclose(got_sd, np.sqrt(np.diag(cov)), rtol=0.06)  # a linear term moves a Gaussian, not its spread
+    phi_mean = a * mean[0]
+    phi_variance = a**2 * cov[0, 0] + np.exp(-c * mean[1] + c**2 * cov[1, 1] / 2) / s0  # E[1/S(θ)] of a lognormal
+    phi = idata.posterior["phi"].values.ravel()
+    assert abs(phi.mean() - phi_mean) < 4 * np.sqrt(phi_variance / SETTINGS.batch)
+    np.testing.assert_allclose(phi.std(), np.sqrt(phi_variance), rtol=0.06)
+    # every lattice point carries the nuisance's conditional mean
+    np.testing.assert_allclose(idata.weighted["phi"].values, a * idata.weighted["t0"].values)

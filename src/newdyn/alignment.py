@@ -22,12 +22,13 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 from scipy import optimize, stats
 
 from . import likelihood, model, running_speed, simulation
+from .posterior import Profiled
 
 LOAD_PHASES = 48  # grid of the load's phase for the first guess
 ANGLES = 72  # grid of each imbalance angle for the first guess
@@ -254,3 +255,40 @@ def load_phase_integral(values: Mapping[str, float], sigma: np.ndarray, channels
     schur = hessian[0, 0] - (coupling @ np.linalg.solve(given, coupling) if len(given) else 0.0)
     along = gradient[0] - (coupling @ np.linalg.solve(given, gradient[1:]) if len(given) else 0.0)
     return float(0.5 * along**2 / schur + 0.5 * math.log(2 * math.pi / schur) - math.log(2 * half_width))
+
+
+def phase_profiled(hypothesis, theta: np.ndarray, covariance: np.ndarray, data: np.ndarray, sigma: np.ndarray,
+                   channels: Sequence[str], sampling: model.Sampling, max_step: float, values: Mapping[str, float],
+                   instruments=None) -> tuple[list[str], Callable[[np.ndarray], Profiled]]:
+    """The names of ``hypothesis``'s values but the load's phase and a likelihood of rows of them with the phase
+    integrated out (:class:`newdyn.posterior.Profiled`): at each row, from the phase's conditional mean under the fit's
+    Laplace approximation (``theta``, ``covariance``), one Gauss–Newton step along the phase, its gradient and
+    curvature from one more simulation.  The phase's posterior is normal and narrow beside a fault's values, so a fault
+    of two values keeps its quadrature instead of sampling three dimensions."""
+    names = list(hypothesis.parameters)
+    phase_index = names.index("load_phase")
+    own = [i for i in range(len(names)) if i != phase_index]
+    slope = np.linalg.solve(covariance[np.ix_(own, own)], covariance[own, phase_index])
+
+    def rows_of(own_rows: np.ndarray) -> Profiled:
+        n = len(own_rows)
+        phase = theta[phase_index] + (own_rows - theta[own]) @ slope
+        at = np.insert(own_rows, phase_index, phase, axis=1)
+        moved = at.copy()
+        moved[:, phase_index] += JACOBIAN_STEP
+        outputs = simulation.simulate_batch(hypothesis.parameter_rows(np.vstack([at, moved]), values), sampling, channels, max_step)
+        r = likelihood.standardized_residuals(data, outputs, sigma, instruments).reshape(2 * n, -1)
+        along = (r[n:] - r[:n]) / JACOBIAN_STEP
+        curvature = np.einsum("ij,ij->i", along, along)
+        gradient = np.einsum("ij,ij->i", along, r[:n])
+        best = likelihood.log_likelihood(data, outputs[:n], sigma, instruments=instruments) + 0.5 * gradient**2 / curvature
+        usable = np.isfinite(best) & (curvature > 0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return Profiled(np.where(usable, best, -np.inf), np.where(usable, 0.5 * np.log(2 * math.pi / curvature), 0.0),
+                            (phase - gradient / curvature)[:, None], (1.0 / np.sqrt(curvature))[:, None])
+
+    def profiled(own_rows: np.ndarray) -> Profiled:  # a few rows at a time: two simulations of each are in memory at once
+        parts = [rows_of(own_rows[i : i + likelihood.SCORED_ROWS]) for i in range(0, len(own_rows), likelihood.SCORED_ROWS)]
+        return Profiled(*(np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(Profiled)))
+
+    return [names[i] for i in own], profiled

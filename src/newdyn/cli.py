@@ -467,14 +467,16 @@ def diagnose_machine(name: str, measurement_paths: list[str], verdict_paths: lis
 
 
 def write_bank(spec: dict, grid_paths: list[str], output: str, code_hash: str) -> None:
-    """The study's bank (newdyn.bank) for a diagnosis spec at its operating condition and record (``spec["sampling"]``),
-    on the study's coarse grids where they hold its channels: every diagnosis at that condition reuses it."""
+    """The study's bank (newdyn.bank) for a diagnosis spec at its operating condition, on the record a diagnosis
+    compares (``spec["sampling"]`` from its warm-up, :func:`_warm_up`), on the study's coarse grids where they are
+    that record's: every diagnosis at that condition reuses it."""
     from . import calibration, diagnosis, io, provenance, slots
     from .settings import Settings
 
     settings = Settings.from_config(spec)
     values = slots.complete({**spec["rig"], **spec["operating"]})
-    sampling = _sampling(spec["sampling"])
+    study_record = _sampling(spec["sampling"])
+    sampling = io.model_sampling(study_record.fs, study_record.n_samples, _warm_up(spec))
     paths = calibration.grid_files(grid_paths)
     coarse = {p: calibration.coarse_models(paths.get(p), grid, values, sampling, settings.channels, settings.max_step)
               for p, grid in settings.grids.items()}

@@ -74,6 +74,7 @@ log = logging.getLogger("newdyn")
 # nominal model lacks may pull them (most of all on a short record), and a fit at angles pulled off finds its values
 # off too, which the next pass corrects.
 REALIGNMENTS = 3
+PHASE = "load_phase"  # the record's parameter that every effect's fit finds beside its own values
 
 
 def coloured_level(channels: Sequence[str], sigma: np.ndarray, source: str, colour: noise.Colour,
@@ -91,7 +92,7 @@ def _with_load_phase(hypothesis: hypotheses.Hypothesis, phase: float) -> hypothe
     """``hypothesis`` with the load's phase fitted beside its own values, within
     :data:`newdyn.alignment.FIT_HALF_WIDTH` of ``phase``."""
     width = alignment.FIT_HALF_WIDTH
-    return replace(hypothesis, priors=(*hypothesis.priors, hypotheses.Prior("load_phase", phase - width, phase + width)))
+    return replace(hypothesis, priors=(*hypothesis.priors, hypotheses.Prior(PHASE, phase - width, phase + width)))
 
 
 def _realigned(fit: hypotheses.Fit, data, sigma, values, stated, record: alignment.Alignment, sampling, channels,
@@ -179,7 +180,7 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
                  record.n_simulations, time.perf_counter() - clock)
     values = {**values, **record.values}
     library = hyps
-    hyps = {**library, **{kind: _with_load_phase(library[kind], values["load_phase"]) for kind in settings.fault_ranges}}
+    hyps = {**library, **{kind: _with_load_phase(library[kind], values[PHASE]) for kind in settings.fault_ranges}}
     searched = searched or {}
     instruments = settings.instruments(sampling.fs, colour)  # as the datasheets say; out-of-spec ones are found per fit
 
@@ -437,9 +438,23 @@ def _effect_posterior(fit: hypotheses.Fit, data, sigma, values, sampling, channe
 
     observed = {"y": xr.DataArray(data, dims=("channel", "time"), coords={"channel": list(channels), "time": sampling.times})}
     support = {p.name: [p.low, p.high] for p in hypothesis.priors}
-    posterior = posterior_module.sample(log_likelihood, hypothesis.log_prior, hypothesis.parameters, fit.theta, fit.covariance,
-                                        settings.posterior, observed=observed,
-                                        attrs={"hypothesis": hypothesis.name, "support": support}, verify=unneeded is None)
+    attrs = {"hypothesis": hypothesis.name, "support": support}
+    if PHASE in hypothesis.parameters and fit.covariance is not None and len(hypothesis.parameters) > 1:
+        # The load's phase integrated out at each point: a fault of two values stays on the quadrature.
+        names, profiled = alignment.phase_profiled(hypothesis, fit.theta, fit.covariance, data, sigma, channels, sampling,
+                                                   settings.max_step, values, fit.instruments)
+        own = [hypothesis.parameters.index(name) for name in names]
+        phase_index, phase = hypothesis.parameters.index(PHASE), fit.values[PHASE]
+
+        def log_prior(rows):  # the phase's prior is flat: its density enters as at the fit's phase
+            return hypothesis.log_prior(np.insert(rows, phase_index, phase, axis=1))
+
+        posterior = posterior_module.sample(profiled, log_prior, names, fit.theta[own], fit.covariance[np.ix_(own, own)],
+                                            settings.posterior, observed=observed, attrs={**attrs, "integrated": PHASE},
+                                            verify=unneeded is None, nuisance=[PHASE])
+    else:
+        posterior = posterior_module.sample(log_likelihood, hypothesis.log_prior, hypothesis.parameters, fit.theta, fit.covariance,
+                                            settings.posterior, observed=observed, attrs=attrs, verify=unneeded is None)
     if posterior.attrs["converged"]:
         return posterior
     if unneeded is not None:

@@ -25,12 +25,16 @@ unverified (k̂ too large, or too few effective draws), the proposal is fitted a
 and covariance, as in population Monte Carlo, Cappé et al. 2004), up to :data:`REFITS` times; the last proposal draws
 batches until the answer is verified or it has drawn the most, and only its draws count.
 
+A parameter whose conditional posterior is normal and narrow (the load's phase of a record) need not be sampled: the
+caller's likelihood integrates it out for each point (:class:`Profiled`), which keeps a fault of two own values on the
+quadrature, and each draw takes its value from that conditional normal.
+
 The result is an :class:`arviz.InferenceData` shaped like :func:`newdyn.sampling.run`'s: a ``posterior`` of one chain
 of equally weighted draws, ``sample_stats`` with their ``lp`` and ``log_likelihood``, a ``weighted`` group with every
 lattice point or proposal inside the prior's support, its normalized log weight and log-likelihood, and attributes
 ``method``, ``converged`` (1 when verified, as netCDF has no booleans) and ``reason``; importance sampling adds
 ``pareto_k``, ``ess_bulk`` (the weights' effective sample size) and ``n_proposals``, quadrature ``step``,
-``edge_mass`` and ``n_points``.
+``edge_mass`` and ``n_points``.  Nuisance parameters (:class:`Profiled`) are listed after the sampled ones in every group.
 """
 
 from __future__ import annotations
@@ -91,6 +95,18 @@ class PosteriorSettings:
 
 
 @dataclasses.dataclass(frozen=True)
+class Profiled:
+    """What a likelihood that integrates nuisance parameters out itself returns for rows of the sampled ones: the
+    log-likelihood where the nuisances are best, what integrating them over their prior adds to the log posterior,
+    and their conditional normal's mean and sd (rows, nuisances)."""
+
+    log_likelihood: np.ndarray
+    log_integral: np.ndarray
+    mean: np.ndarray
+    sd: np.ndarray
+
+
+@dataclasses.dataclass(frozen=True)
 class _Whitened:
     """θ ↔ z of a Laplace approximation."""
 
@@ -122,6 +138,7 @@ def sample(
     attrs: Mapping[str, object] | None = None,
     to_values: BatchFn | None = None,
     verify: bool = True,
+    nuisance: Sequence[str] = (),
 ):
     """The posterior of ``names`` around the Laplace approximation (``mean``, ``covariance``): by quadrature for up to
     :data:`MAX_QUADRATURE_PARAMETERS`, else by importance sampling.  ``log_prior_batch`` is −inf outside the prior's
@@ -129,30 +146,38 @@ def sample(
     fails.  With ``to_values`` the functions and the approximation are in coordinates of the caller's choosing (the
     prior's density with its Jacobian), where a ridge may be straighter, and the draws are mapped to the values by it.
     Without ``verify`` (nothing the caller concludes rests on it) one batch of importance sampling, verified only if
-    that batch is enough, and no quadrature."""
+    that batch is enough, and no quadrature.  With ``nuisance`` names, the likelihood integrates those parameters out
+    itself and returns a :class:`Profiled` for its rows: the posterior of ``names`` is sampled, and each draw's
+    nuisance values are drawn from their conditional normal at the point it was drawn from."""
     whitened = _Whitened.of(mean, covariance)
+    n_nuisance = len(nuisance)
 
-    def log_posterior(theta):  # (log prior + log-likelihood, log-likelihood), the likelihood only inside the support
+    def log_posterior(theta):  # (log prior + log-likelihood, log-likelihood, nuisances' (means, sds)), inside the support
         lp = np.asarray(log_prior_batch(theta), dtype=float)
-        ll = np.full(len(theta), -np.inf)
+        ll, conditional = np.full(len(theta), -np.inf), np.full((len(theta), 2 * n_nuisance), np.nan)
         inside = np.isfinite(lp)
-        if inside.any():
+        if inside.any() and n_nuisance:
+            profiled = log_likelihood_batch(theta[inside])
+            ll[inside] = profiled.log_likelihood
+            lp[inside] += profiled.log_integral
+            conditional[inside] = np.hstack([profiled.mean, profiled.sd])
+        elif inside.any():
             ll[inside] = log_likelihood_batch(theta[inside])
-        return lp + ll, ll
+        return lp + ll, ll, conditional
 
     checkable = verify and len(names) <= MAX_QUADRATURE_PARAMETERS
     effort = settings if verify else dataclasses.replace(settings, max_draws=settings.batch)
-    theta, log_weight, log_post, log_like, cells, found = _importance(
+    theta, log_weight, log_post, log_like, conditional, cells, found = _importance(
         log_posterior, whitened, dataclasses.replace(effort, pareto_k_max=min(effort.pareto_k_max, CHECKED_PARETO_K))
         if checkable else effort, refits=REFITS if verify and not checkable else 0)
     if checkable and not found["converged"]:
         tried = f"importance sampling first: {found['reason']}"
-        theta, log_weight, log_post, log_like, cells, found = _quadrature(
+        theta, log_weight, log_post, log_like, conditional, cells, found = _quadrature(
             log_posterior, whitened, _ridge(whitened.z(theta), np.exp(log_weight)))
         recentred = _recentred(theta, log_weight) if found["edge_mass"] > EDGE_MASS else None
         if recentred is not None:
             tried += f"; quadrature about the Laplace approximation: {found['reason']}"
-            theta, log_weight, log_post, log_like, cells, found = _quadrature(
+            theta, log_weight, log_post, log_like, conditional, cells, found = _quadrature(
                 log_posterior, recentred, _ridge(recentred.z(theta), np.exp(log_weight)))
         found["tried"] = tried
     rng = np.random.default_rng(settings.seed)
@@ -167,8 +192,12 @@ def sample(
     points = theta[kept]
     if to_values is not None:
         draws, points = (np.asarray(to_values(x), dtype=float) for x in (draws, points))
-    return _inference_data(names, draws, log_post[picked], log_like[picked], points, log_weight[kept], log_like[kept],
-                           {**(attrs or {}), **found}, observed, settings)
+    if n_nuisance:  # drawn where each draw was drawn from; a point keeps its conditional mean
+        means, sds = conditional[:, :n_nuisance], conditional[:, n_nuisance:]
+        draws = np.hstack([draws, means[picked] + sds[picked] * rng.standard_normal((len(picked), n_nuisance))])
+        points = np.hstack([points, means[kept]])
+    return _inference_data([*names, *nuisance], draws, log_post[picked], log_like[picked], points, log_weight[kept],
+                           log_like[kept], {**(attrs or {}), **found}, observed, settings)
 
 
 def _ridge(z: np.ndarray, weights: np.ndarray) -> np.ndarray:
@@ -183,7 +212,7 @@ def _ridge(z: np.ndarray, weights: np.ndarray) -> np.ndarray:
 def _quadrature(log_posterior, whitened: _Whitened, ridge: np.ndarray):
     """The posterior by the midpoint rule on cells in sheared coordinates u, z = (u₁, u₂ + ridge(u₁)), which bend the
     lattice along the posterior's ``ridge`` at unit Jacobian (module docstring): (cell centres θ, normalized log
-    weights, log posteriors, log-likelihoods, (cell centres u, sides, u → θ), what it found).  A cell's weight is its density times its
+    weights, log posteriors, log-likelihoods, nuisances' conditionals, (cell centres u, sides, u → θ), what it found).  A cell's weight is its density times its
     volume, so cells of every size sum together: the split ones where the posterior has weight, the first beyond."""
     k = len(whitened.mean)
 
@@ -192,15 +221,15 @@ def _quadrature(log_posterior, whitened: _Whitened, ridge: np.ndarray):
             return whitened.theta(u)
         return whitened.theta(np.column_stack([u[:, 0], u[:, 1] + ridge @ np.stack([np.ones(len(u)), u[:, 0], u[:, 0] ** 2])]))
     finest = STEP / 2 ** (MAX_REFINEMENTS + 1)  # the children of the last refinement sit on this lattice
-    known: dict[tuple[int, ...], tuple[float, float]] = {}  # (log posterior, log-likelihood) by lattice index
+    known: dict[tuple[int, ...], np.ndarray] = {}  # (log posterior, log-likelihood, nuisances' conditional) by lattice index
 
     def evaluate(z):
         keys = [tuple(row) for row in np.rint(z / finest).astype(np.int64)]
         new = list({key: i for i, key in enumerate(keys) if key not in known}.values())
         if new:
-            values = log_posterior(theta_at(z[new]))
-            known.update({keys[i]: (values[0][j], values[1][j]) for j, i in enumerate(new)})
-        return np.array([known[key] for key in keys], dtype=float).reshape(len(z), 2)
+            post, like, conditional = log_posterior(theta_at(z[new]))
+            known.update({keys[i]: np.concatenate([[post[j], like[j]], conditional[j]]) for j, i in enumerate(new)})
+        return np.array([known[key] for key in keys], dtype=float).reshape(len(z), -1)
 
     low, high = np.full(k, -HALF_WIDTH), np.full(k, HALF_WIDTH)
     while True:  # widen the first lattice until its edges hold no weight
@@ -248,7 +277,8 @@ def _quadrature(log_posterior, whitened: _Whitened, ridge: np.ndarray):
         failed.append(f"mean or sd still moved by more than {RESOLUTION:g} sd when the cells were split to {step:g} sd")
     found = {"method": QUADRATURE, "converged": not failed, "reason": "; ".join(failed), "step": step, "edge_mass": edge_mass,
              "n_points": len(known)}
-    return theta_at(z), _normalized(values[:, 0] + k * np.log(size), log=True), values[:, 0], values[:, 1], (z, size, theta_at), found
+    return (theta_at(z), _normalized(values[:, 0] + k * np.log(size), log=True), values[:, 0], values[:, 1], values[:, 2:],
+            (z, size, theta_at), found)
 
 
 def _settled(coarser: tuple[np.ndarray, np.ndarray], finer: tuple[np.ndarray, np.ndarray]) -> bool:
@@ -260,12 +290,12 @@ def _settled(coarser: tuple[np.ndarray, np.ndarray], finer: tuple[np.ndarray, np
 def _importance(log_posterior, whitened: _Whitened, settings: PosteriorSettings, refits: int = 0):
     """Importance sampling from a Student-t around the approximation, its proposal fitted again to its weighted draws
     after a batch that leaves the answer unverified, up to ``refits`` times (module docstring): (the last proposal's θ, smoothed
-    normalized log weights, log posteriors, log-likelihoods, None, what it found)."""
+    normalized log weights, log posteriors, log-likelihoods, nuisances' conditionals, None, what it found)."""
     missed, proposal = [], "the Laplace approximation"
     one_batch = dataclasses.replace(settings, max_draws=settings.batch)
     while True:
         effort = settings if len(missed) == refits else one_batch
-        theta, log_weight, log_post, log_like, found = _importance_from(log_posterior, whitened, effort, proposal)
+        theta, log_weight, log_post, log_like, conditional, found = _importance_from(log_posterior, whitened, effort, proposal)
         if found["converged"] or len(missed) == refits:
             break
         refitted = _recentred(theta, log_weight)
@@ -276,21 +306,23 @@ def _importance(log_posterior, whitened: _Whitened, settings: PosteriorSettings,
     found["refits"] = len(missed)
     if missed:
         found["tried"] = "proposal fitted again to its weighted draws after: " + "; then ".join(missed)
-    return theta, log_weight, log_post, log_like, None, found
+    return theta, log_weight, log_post, log_like, conditional, None, found
 
 
 def _importance_from(log_posterior, whitened: _Whitened, settings: PosteriorSettings, proposal: str):
     """Importance sampling from a Student-t with ``whitened``'s mean and covariance (``proposal`` says whose, for the
-    reason it may give): (proposals θ, smoothed normalized log weights, log posteriors, log-likelihoods, what it found)."""
+    reason it may give): (proposals θ, smoothed normalized log weights, log posteriors, log-likelihoods, nuisances'
+    conditionals, what it found)."""
     import arviz as az
 
     k = len(whitened.mean)
     student_t = stats.multivariate_t(loc=np.zeros(k), shape=np.eye(k), df=settings.df)
     rng = np.random.default_rng(settings.seed)
-    theta, log_q, log_post, log_like = np.empty((0, k)), np.empty(0), np.empty(0), np.empty(0)
+    theta, log_q, log_post, log_like, conditional = np.empty((0, k)), np.empty(0), np.empty(0), np.empty(0), None
     while True:
         t = np.asarray(student_t.rvs(settings.batch, random_state=rng)).reshape(settings.batch, k)
-        post, like = log_posterior(whitened.theta(t))
+        post, like, more = log_posterior(whitened.theta(t))
+        conditional = more if conditional is None else np.vstack([conditional, more])
         theta = np.vstack([theta, whitened.theta(t)])
         log_q, log_post, log_like = (np.concatenate([a, b]) for a, b in ((log_q, student_t.logpdf(t).reshape(-1)),
                                                                           (log_post, post), (log_like, like)))
@@ -310,7 +342,7 @@ def _importance_from(log_posterior, whitened: _Whitened, settings: PosteriorSett
             break
     found = {"method": IMPORTANCE, "converged": not failed, "reason": "; ".join(failed), "pareto_k": float(pareto_k),
              "ess_bulk": ess, "n_proposals": len(theta)}
-    return theta, log_weight, log_post, log_like, found
+    return theta, log_weight, log_post, log_like, conditional, found
 
 
 def _normalized(log_values: np.ndarray, log: bool = False) -> np.ndarray:
