@@ -1,9 +1,14 @@
 """What every test shares: under pytest-xdist (one worker per core, as the README's test command runs), each worker's
-compiled code runs on one thread, so that two workers, and the Snakemake jobs the workflow tests start beside them, do
-not oversubscribe the cores; a test of threading raises its own count (numba's maximum stays one per core).  The
-longest test files are handed to the workers first."""
+compiled code and linear algebra run on one thread, so that two workers, and the Snakemake jobs the workflow tests
+start beside them, do not oversubscribe the cores; a test of threading raises its own count (numba's maximum stays one
+per core).  The longest test files are handed to the workers first."""
 
 import os
+
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    # Before NumPy loads OpenBLAS, which reads it once: its threads spin while they wait, and beside another worker and
+    # a Snakemake job they doubled an MCMC test's time.
+    os.environ["OPENBLAS_NUM_THREADS"] = "1"
 
 import numba
 import pytest

@@ -186,6 +186,7 @@ def align_jointly(data: np.ndarray, sigma: np.ndarray, channels: Sequence[str], 
     target = compare(data / sigma[:, None])
     k = len(names)
     count = [0]
+    angle_low, angle_high = _bounds(names, angles)
 
     def residuals(x: np.ndarray) -> np.ndarray:
         count[0] += len(x)
@@ -198,8 +199,8 @@ def align_jointly(data: np.ndarray, sigma: np.ndarray, channels: Sequence[str], 
         """χ² and the angles at the best theta, the angles ``fixed`` (None: free)."""
         free = np.arange(k + theta.size) if fixed is None else np.arange(k, k + theta.size)
         x = np.concatenate([[(fixed or current)[n] for n in names], np.clip(theta, low, high)])
-        lower = np.concatenate([_bounds(names, angles)[0], low])[free]
-        upper = np.concatenate([_bounds(names, angles)[1], high])[free]
+        lower = np.concatenate([angle_low, low])[free]
+        upper = np.concatenate([angle_high, high])[free]
 
         def fun(z):
             point = x.copy()
@@ -255,6 +256,14 @@ def load_phase_integral(values: Mapping[str, float], sigma: np.ndarray, channels
     schur = hessian[0, 0] - (coupling @ np.linalg.solve(given, coupling) if len(given) else 0.0)
     along = gradient[0] - (coupling @ np.linalg.solve(given, gradient[1:]) if len(given) else 0.0)
     return float(0.5 * along**2 / schur + 0.5 * math.log(2 * math.pi / schur) - math.log(2 * half_width))
+
+
+def load_phase_integral_at(values: Mapping[str, float], fitted: Mapping[str, float], data: np.ndarray, sigma: np.ndarray,
+                           channels: Sequence[str], sampling: model.Sampling, max_step: float, instruments=None) -> float:
+    """:func:`load_phase_integral` for a fit held at the lines' phase (healthy, a drift): over the fits' prior of the
+    phase, :data:`FIT_HALF_WIDTH` either side, at the ``fitted`` values, which move with it."""
+    return load_phase_integral({**values, **fitted}, sigma, channels, sampling, max_step, FIT_HALF_WIDTH, data,
+                               {name: RELATIVE_STEP * abs(value) for name, value in fitted.items()}, instruments)
 
 
 def phase_profiled(hypothesis, theta: np.ndarray, covariance: np.ndarray, data: np.ndarray, sigma: np.ndarray,

@@ -216,9 +216,8 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
     fits.update({f"{PARAMETER_CHANGE}:{p}": _drift_fit(hyps[f"{PARAMETER_CHANGE}:{p}"], cal, instruments) for p, cal in calibrations.items()})
     # Healthy and the drifts were fitted at the load's phase where the lines put it; the effects' fits find it beside
     # their values.  The phase integrated out at each one's best values puts the evidences on one footing.
-    phase_terms = concurrency.in_parallel({name: lambda fit=fit: alignment.load_phase_integral(
-        {**values, **fit.values}, sigma, channels, sampling, settings.max_step, alignment.FIT_HALF_WIDTH, data,
-        {p: alignment.RELATIVE_STEP * abs(v) for p, v in fit.values.items()}, instruments) for name, fit in fits.items()})
+    phase_terms = concurrency.in_parallel({name: lambda fit=fit: alignment.load_phase_integral_at(
+        values, fit.values, data, sigma, channels, sampling, settings.max_step, instruments) for name, fit in fits.items()})
     fits = {name: replace(fit, log_evidence=fit.log_evidence + phase_terms[name]) for name, fit in fits.items()}
     closest = signatures.mean("parameter")
 

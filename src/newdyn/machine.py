@@ -75,10 +75,8 @@ def diagnose(name: str, recordings: Sequence[Diagnosed], settings: Settings) -> 
         if fit.hypothesis.verdict_class == "new_dynamics":
             return sum(alignment.load_phase_integral(s.base, s.sigma, s.channels, s.sampling, settings.max_step, alignment.FIT_HALF_WIDTH)
                        for s in mine)
-        return sum(alignment.load_phase_integral({**s.base, **fit.values}, s.sigma, s.channels, s.sampling, settings.max_step,
-                                              alignment.FIT_HALF_WIDTH, s.data,
-                                              {p: alignment.RELATIVE_STEP * abs(v) for p, v in fit.values.items()}, s.instruments)
-                   for s in mine)
+        return sum(alignment.load_phase_integral_at(s.base, fit.values, s.data, s.sigma, s.channels, s.sampling, settings.max_step,
+                                                    s.instruments) for s in mine)
 
     def joint(hypothesis):
         starts = joint_starts([rows[hypothesis.name]["parameters"] for rows in own], hypothesis.parameters)
