@@ -58,14 +58,18 @@ def test_a_record_of_displacements_alone_gets_its_speed_fitted_with_the_angles(r
 
 def test_a_disk_speed_read_through_its_sensors_gain_is_corrected_by_the_shafts_line(recording):
     """A tachometer within its datasheet's 0.1 % still reads 1.5 rpm off: from its mean, a speed fitted with the angles
-    on a 1-s record ends at the truth (within 5 % of the start: a short record's line alone may not hold it)."""
+    and a prior of the datasheet's spread about that mean ends at the truth on a 1-s record; on a tenth of it, whose
+    lines alone may not hold the speed, the prior keeps it within the tachometer's spread."""
     _, noisy, sigma = recording
     read = noisy * np.array([1.0, 1.0, 1.001])[:, None]
     start = running_speed.measured("m.nc", CHANNELS, read, SAMPLING.fs, slots.complete({}))
     assert start == pytest.approx(1483.0 * 1.001, abs=0.01)
-    found = alignment.align(read, sigma, CHANNELS, {**slots.complete({}), "speed_rpm": start}, SAMPLING, DEFAULT_MAX_STEP,
-                            fit_speed=True)
-    assert found.values["speed_rpm"] == pytest.approx(1483.0, abs=0.01)
+    stated, spread = {**slots.complete({}), "speed_rpm": start}, 0.001 * start
+    found = alignment.align(read, sigma, CHANNELS, stated, SAMPLING, DEFAULT_MAX_STEP, speed_sd=spread)
+    assert found.values["speed_rpm"] == pytest.approx(1483.0, abs=0.01) and found.speed_sd == spread
+    short = model.Sampling(SAMPLING.fs, SAMPLING.t_first, SAMPLING.n_samples // 10)
+    found = alignment.align(read[:, : short.n_samples], sigma, CHANNELS, stated, short, DEFAULT_MAX_STEP, speed_sd=spread)
+    assert abs(found.values["speed_rpm"] - start) < 3 * spread
 
 
 def test_a_record_on_the_models_own_clock_keeps_its_stated_angles():

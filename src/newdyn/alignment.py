@@ -56,6 +56,7 @@ class Alignment:
     chi2_found: float
     n_simulations: int
     compared: str  # "lines" or "waveform"
+    speed_sd: float | None = None  # rpm: the prior spread of a fitted speed about the stated one (None: free within FAR)
 
     def summary(self) -> dict:
         return {"values": self.values, "chi2_stated": self.chi2_stated, "chi2_found": self.chi2_found,
@@ -134,9 +135,14 @@ def first_guess(target: np.ndarray, compare: Compared, sigma: np.ndarray, channe
 
 
 def align(data: np.ndarray, sigma: np.ndarray, channels: Sequence[str], values: Mapping[str, float],
-          sampling: model.Sampling, max_step: float, fit_speed: bool = False, compared: str = "lines") -> Alignment:
+          sampling: model.Sampling, max_step: float, fit_speed: bool = False, compared: str = "lines",
+          speed_sd: float | None = None) -> Alignment:
     """The angles (and with ``fit_speed`` the speed) at which the model ``values`` fits ``data`` best in what is
-    ``compared`` (:func:`lines` or :func:`waveform`); the values' own angles where the data cannot tell them apart."""
+    ``compared`` (:func:`lines` or :func:`waveform`); the values' own angles where the data cannot tell them apart.
+    With ``speed_sd`` (rpm) the speed is fitted too, a normal prior of that spread about the stated one beside the
+    data: a disk speed's mean is the running speed only to its sensor's gain, and a short record's lines alone may not
+    hold the speed."""
+    fit_speed = fit_speed or speed_sd is not None
     names = ["phi1", "phi4", "load_phase"] + (["speed_rpm"] if fit_speed else [])
     compare = {"lines": lines, "waveform": waveform}[compared](channels, values, sampling)
     target = compare(data / sigma[:, None])
@@ -145,7 +151,8 @@ def align(data: np.ndarray, sigma: np.ndarray, channels: Sequence[str], values: 
     def residuals(rows: np.ndarray) -> np.ndarray:
         points = [{**values, **dict(zip(names, row))} for row in rows]
         count[0] += len(points)
-        return compare(simulation.simulate_batch(points, sampling, channels, max_step) / sigma[:, None]) - target[None]
+        misfit = compare(simulation.simulate_batch(points, sampling, channels, max_step) / sigma[:, None]) - target[None]
+        return _with_speed_prior(misfit, rows[:, -1], values["speed_rpm"], speed_sd)
 
     def fun(x):
         return residuals(x[None])[0]
@@ -169,31 +176,40 @@ def align(data: np.ndarray, sigma: np.ndarray, channels: Sequence[str], values: 
         best_values, chi2 = {n: float(values[n]) for n in names}, stated
     else:
         best_values = _found(names, best.x)
-    return Alignment(best_values, stated / target.size, chi2 / target.size, count[0], compared)
+    return Alignment(best_values, stated / target.size, chi2 / target.size, count[0], compared, speed_sd)
+
+
+def _with_speed_prior(misfit: np.ndarray, speeds: np.ndarray, stated: float, speed_sd: float | None) -> np.ndarray:
+    """Rows of ``misfit`` with a fitted speed's normal prior about the ``stated`` speed as one more residual each."""
+    return misfit if speed_sd is None else np.column_stack([misfit, (speeds - stated) / speed_sd])
 
 
 def align_jointly(data: np.ndarray, sigma: np.ndarray, channels: Sequence[str], sampling: model.Sampling, max_step: float,
                   rows: Callable[[np.ndarray], np.ndarray], names: Sequence[str], angles: Mapping[str, float],
                   current: Mapping[str, float], theta: np.ndarray, low: np.ndarray, high: np.ndarray,
-                  instruments=None) -> Alignment | None:
+                  instruments=None, speed_sd: float | None = None) -> Alignment | None:
     """Where the record sits under a fitted hypothesis, its fitted values ``theta`` (in [``low``, ``high``]) free beside
     the angles ``names``, on the whole waveform as the fit saw it (through its ``instruments``, whose delays take up what
     the angles need not): ``rows`` makes kernel parameter rows of (angles, theta).  Returns the
     alignment where the data place the angles farther from ``current`` than noise would (its χ² at ``current`` and at
     the found angles), else None; the ``angles`` stated where the data cannot tell those from the found ones (and then
-    wherever ``current`` is)."""
+    wherever ``current`` is).  A fitted speed keeps its prior (``speed_sd``, :func:`align`)."""
     compare = waveform(channels, {}, sampling)
     target = compare(data / sigma[:, None])
     k = len(names)
     count = [0]
     angle_low, angle_high = _bounds(names, angles)
 
+    speed = list(names).index("speed_rpm") if "speed_rpm" in names else None
+
     def residuals(x: np.ndarray) -> np.ndarray:
         count[0] += len(x)
         outputs = simulation.simulate_batch(rows(x), sampling, channels, max_step)
         if instruments is None:
-            return compare(outputs / sigma[:, None]) - target[None]
-        return likelihood.standardized_residuals(data, outputs, sigma, instruments).reshape(len(x), -1)
+            misfit = compare(outputs / sigma[:, None]) - target[None]
+        else:
+            misfit = likelihood.standardized_residuals(data, outputs, sigma, instruments).reshape(len(x), -1)
+        return misfit if speed is None else _with_speed_prior(misfit, x[:, speed], angles["speed_rpm"], speed_sd)
 
     def best(fixed: Mapping[str, float] | None) -> tuple[float, np.ndarray]:
         """χ² and the angles at the best theta, the angles ``fixed`` (None: free)."""
@@ -230,7 +246,7 @@ def align_jointly(data: np.ndarray, sigma: np.ndarray, channels: Sequence[str], 
     chi2_current, _ = best(current)
     if not stated and chi2_current - chi2_free < threshold:
         return None
-    return Alignment(_found(names, found_angles), chi2_current / data.size, chi2_free / data.size, count[0], "waveform")
+    return Alignment(_found(names, found_angles), chi2_current / data.size, chi2_free / data.size, count[0], "waveform", speed_sd)
 
 
 def load_phase_integral(values: Mapping[str, float], sigma: np.ndarray, channels: Sequence[str], sampling: model.Sampling,

@@ -112,11 +112,21 @@ def _realigned(fit: hypotheses.Fit, data, sigma, values, stated, record: alignme
 
     low, high = (np.array([getattr(p, side) for p in fit.hypothesis.priors]) for side in ("low", "high"))
     found = alignment.align_jointly(data, sigma, channels, sampling, settings.max_step, rows, names, stated, record.values,
-                                    fit.theta, low, high, fit.instruments)
+                                    fit.theta, low, high, fit.instruments, record.speed_sd)
     if found is None:
         return None
     own = {name: fit.values[name] for name in record.values if name in fit.hypothesis.parameters}  # its fit's own finding
     return replace(found, values={**record.values, **own, **found.values})
+
+
+def _tachometer_sd(settings: Settings, recorded: Sequence[str], speed_rpm: float) -> float | None:
+    """How far (sd, rpm) the running speed may lie from a recorded disk speed's mean, by its sensor's datasheet (gain
+    and offset; the most precise of the disk speeds recorded): the speed is then fitted from the shaft's line with that
+    prior.  None where no disk speed is recorded or its sensor is exact (its mean is the speed)."""
+    spreads = [math.hypot(sensor.gain_sd * speed_rpm, sensor.offset_sd * 60.0 / (2.0 * math.pi))
+               for c in recorded if c in running_speed.SPEEDS and (sensor := settings.sensors.get(c)) is not None]
+    spreads = [sd for sd in spreads if sd > 0]
+    return min(spreads) if spreads else None
 
 
 def _grid_evidence(posterior: likelihood.GridPosterior) -> float:
@@ -174,7 +184,8 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
     clock = time.perf_counter()
     if record is None:
         record = alignment.align(data, sigma, channels, values, sampling, settings.max_step,
-                                 fit_speed=not any(c in running_speed.SPEEDS for c in measurement.channels))
+                                 fit_speed=not any(c in running_speed.SPEEDS for c in measurement.channels),
+                                 speed_sd=_tachometer_sd(settings, measurement.channels, values["speed_rpm"]))
         log.info("%s: the record's angles %s (chi2 %.4g -> %.4g, %d simulations) in %.1f s", measurement.name,
                  {k: round(v, 4) for k, v in record.values.items()}, record.chi2_stated, record.chi2_found,
                  record.n_simulations, time.perf_counter() - clock)
