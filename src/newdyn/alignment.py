@@ -37,6 +37,11 @@ JACOBIAN_STEP = 1e-4  # rad: far above the simulator's rounding, below the angle
 RELATIVE_STEP = 1e-6  # of a speed or a hypothesis's value, for the same reasons
 # The stated angles stand unless moving them lowers χ² by more than noise alone would with this probability.
 KEEP_STATED = 1e-3
+# A disk speed's mean is the running speed to its tachometer's spread; the speed is fitted from the shaft's line where
+# that spread turns the line by at least this much over the record (a 0.1 % gain at 1480 rpm: over 0.65 s).  On a
+# shorter record the line tells the speed no better, and a probe's gain the nominal model lacks pulled it until the
+# tachometer read out of its spec (a 0.1-s record).
+SPEED_TURN = 0.1  # rad
 # An effect's fit finds the load's phase beside its own values, this far either side of where the lines put it: a fault
 # that reshapes the torsional response moves even the load's fundamental.
 FIT_HALF_WIDTH = math.pi

@@ -119,14 +119,18 @@ def _realigned(fit: hypotheses.Fit, data, sigma, values, stated, record: alignme
     return replace(found, values={**record.values, **own, **found.values})
 
 
-def _tachometer_sd(settings: Settings, recorded: Sequence[str], speed_rpm: float) -> float | None:
+def _tachometer_sd(settings: Settings, recorded: Sequence[str], speed_rpm: float, sampling: model.Sampling) -> float | None:
     """How far (sd, rpm) the running speed may lie from a recorded disk speed's mean, by its sensor's datasheet (gain
     and offset; the most precise of the disk speeds recorded): the speed is then fitted from the shaft's line with that
-    prior.  None where no disk speed is recorded or its sensor is exact (its mean is the speed)."""
+    prior.  None where no disk speed is recorded, its sensor is exact (its mean is the speed), or the record is too
+    short for that spread to turn the shaft's line by :data:`newdyn.alignment.SPEED_TURN` (the line cannot tell the
+    speed better than the tachometer, and what else the nominal model misses would pull it)."""
     spreads = [math.hypot(sensor.gain_sd * speed_rpm, sensor.offset_sd * 60.0 / (2.0 * math.pi))
                for c in recorded if c in running_speed.SPEEDS and (sensor := settings.sensors.get(c)) is not None]
     spreads = [sd for sd in spreads if sd > 0]
-    return min(spreads) if spreads else None
+    if not spreads or 2.0 * math.pi * min(spreads) / 60.0 * sampling.n_samples / sampling.fs < alignment.SPEED_TURN:
+        return None
+    return min(spreads)
 
 
 def _grid_evidence(posterior: likelihood.GridPosterior) -> float:
@@ -185,7 +189,7 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
     if record is None:
         record = alignment.align(data, sigma, channels, values, sampling, settings.max_step,
                                  fit_speed=not any(c in running_speed.SPEEDS for c in measurement.channels),
-                                 speed_sd=_tachometer_sd(settings, measurement.channels, values["speed_rpm"]))
+                                 speed_sd=_tachometer_sd(settings, measurement.channels, values["speed_rpm"], sampling))
         log.info("%s: the record's angles %s (chi2 %.4g -> %.4g, %d simulations) in %.1f s", measurement.name,
                  {k: round(v, 4) for k, v in record.values.items()}, record.chi2_stated, record.chi2_found,
                  record.n_simulations, time.perf_counter() - clock)
