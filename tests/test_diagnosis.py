@@ -549,3 +549,18 @@ def test_the_statement_names_what_the_instruments_took_only_where_it_is_somethin
     assert sentence.startswith("healthy: the nominal model explains the data")
     assert ("took the final model's reduced chi2 from 3.2 (exact instruments) to 1.01" in sentence) == said
     assert said or "instruments" not in sentence
+
+
+def test_the_speed_is_fitted_within_the_tachometers_spread_only_where_the_record_lets_the_shafts_line_tell_it():
+    """A 0.1 % tachometer at 1480 rpm is 1.5 rpm (its 0.01-rad/s offset adds 0.1 rpm in quadrature): over a 1-s record
+    that turns the shaft's line by 0.15 rad, over 0.1 s by 0.015 rad, less than the line tells."""
+    from newdyn import sensors
+
+    datasheets = yaml.safe_load((ROOT / "config" / "config.yaml").read_text())["diagnosis"]["sensors"]
+    settings = replace(SETTINGS, sensors={c: sensors.Sensor(**datasheets[c]) for c in ("b1_x", "w1")})
+    second = model.Sampling(5000.0, 0.5, 5000)
+    spread = math.hypot(0.001 * 1480.0, 0.01 * 60 / (2 * math.pi))
+    assert diagnosis._tachometer_sd(settings, ("b1_x", "w1"), 1480.0, second) == pytest.approx(spread)
+    assert diagnosis._tachometer_sd(settings, ("b1_x", "w1"), 1480.0, replace(second, n_samples=500)) is None
+    assert diagnosis._tachometer_sd(settings, ("b1_x",), 1480.0, second) is None  # no disk speed: fitted freely
+    assert diagnosis._tachometer_sd(SETTINGS, ("b1_x", "w1"), 1480.0, second) is None  # an exact tachometer: its mean
