@@ -78,6 +78,8 @@ def test_the_posterior_of_the_fault_that_explains_the_data_is_verified_or_sample
     verdict = diagnosed["stick_slip"].verdict
     if posterior.attrs["method"] == "importance sampling":  # stick-slip fits more than two parameters
         assert posterior.attrs["converged"] and posterior.attrs["pareto_k"] <= 0.7
+        # the load's phase integrated out at each point, its draws from its conditional normal
+        assert verdict["effect_fit"]["integrated"] == "load_phase" and "load_phase" in posterior.posterior
     else:
         assert posterior.attrs["method"] == "mcmc" and (posterior.attrs["converged"] or posterior.attrs["rounds"] == 2)
     assert verdict["effect_fit"]["method"] == posterior.attrs["method"]

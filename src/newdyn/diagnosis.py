@@ -324,7 +324,8 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
         verdict["sensor_alternatives"] = instrument_checks.alternatives(fits, verdict["models"]["after"], data, sigma, instruments, channels, settings)
     verdict["effect_fit"] = {
         "hypothesis": best_fault, "parameters": _posterior_parameters(effect_posterior, hyps[best_fault].parameters),
-        **{key: effect_posterior.attrs[key] for key in ("method", "converged", "rhat", "ess_bulk", "pareto_k", "refits", "step", "reason")
+        **{key: effect_posterior.attrs[key]
+           for key in ("method", "converged", "integrated", "rhat", "ess_bulk", "pareto_k", "refits", "step", "reason")
            if key in effect_posterior.attrs},
     }
     if verdict["verdict"] == "new_dynamics" and verdict["effect"] == best_fault:
