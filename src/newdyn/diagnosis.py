@@ -162,7 +162,7 @@ class Diagnosis:
 def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mapping[str, str] | None = None,
              colour: noise.Colour | None = None, level: np.ndarray | None = None, bank_path: str | None = None,
              searched: Mapping[str, hypotheses.Fit] | None = None, record: alignment.Alignment | None = None,
-             realigned: int = 0) -> Diagnosis:
+             realigned: int = 0, bank: xr.Dataset | None = None) -> Diagnosis:
     """Diagnose ``measurement`` (already read and checked); ``grid_paths`` are the study's shared
     coarse-grid files per calibration parameter and ``bank_path`` its bank (:mod:`newdyn.bank`), each reused when its
     condition is the measurement's (else computed here).  ``colour``
@@ -172,7 +172,8 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
     searching the same data again.  ``record`` is where the recording sits on the shaft's turn and the load's cycle
     (:mod:`newdyn.alignment`): found here under the nominal model when not given, and found again under the best
     hypothesis's fit, the diagnosis run again from there when the data place the record elsewhere (``realigned`` times
-    so far, up to :data:`REALIGNMENTS`)."""
+    so far, up to :data:`REALIGNMENTS`).  A pass run again reuses the first one's ``bank``: its members only pick where
+    each fit starts, which angles moved by what the data resolve do not change."""
     check_measurement(measurement, settings.channels, settings.noise_band_hz,
                       values=slots.complete({**settings.rig, **measurement.operating}))
     configured, missing = settings, tuple(c for c in settings.channels if c not in measurement.channels)
@@ -217,9 +218,11 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
     # The signature library is the condition's, reused wherever the record is and whatever speed the data corrected the
     # nameplate's to; the members are the record's own.
     nameplate = {**stated, "speed_rpm": measurement.attrs.get("stated_speed_rpm", stated["speed_rpm"])}
-    bank = study_bank(bank_path, settings, library, nameplate, sampling, coarse if values == nameplate else None, members_at=values)
+    reused = bank is not None
+    if not reused:
+        bank = study_bank(bank_path, settings, library, nameplate, sampling, coarse if values == nameplate else None, members_at=values)
     signatures = signature_module.distances(bank, calibrations, sigma, settings.priors)
-    stage(f"{signatures.sizes['signature']} signatures")
+    stage(f"{signatures.sizes['signature']} signatures" + (" (the first pass's members)" if reused else ""))
 
     # The posterior and the comparison of model versions need ArviZ: imported beside the fits, whose least squares
     # often leave a core free.
@@ -286,7 +289,7 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
         if not found.white:
             stage(f"noise colour {found.summary(channels)} from the residual of {best.hypothesis.name}: again, whitened")
             return diagnose(measurement, configured, grid_paths, found, level, bank_path,
-                            {kind: fit for kind, fit in fits.items() if fit.search == hypotheses.SEARCHED_FROM[1]})
+                            {kind: fit for kind, fit in fits.items() if fit.search == hypotheses.SEARCHED_FROM[1]}, bank=bank)
     colour = colour or noise.white(len(channels))
     if realigned < REALIGNMENTS:
         best = max(fits.values(), key=lambda fit: fit.log_evidence)
@@ -295,7 +298,7 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
             if again is not None:
                 stage(f"the record's angles found again under {best.hypothesis.name}: {again.values}; again from there")
                 return diagnose(measurement, configured, grid_paths, colour if colour.ar.any() else None, level, bank_path,
-                                searched, again, realigned + 1)
+                                searched, again, realigned + 1, bank)
 
     best_fault = max(settings.fault_ranges, key=lambda kind: fits[kind].log_evidence)
     discovery = None
