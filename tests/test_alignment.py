@@ -113,3 +113,27 @@ def test_a_disk_speed_and_a_displacement_that_disagree_are_one_line(recording):
     in_rpm = noisy.copy()
     in_rpm[2] *= 60 / (2 * math.pi)  # a unit, for the level checks to name
     assert running_speed.measured("m.nc", CHANNELS, in_rpm, SAMPLING.fs, slots.complete({})) == 1480.0
+
+
+def test_the_standard_errors_are_the_spread_of_least_squares_estimates_and_an_unseen_angle_is_anywhere():
+    """Linear least squares of a speed and an angle the residuals see, beside one they do not: over many noise draws
+    the estimates spread as the standard errors say; the unseen angle reads π/√3, a uniform angle's sd."""
+    rng = np.random.default_rng(3)
+    jacobian = np.column_stack([rng.normal(size=(200, 2)), np.zeros(200)])
+    truth = np.array([0.4, -1.2])
+    estimates = np.array([np.linalg.lstsq(jacobian[:, :2], jacobian[:, :2] @ truth + rng.standard_normal(200), rcond=None)[0]
+                          for _ in range(4000)])
+    sd = alignment.standard_errors(jacobian, ["speed_rpm", "phi1", "phi4"])
+    assert np.allclose(estimates.std(axis=0), [sd["speed_rpm"], sd["phi1"]], rtol=0.05)
+    assert sd["phi4"] == pytest.approx(math.pi / math.sqrt(3))
+
+
+def test_the_found_load_phase_is_the_truths_within_its_standard_error(recording):
+    """The truth's load phase at the model's record start (the record started 0.3134 s later) lies within a few of its
+    standard errors of the found one, which the lines give to milliradians, as they give both imbalances'."""
+    _, noisy, sigma = recording
+    found = alignment.align(noisy, sigma, CHANNELS, {**slots.complete({}), "speed_rpm": 1483.0}, SAMPLING, DEFAULT_MAX_STEP)
+    turned = RECORD["load_phase"] + 2 * math.pi * 12.0 * (START - SAMPLING.t_first)
+    assert abs(model.wrap_angle(found.values["load_phase"] - turned)) < 4 * found.sd["load_phase"]
+    assert all(found.sd[name] < 0.01 for name in ("phi1", "phi4", "load_phase"))
+    assert found.summary()["sd"] == found.sd

@@ -606,17 +606,24 @@ def test_the_machine_score_sets_each_recordings_own_verdict_beside_the_machines(
     assert [row["recording"] for row in alone["rows"] if not row["correct"]] == ["m_01/r2"]
 
 
-def test_an_angle_on_the_shaft_is_scored_relative_to_the_imbalance_on_it():
-    """Where a record starts turns the whole shaft: a crack found at angle a + ψ beside imbalance 4 at φ4 + ψ is the
-    truth (a, φ4), whatever ψ, across the circle's seam too."""
+@pytest.mark.parametrize("phi1_off, phi1_sd, phi4_off, phi4_sd", [
+    (0.0, 0.01, 0.0, 0.01),  # both imbalances seen
+    (0.0, 0.002, 1.1, math.pi / math.sqrt(3)),  # the load's imbalance unseen (no probe near disk 4): its angle is anywhere
+    (-0.9, math.pi / math.sqrt(3), 0.0, 0.003),  # the motor's unseen
+])
+def test_an_angle_on_the_shaft_is_scored_in_the_turn_the_imbalances_seen_give(phi1_off, phi1_sd, phi4_off, phi4_sd):
+    """Where a record starts turns the whole shaft by ψ: a crack found at angle a + ψ is the truth a, whatever ψ,
+    across the circle's seam too; ψ is what the found imbalance angles say, each as far as the data hold it."""
     case = {"name": "c_01", "class": "breathing_crack", "truth": {"alpha": 0.3, "angle": 3.0},
             "record": {"phi1": 0.1, "phi4": 0.5}}
     turn = 2.9  # the shaft's angle at the record's start
     found = 3.0 + turn - 2 * math.pi  # reported on the other side of the seam
-    verdict = {"verdict": "new_dynamics", "effect": "breathing_crack", "record": {"values": {"phi4": 0.5 + turn}},
+    record = {"values": {"phi1": 0.1 + turn + phi1_off, "phi4": 0.5 + turn + phi4_off, "load_phase": 1.0},
+              "sd": {"phi1": phi1_sd, "phi4": phi4_sd, "load_phase": 0.01}}
+    verdict = {"verdict": "new_dynamics", "effect": "breathing_crack", "record": record,
                "parameters": {"alpha": {"mean": 0.31, "hdi_low": 0.29, "hdi_high": 0.33},
                               "angle": {"mean": found + 0.01, "hdi_low": found - 0.02, "hdi_high": found + 0.03, "sd": 0.01}}}
     errors = {e["parameter"]: e for e in hidden._parameter_errors(case, verdict)}
-    assert errors["angle"]["truth"] == pytest.approx(2.5) and errors["angle"]["mean"] == pytest.approx(2.51)
+    assert errors["angle"]["truth"] == pytest.approx(3.0) and errors["angle"]["mean"] == pytest.approx(3.01, abs=0.005)
     assert errors["angle"]["in_hdi"] is True and errors["angle"]["relative_error"] is None
     assert errors["alpha"]["in_hdi"] is True

@@ -22,7 +22,7 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 from scipy import optimize, stats
@@ -45,6 +45,9 @@ SPEED_TURN = 0.1  # rad
 # An effect's fit finds the load's phase beside its own values, this far either side of where the lines put it: a fault
 # that reshapes the torsional response moves even the load's fundamental.
 FIT_HALF_WIDTH = math.pi
+# An angle the data hardly hold is known no better than one drawn uniformly on the circle: its variance π²/3 bounds a
+# found angle's, as that uniform prior's precision added to the data's.
+ANGLE_PRIOR_PRECISION = 3.0 / math.pi**2
 SEGMENT_CYCLES = 3  # the lines are read over segments of at least this many load cycles, up to MAX_SEGMENTS of them,
 MAX_SEGMENTS = 4  # so that the once-per-revolution line's phase shows how fast the shaft turns
 
@@ -62,10 +65,26 @@ class Alignment:
     n_simulations: int
     compared: str  # "lines" or "waveform"
     speed_sd: float | None = None  # rpm: the prior spread of a fitted speed about the stated one (None: free within FAR)
+    sd: dict[str, float] = field(default_factory=dict)  # each found value's standard error (:func:`standard_errors`)
 
     def summary(self) -> dict:
-        return {"values": self.values, "chi2_stated": self.chi2_stated, "chi2_found": self.chi2_found,
+        return {"values": self.values, "sd": self.sd, "chi2_stated": self.chi2_stated, "chi2_found": self.chi2_found,
                 "n_simulations": self.n_simulations, "compared": self.compared}
+
+
+def standard_errors(jacobian: np.ndarray, names: Sequence[str]) -> dict[str, float]:
+    """The standard errors of ``names``, the first columns of the Jacobian of a least squares's residuals (in units of
+    the noise) at its optimum, whose Gram matrix is the data's information; further columns are values fitted beside
+    them, which widen them.  An angle also carries the information :data:`ANGLE_PRIOR_PRECISION` of a uniform one, so
+    that an angle the compared channels do not see (an imbalance on a disk no probe is near) reads about π/√3, not
+    infinity."""
+    prior = np.zeros(jacobian.shape[1])
+    prior[: len(names)] = [ANGLE_PRIOR_PRECISION if n in model.ANGLE_PARAMETERS else 0.0 for n in names]
+    information = jacobian.T @ jacobian + np.diag(prior)
+    scale = np.sqrt(np.diag(information))  # values of any units (a gap in metres beside a stiffness) on one footing
+    scale[scale == 0] = 1.0
+    sd = np.sqrt(np.clip(np.diag(np.linalg.pinv(information / np.outer(scale, scale))), 0.0, None)) / scale
+    return {n: float(v) for n, v in zip(names, sd)}
 
 
 def _bounds(names: Sequence[str], stated: Mapping[str, float]) -> tuple[np.ndarray, np.ndarray]:
@@ -181,7 +200,8 @@ def align(data: np.ndarray, sigma: np.ndarray, channels: Sequence[str], values: 
         best_values, chi2 = {n: float(values[n]) for n in names}, stated
     else:
         best_values = _found(names, best.x)
-    return Alignment(best_values, stated / target.size, chi2 / target.size, count[0], compared, speed_sd)
+    return Alignment(best_values, stated / target.size, chi2 / target.size, count[0], compared, speed_sd,
+                     standard_errors(best.jac, names))
 
 
 def _with_speed_prior(misfit: np.ndarray, speeds: np.ndarray, stated: float, speed_sd: float | None) -> np.ndarray:
@@ -192,13 +212,15 @@ def _with_speed_prior(misfit: np.ndarray, speeds: np.ndarray, stated: float, spe
 def align_jointly(data: np.ndarray, sigma: np.ndarray, channels: Sequence[str], sampling: model.Sampling, max_step: float,
                   rows: Callable[[np.ndarray], np.ndarray], names: Sequence[str], angles: Mapping[str, float],
                   current: Mapping[str, float], theta: np.ndarray, low: np.ndarray, high: np.ndarray,
-                  instruments=None, speed_sd: float | None = None) -> Alignment | None:
+                  instruments=None, speed_sd: float | None = None) -> tuple[Alignment | None, dict[str, float]]:
     """Where the record sits under a fitted hypothesis, its fitted values ``theta`` (in [``low``, ``high``]) free beside
     the angles ``names``, on the whole waveform as the fit saw it (through its ``instruments``, whose delays take up what
     the angles need not): ``rows`` makes kernel parameter rows of (angles, theta).  Returns the
     alignment where the data place the angles farther from ``current`` than noise would (its χ² at ``current`` and at
     the found angles), else None; the ``angles`` stated where the data cannot tell those from the found ones (and then
-    wherever ``current`` is).  A fitted speed keeps its prior (``speed_sd``, :func:`align`)."""
+    wherever ``current`` is).  Beside it, the angles' standard errors under the hypothesis (:func:`standard_errors`):
+    a fault may take up what an imbalance would show, and instruments' delays what its angle would.  A fitted speed
+    keeps its prior (``speed_sd``, :func:`align`)."""
     compare = waveform(channels, {}, sampling)
     target = compare(data / sigma[:, None])
     k = len(names)
@@ -216,8 +238,9 @@ def align_jointly(data: np.ndarray, sigma: np.ndarray, channels: Sequence[str], 
             misfit = likelihood.standardized_residuals(data, outputs, sigma, instruments).reshape(len(x), -1)
         return misfit if speed is None else _with_speed_prior(misfit, x[:, speed], angles["speed_rpm"], speed_sd)
 
-    def best(fixed: Mapping[str, float] | None) -> tuple[float, np.ndarray]:
-        """χ² and the angles at the best theta, the angles ``fixed`` (None: free)."""
+    def best(fixed: Mapping[str, float] | None) -> tuple[float, np.ndarray, np.ndarray]:
+        """χ², the angles and the residuals' Jacobian in what was free at the best theta, the angles ``fixed`` (None:
+        free)."""
         free = np.arange(k + theta.size) if fixed is None else np.arange(k, k + theta.size)
         x = np.concatenate([[(fixed or current)[n] for n in names], np.clip(theta, low, high)])
         lower = np.concatenate([angle_low, low])[free]
@@ -238,20 +261,22 @@ def align_jointly(data: np.ndarray, sigma: np.ndarray, channels: Sequence[str], 
 
         found = optimize.least_squares(fun, x[free], jac=jac, bounds=(lower, upper), method="trf", x_scale="jac", max_nfev=30)
         x[free] = found.x
-        return 2.0 * found.cost, x[:k]
+        return 2.0 * found.cost, x[:k], found.jac
 
     threshold = stats.chi2.isf(KEEP_STATED, k)
-    chi2_free, found_angles = best(None)
-    chi2_stated, _ = best(angles)
+    chi2_free, found_angles, jacobian = best(None)
+    chi2_stated, _, _ = best(angles)
     stated = chi2_stated - chi2_free < threshold
     if stated:  # the file's own angles stand, wherever the lines had put them
         found_angles, chi2_free = np.array([angles[n] for n in names]), chi2_stated
+    sd = standard_errors(jacobian, names)
     if all(found_angles[i] == current[n] for i, n in enumerate(names)):
-        return None
-    chi2_current, _ = best(current)
+        return None, sd
+    chi2_current, _, _ = best(current)
     if not stated and chi2_current - chi2_free < threshold:
-        return None
-    return Alignment(_found(names, found_angles), chi2_current / data.size, chi2_free / data.size, count[0], "waveform", speed_sd)
+        return None, sd
+    return Alignment(_found(names, found_angles), chi2_current / data.size, chi2_free / data.size, count[0], "waveform", speed_sd,
+                     sd), sd
 
 
 def load_phase_integral(values: Mapping[str, float], sigma: np.ndarray, channels: Sequence[str], sampling: model.Sampling,

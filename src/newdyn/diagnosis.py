@@ -96,11 +96,11 @@ def _with_load_phase(hypothesis: hypotheses.Hypothesis, phase: float) -> hypothe
 
 
 def _realigned(fit: hypotheses.Fit, data, sigma, values, stated, record: alignment.Alignment, sampling, channels,
-               settings: Settings) -> alignment.Alignment | None:
+               settings: Settings) -> tuple[alignment.Alignment | None, dict[str, float]]:
     """Where the record sits found again under ``fit``, its values free beside the angles (:func:`newdyn.alignment.
     align_jointly`): None where the data do not place it elsewhere than ``record`` (found under the nominal model, whose
     misfit a fault's shape may have pulled), else the new alignment; the ``stated`` angles where the data cannot tell
-    them from the found ones."""
+    them from the found ones.  Beside it, the standard errors of the record's values under ``fit``."""
     names = [name for name in record.values if name not in fit.hypothesis.parameters]  # its fit finds the others
     index = [slots.slot_index()[name] for name in names]
     k = len(names)
@@ -111,12 +111,15 @@ def _realigned(fit: hypotheses.Fit, data, sigma, values, stated, record: alignme
         return kernel
 
     low, high = (np.array([getattr(p, side) for p in fit.hypothesis.priors]) for side in ("low", "high"))
-    found = alignment.align_jointly(data, sigma, channels, sampling, settings.max_step, rows, names, stated, record.values,
-                                    fit.theta, low, high, fit.instruments, record.speed_sd)
+    found, angles_sd = alignment.align_jointly(data, sigma, channels, sampling, settings.max_step, rows, names, stated,
+                                               record.values, fit.theta, low, high, fit.instruments, record.speed_sd)
+    own = [name for name in record.values if name in fit.hypothesis.parameters]  # its fit's own finding
+    sd = {**{name: float(np.sqrt(fit.covariance[i, i])) for i, name in enumerate(fit.hypothesis.parameters)
+             if name in own and fit.covariance is not None}, **angles_sd}
     if found is None:
-        return None
-    own = {name: fit.values[name] for name in record.values if name in fit.hypothesis.parameters}  # its fit's own finding
-    return replace(found, values={**record.values, **own, **found.values})
+        return None, sd
+    return replace(found, values={**record.values, **{name: fit.values[name] for name in own}, **found.values},
+                   sd={**{name: value for name, value in record.sd.items() if name not in sd}, **sd}), sd
 
 
 def _tachometer_sd(settings: Settings, recorded: Sequence[str], speed_rpm: float, sampling: model.Sampling) -> float | None:
@@ -294,7 +297,8 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
     if realigned < REALIGNMENTS:
         best = max(fits.values(), key=lambda fit: fit.log_evidence)
         if best.hypothesis.kind != HEALTHY:
-            again = _realigned(best, data, sigma, values, stated, record, sampling, channels, settings)
+            again, under_best = _realigned(best, data, sigma, values, stated, record, sampling, channels, settings)
+            record = replace(record, sd={**record.sd, **under_best})
             if again is not None:
                 stage(f"the record's angles found again under {best.hypothesis.name}: {again.values}; again from there")
                 return diagnose(measurement, configured, grid_paths, colour if colour.ar.any() else None, level, bank_path,

@@ -485,12 +485,9 @@ def _parameter_errors(case: Mapping, verdict: Mapping) -> list[dict]:
         mean, low, high = _float(summary.get("mean")), _float(summary.get("hdi_low")), _float(summary.get("hdi_high"))
         angle = _is_shaft_angle(case["class"], name)
         if angle:
-            # Where the record starts turns the whole shaft, the found imbalance angles with it: an angle on the shaft
-            # is the truth only relative to the imbalance on the same shaft.
-            turn = _float((verdict.get("record") or {}).get("values", {}).get("phi4"))
+            turn = _record_turn(case["record"], verdict.get("record") or {})
             if turn is None:
                 continue
-            truth = truth - case["record"]["phi4"]
             miss = mean - turn - truth
             turn -= model.wrap_angle(miss) - miss  # onto the truth's turn of the circle
             mean, low, high = (None if v is None else v - turn for v in (mean, low, high))
@@ -502,6 +499,18 @@ def _parameter_errors(case: Mapping, verdict: Mapping) -> list[dict]:
             "source": source,
         })
     return errors
+
+
+def _record_turn(drawn: Mapping, found: Mapping) -> float | None:
+    """How far where the record starts turned the shaft, as the diagnosis found it: each imbalance's found angle less
+    its drawn one, averaged on the circle with the weights their standard errors give (an imbalance on a disk no
+    probe is near leaves its angle free and its turn unknown, while the other's holds it); None without a record."""
+    values, sd = found.get("values") or {}, found.get("sd") or {}
+    shifts = [(values[n] - drawn[n], sd[n]) for n in MACHINE_ANGLES if n in values and n in sd and sd[n] > 0]
+    if not shifts:
+        return None
+    weights = np.array([1.0 / s**2 for _, s in shifts])
+    return float(np.angle(np.sum(weights * np.exp(1j * np.array([d for d, _ in shifts])))))
 
 
 def _is_shaft_angle(kind: str, name: str) -> bool:
