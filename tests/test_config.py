@@ -168,7 +168,7 @@ def test_ci_config(default_config):
     assert ci["noise"] == {"snr_db": [40], "seeds": [1]}
     assert list(ci["scenarios"]) == ["healthy", "kT1_up", "stick_slip"]
     assert "faults" not in ci["diagnosis"] and "faults" not in ci["hidden"]  # the effect files' ranges
-    assert study.hidden_classes(ci) == ["stick_slip"]
+    assert study.hidden_classes(ci) == ["breathing_crack"]
 
 
 # --------------------------------------------------------------------------------------------------
