@@ -119,7 +119,7 @@ def _realigned(fit: hypotheses.Fit, data, sigma, values, stated, record: alignme
     if found is None:
         return None, sd
     return replace(found, values={**record.values, **{name: fit.values[name] for name in own}, **found.values},
-                   sd={**{name: value for name, value in record.sd.items() if name not in sd}, **sd}), sd
+                   sd={**record.sd, **sd}), sd
 
 
 def _tachometer_sd(settings: Settings, recorded: Sequence[str], speed_rpm: float, sampling: model.Sampling) -> float | None:
@@ -176,7 +176,7 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
     (:mod:`newdyn.alignment`): found here under the nominal model when not given, and found again under the best
     hypothesis's fit, the diagnosis run again from there when the data place the record elsewhere (``realigned`` times
     so far, up to :data:`REALIGNMENTS`).  A pass run again reuses the first one's ``bank``: its members only pick where
-    each fit starts, which angles moved by what the data resolve do not change."""
+    each fit starts, whose least squares then runs at the pass's own angles and load phase."""
     check_measurement(measurement, settings.channels, settings.noise_band_hz,
                       values=slots.complete({**settings.rig, **measurement.operating}))
     configured, missing = settings, tuple(c for c in settings.channels if c not in measurement.channels)
