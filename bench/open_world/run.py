@@ -131,7 +131,7 @@ def draw_machines(measurements: Path, truth_path: Path, cases: int, seed: int) -
         name = f"owm_{index + 1:02d}"
         speeds = (base["speed_rpm"], model.PARAMETER_BY_NAME["speed_rpm"].rounded(rng.uniform(*SECOND_SPEED_RPM)))
         records = [hidden.draw_record(seed, index, SAMPLING.fs, k) for k in range(len(RECORDINGS))]
-        case = {**case, "name": name, "record": {n: case["record"][n] for n in hidden.MACHINE_ANGLES}, "recordings": [
+        case = {**case, "name": name, "record": {n: case["record"][n] for n in model.IMBALANCE_ANGLES}, "recordings": [
             {"name": recording, "condition": {"speed_rpm": speed}, "channels": list(model.CHANNELS),
              "noise_seed": int(rng.integers(0, 2**31 - 1)), "record": record}
             for recording, speed, record in zip(RECORDINGS, speeds, records)]}

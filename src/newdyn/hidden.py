@@ -42,7 +42,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from . import effects, faults, io, model, noise, provenance, sensors, simulation, slots
+from . import alignment, effects, faults, io, likelihood, model, noise, provenance, sensors, simulation, slots
 from .hidden_sets import case_names, recording_names
 from .verdicts import HEALTHY, NEW_DYNAMICS, PARAMETER_CHANGE, SENSOR_PROBLEM, UNEXPLAINED, VERDICTS
 
@@ -57,7 +57,6 @@ RECORD_STREAM = 4  # the tag of a case's record stream: [seed, case index, RECOR
 ANGLE_RANGE = (-math.pi, math.pi)
 START_RANGE = (0.5, 1.5)
 SPEED_OFFSET_RPM = (-5.0, 5.0)
-MACHINE_ANGLES = tuple(n for n in model.ANGLE_PARAMETERS if n in model.RIG_PARAMETERS)  # phi1, phi4
 RECORDING_ANGLES = tuple(n for n in model.ANGLE_PARAMETERS if n in model.RECORD_PARAMETERS)  # load_phase
 
 
@@ -140,18 +139,18 @@ def draw_cases(
             case.update(_draw_instruments(datasheets or {}, compared, rng, i in bad))
     for i, case in enumerate(cases):
         record = draw_record(seed, i, fs)
-        case["record"] = {name: record[name] for name in MACHINE_ANGLES} if "recordings" in spec else record
+        case["record"] = {name: record[name] for name in model.IMBALANCE_ANGLES} if "recordings" in spec else record
     return cases
 
 
 def draw_record(seed: int, case_index: int, fs: float, recording: int | None = None) -> dict[str, float]:
     """What a real machine leaves open, from the stream ``[seed, case_index, RECORD_STREAM]`` of its own: the case's
-    :data:`MACHINE_ANGLES` and its recording's :data:`RECORDING_ANGLES` (uniform in :data:`ANGLE_RANGE`), ``start`` (the
+    :data:`newdyn.model.IMBALANCE_ANGLES` and its recording's :data:`RECORDING_ANGLES` (uniform in :data:`ANGLE_RANGE`), ``start`` (the
     model time of the first sample, uniform on the grid k/``fs`` in :data:`START_RANGE`) and ``speed_offset_rpm``
     (uniform in :data:`SPEED_OFFSET_RPM`); of a machine's ``recording`` (0, 1, …, stream tagged ``recording + 1``)
     only the recording's."""
     rng = np.random.default_rng([seed, case_index, RECORD_STREAM, *(() if recording is None else (recording + 1,))])
-    names = RECORDING_ANGLES if recording is not None else MACHINE_ANGLES + RECORDING_ANGLES
+    names = RECORDING_ANGLES if recording is not None else model.IMBALANCE_ANGLES + RECORDING_ANGLES
     record = {name: float(rng.uniform(*ANGLE_RANGE)) for name in names}
     first, end = (math.ceil(t * fs - 1e-9) for t in START_RANGE)
     record["start"] = int(rng.integers(first, end)) / fs
@@ -219,7 +218,7 @@ def recorded_values(case: Mapping, nameplate: Mapping[str, float], recording: Ma
     values, with the recording's condition), with the record's angles and the running speed nameplate + offset."""
     record = case_record(case, recording)
     at = slots.complete({**nameplate, **(recording["condition"] if recording is not None else {})})
-    at.update({name: record[name] for name in MACHINE_ANGLES + RECORDING_ANGLES})
+    at.update({name: record[name] for name in model.IMBALANCE_ANGLES + RECORDING_ANGLES})
     at["speed_rpm"] += record["speed_offset_rpm"]
     return case_values(case, at)
 
@@ -251,7 +250,7 @@ def draw_recordings(cases: Sequence[Mapping], set_name: str, spec: Mapping, oper
     base = slots.complete(base_values)
     machines = []
     for i, (case, rng) in enumerate(zip(cases, streams)):
-        case = {**case, "record": {name: case["record"][name] for name in MACHINE_ANGLES}}
+        case = {**case, "record": {name: case["record"][name] for name in model.IMBALANCE_ANGLES}}
         records = [draw_record(seed, i, sampling.fs, k) for k in range(len(names[case["name"]]))]
         for _ in range(MAX_DRAWS):
             recordings = [{**_draw_recording(name.split("/")[1], operating_range, compared, rng), "record": record}
@@ -485,12 +484,16 @@ def _parameter_errors(case: Mapping, verdict: Mapping) -> list[dict]:
         mean, low, high = _float(summary.get("mean")), _float(summary.get("hdi_low")), _float(summary.get("hdi_high"))
         angle = _is_shaft_angle(case["class"], name)
         if angle:
-            turn = _record_turn(case["record"], verdict.get("record") or {})
-            if turn is None:
+            found = alignment.turn(verdict.get("record") or {}, case["record"])
+            if found is None:
                 continue
+            turn, turn_sd = found
             miss = mean - turn - truth
             turn -= model.wrap_angle(miss) - miss  # onto the truth's turn of the circle
             mean, low, high = (None if v is None else v - turn for v in (mean, low, high))
+            if low is not None and high is not None:  # the interval widened by the turn's own error, in quadrature
+                low, high = (mean - math.hypot(mean - low, likelihood.HDI_Z * turn_sd),
+                             mean + math.hypot(high - mean, likelihood.HDI_Z * turn_sd))
         errors.append({
             "case": case["name"], "class": case["class"], "parameter": name, "truth": float(truth),
             "mean": mean, "sd": _float(summary.get("sd")), "hdi_low": low, "hdi_high": high,
@@ -501,22 +504,10 @@ def _parameter_errors(case: Mapping, verdict: Mapping) -> list[dict]:
     return errors
 
 
-def _record_turn(drawn: Mapping, found: Mapping) -> float | None:
-    """How far where the record starts turned the shaft, as the diagnosis found it: each imbalance's found angle less
-    its drawn one, averaged on the circle with the weights their standard errors give (an imbalance on a disk no
-    probe is near leaves its angle free and its turn unknown, while the other's holds it); None without a record."""
-    values, sd = found.get("values") or {}, found.get("sd") or {}
-    shifts = [(values[n] - drawn[n], sd[n]) for n in MACHINE_ANGLES if n in values and n in sd and sd[n] > 0]
-    if not shifts:
-        return None
-    weights = np.array([1.0 / s**2 for _, s in shifts])
-    return float(np.angle(np.sum(weights * np.exp(1j * np.array([d for d, _ in shifts])))))
-
-
 def _is_shaft_angle(kind: str, name: str) -> bool:
     """Whether ``name`` is an effect's angle on a shaft (:func:`newdyn.effects.shaft_angle`)."""
     effect = effects.active().get(kind)
-    return effect is not None and name in effect.parameter_names() and effect.parameter(name).unit == "rad"
+    return effect is not None and name in effect.parameter_names() and effect.parameter(name).on_shaft
 
 
 def _float(value) -> float | None:

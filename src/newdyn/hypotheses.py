@@ -18,7 +18,6 @@ from typing import NamedTuple
 
 import numpy as np
 from scipy import optimize
-from scipy.special import erfinv
 
 from . import concurrency, effects, faults, likelihood, model, sensors, simulation, slots
 
@@ -148,6 +147,21 @@ class Hypothesis:
         return np.stack([np.asarray(values[name] if name in values else others[name], dtype=float) for name in self.parameters],
                         axis=1) if self.parameters else theta
 
+    def on_shaft(self) -> list[str]:
+        """The fitted parameters that are angles on a shaft (:func:`newdyn.effects.shaft_angle`)."""
+        effect = effects.active().get(self.kind)
+        return [name for name in self.parameters if effect is not None and name in effect.parameter_names()
+                and effect.parameter(name).on_shaft]
+
+    def turned(self, theta: np.ndarray, turn: float | np.ndarray) -> np.ndarray:
+        """Rows of fitted values (n, k) for a record whose start turned the shaft by ``turn`` (one for all rows, or one
+        per row) from the one they were fitted on: each angle on a shaft turned with it, as the imbalances' angles are."""
+        theta = np.array(np.atleast_2d(theta), dtype=float)
+        for name in self.on_shaft():
+            at = self.parameters.index(name)
+            theta[:, at] = np.mod(theta[:, at] + turn + math.pi, 2 * math.pi) - math.pi
+        return theta
+
     def effective_values(self, theta: np.ndarray, base: Mapping[str, float]) -> dict[str, float]:
         """The values the model runs with at one row of fitted values (:meth:`admissible_rows`)."""
         return dict(zip(self.parameters, self.admissible_rows(theta, base)[0].tolist()))
@@ -231,8 +245,7 @@ def laplace_parameters(values: Mapping[str, float], covariance: np.ndarray | Non
     if covariance is None:
         return {}
     sd = np.sqrt(np.diag(covariance))
-    z = float(np.sqrt(2) * erfinv(likelihood.HDI_PROB))  # the Normal's central interval is mean ± z·sd
-    return {name: {"map": v, "mean": v, "sd": float(s), "hdi_low": v - z * float(s), "hdi_high": v + z * float(s),
+    return {name: {"map": v, "mean": v, "sd": float(s), "hdi_low": v - likelihood.HDI_Z * float(s), "hdi_high": v + likelihood.HDI_Z * float(s),
                    "method": "laplace"} for (name, v), s in zip(values.items(), sd)}
 
 
@@ -245,16 +258,18 @@ def evaluate(hypothesis: Hypothesis, theta: np.ndarray, base: Mapping[str, float
 
 
 def evaluate_each(hypothesis: Hypothesis, thetas: Sequence[np.ndarray], recordings: Sequence[Recording],
-                  max_step: float) -> list[np.ndarray]:
+                  max_step: float, turns: Sequence[float | np.ndarray] | None = None) -> list[np.ndarray]:
     """:func:`evaluate` of each recording at its own rows of fitted values (``thetas``, one (n, k) array each), the
     recordings of one sampling simulated in one batch on all their channels: a joint fit's few rows per recording fill
     the kernel's lanes together where each recording's alone would leave most of a block empty.  A lane's result does
-    not depend on its batch, so each recording's outputs are those :func:`evaluate` gives it."""
+    not depend on its batch, so each recording's outputs are those :func:`evaluate` gives it.  Each recording's angles
+    on a shaft are turned by its ``turns`` (one per row, or one for all), else by its own :attr:`Recording.turn`."""
+    turns = [r.turn for r in recordings] if turns is None else turns
     found: list[np.ndarray | None] = [None] * len(recordings)
     for sampling in dict.fromkeys(r.sampling for r in recordings):
         mine = [i for i, r in enumerate(recordings) if r.sampling == sampling]
         channels = list(dict.fromkeys(c for i in mine for c in recordings[i].channels))
-        rows = [hypothesis.parameter_rows(np.atleast_2d(thetas[i]), recordings[i].base) for i in mine]
+        rows = [hypothesis.parameter_rows(hypothesis.turned(thetas[i], turns[i]), recordings[i].base) for i in mine]
         for i, part in zip(mine, simulation.simulate_parts(rows, sampling, channels, max_step)):
             found[i] = part[:, [channels.index(c) for c in recordings[i].channels]]
     return found
@@ -457,7 +472,9 @@ def _laplace(priors: Sequence[Prior], best: optimize.OptimizeResult, theta_star:
 @dataclass(frozen=True)
 class Recording:
     """One recording as a joint fit sees it: its data on its channels, their noise σ, the model values at its operating
-    condition, its record and its instruments."""
+    condition, its record and its instruments, and how far its start turned the shaft from the recording the fit's
+    angles on a shaft are stated for (:meth:`Hypothesis.turned`), with that turn's standard error (0: exactly; else
+    a joint fit of angles on a shaft fits the turn within it)."""
 
     data: np.ndarray
     sigma: np.ndarray
@@ -465,6 +482,8 @@ class Recording:
     sampling: model.Sampling
     channels: tuple[str, ...]
     instruments: sensors.Instruments | None = None
+    turn: float = 0.0
+    turn_sd: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -512,12 +531,19 @@ def fit_joint(hypothesis: Hypothesis, recordings: Sequence[Recording], starts: S
     say), the best kept; log-evidence and covariance by the Laplace approximation as in :func:`fit`.
 
     The parameters named in ``own`` are each recording's own instead (a phase: separate recordings share no clock nor
-    angle mark), each copy with the parameter's prior; a start gives them one value for all recordings or one each."""
+    angle mark), each copy with the parameter's prior; a start gives them one value for all recordings or one each.
+    Where the hypothesis has angles on a shaft, each recording whose :attr:`Recording.turn` has a standard error has
+    that turn fitted too, a Normal prior of that width around it (it turns those angles in that recording only)."""
     k, n = len(hypothesis.priors), len(recordings)
     runs = []
     shared_priors = [p for p in hypothesis.priors if p.name not in own]
     own_priors = [p for p in hypothesis.priors if p.name in own]
-    priors = shared_priors + own_priors * n  # the fitted vector: the shared values, then each recording's own in turn
+    turned = [r for r in range(n) if recordings[r].turn_sd > 0] if hypothesis.on_shaft() else []
+    turn_priors = [Prior(f"turn_{r}", recordings[r].turn - math.pi, recordings[r].turn + math.pi, recordings[r].turn, recordings[r].turn_sd)
+                   for r in turned]
+    # The fitted vector: the shared values, then each recording's own in turn, then the fitted turns.
+    priors = shared_priors + own_priors * n + turn_priors
+    turn_at = {r: len(priors) - len(turned) + i for i, r in enumerate(turned)}
     # Per recording, where each of the hypothesis's parameters sits in the fitted vector.
     columns = [np.array([shared_priors.index(p) if p.name not in own else len(shared_priors) + r * len(own_priors) + own_priors.index(p)
                          for p in hypothesis.priors], dtype=int) for r in range(n)]
@@ -529,7 +555,8 @@ def fit_joint(hypothesis: Hypothesis, recordings: Sequence[Recording], starts: S
 
     def outputs(theta):
         runs.append(len(theta) * n)
-        return evaluate_each(hypothesis, [admissible(theta[:, at]) for at in columns], recordings, max_step)
+        turns = [theta[:, turn_at[r]] if r in turn_at else recordings[r].turn for r in range(n)]
+        return evaluate_each(hypothesis, [admissible(theta[:, at]) for at in columns], recordings, max_step, turns)
 
     def summary(theta_star):
         models = tuple(found[0] for found in outputs(theta_star[None]))
@@ -556,7 +583,7 @@ def fit_joint(hypothesis: Hypothesis, recordings: Sequence[Recording], starts: S
     def vector(start):
         shared = [start[p.name] for p in shared_priors]
         each = [np.broadcast_to(np.asarray(start[p.name], dtype=float), (n,)) for p in own_priors]
-        return np.array(shared + [values[r] for r in range(n) for values in each], dtype=float)
+        return np.array(shared + [values[r] for r in range(n) for values in each] + [p.mean for p in turn_priors], dtype=float)
 
     u_starts = [(vector(start) - low) / span for start in starts]
     chains = concurrency.in_parallel({number: lambda u0=u0: _passes(residuals, u0, JACOBIAN_STEPS) for number, u0 in enumerate(u_starts)})

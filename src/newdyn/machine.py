@@ -47,25 +47,31 @@ class Diagnosed:
     verdict: Mapping
 
 
-def recording(diagnosed: Diagnosed, settings: Settings) -> hypotheses.Recording:
+def recording(diagnosed: Diagnosed, settings: Settings, reference: Mapping | None = None) -> hypotheses.Recording:
     """A recording as the joint fits see it: on the channels, with the noise and where on the shaft's turn and the load's
-    cycle (and at which speed) its own diagnosis found it."""
+    cycle (and at which speed) its own diagnosis found it, and how far its start turned the shaft from the ``reference``
+    record's (a recording's ``record``, :func:`reference_record`; :func:`newdyn.alignment.turn`), with that turn's
+    standard error: the machine's angles on a shaft are stated for the reference."""
     m, v = diagnosed.measurement, diagnosed.verdict
     channels = tuple(v["channels"])
     colour = noise.Colour.from_summary(v["noise"].get("colour", {}), channels)
+    record = v.get("record", {})
+    turn = (0.0, 0.0) if record is reference else alignment.turn(record, reference["values"], reference["sd"]) if reference and record else None
     return hypotheses.Recording(
         m.y[[m.channels.index(c) for c in channels]], np.array([v["noise"]["sigma"][c] for c in channels]),
-        slots.complete({**settings.rig, **m.operating, **v.get("record", {}).get("values", {})}), m.sampling, channels,
-        replace(settings, channels=channels).instruments(m.sampling.fs, colour),
+        slots.complete({**settings.rig, **m.operating, **record.get("values", {})}), m.sampling, channels,
+        replace(settings, channels=channels).instruments(m.sampling.fs, colour), *(turn or (0.0, 0.0)),
     )
 
 
 def diagnose(name: str, recordings: Sequence[Diagnosed], settings: Settings) -> MachineDiagnosis:
     """The machine's verdict (see the module docstring) from its ``recordings``, each already diagnosed alone, and the
     effect file of the term discovery fitted across them (if any)."""
-    seen = [recording(r, settings) for r in recordings]
+    reference = reference_record(recordings)
+    seen = [recording(r, settings, reference) for r in recordings]
     hyps = {h.name: h for h in settings.hypotheses()}
-    own = [{row["hypothesis"]: row for row in r.verdict["ranking"]} for r in recordings]
+    own = [{row["hypothesis"]: _turned_back(row, hyps[row["hypothesis"]], s.turn) for row in r.verdict["ranking"] if row["hypothesis"] in hyps}
+           for r, s in zip(recordings, seen)]
 
     seen_by = {n: [_at_own_load_phase(s, rows[n]) for s, rows in zip(seen, own)] for n in hyps}
     # The joint fits take each recording's load phase from its own diagnosis, and with it the phase's integral: for
@@ -107,9 +113,31 @@ def diagnose(name: str, recordings: Sequence[Diagnosed], settings: Settings) -> 
         "consistency": {row["hypothesis"]: row["consistency"] for row in ranking},
         "recordings": lines, "ranking": ranking,
         "record_next": _record_next(ranking, fits, recordings, seen, settings),
+        **({"record": reference} if reference else {}),  # the turn the angles on a shaft are stated for
         **({"discovery": discovery} if discovery is not None else {}),
     }
     return MachineDiagnosis({"statement": statement(result, settings.chi2_max), **result}, found_file)
+
+
+def reference_record(recordings: Sequence[Diagnosed]) -> Mapping | None:
+    """The record whose turn a machine's angles on a shaft are stated for: of the recording whose imbalance angles hold
+    its start best (:func:`newdyn.alignment.turn_precision`), the first of equals; None where no recording has one."""
+    records = [r.verdict["record"] for r in recordings if r.verdict.get("record")]
+    return max(records, key=alignment.turn_precision) if records else None
+
+
+def _turned_back(row: Mapping, hypothesis: hypotheses.Hypothesis, turn: float) -> Mapping:
+    """A recording's own ranking row of ``hypothesis`` with its angles on a shaft stated for the machine's reference
+    record, whose start turned the shaft ``turn`` less than this one's (:meth:`newdyn.hypotheses.Hypothesis.turned`)."""
+    names = [n for n in hypothesis.on_shaft() if n in row.get("parameters", {})]
+    if not names or not turn:
+        return row
+    keys = ("map", "mean", "hdi_low", "hdi_high")
+    parameters = dict(row["parameters"])
+    for name in names:
+        shift = model.wrap_angle(parameters[name]["map"] - turn) - parameters[name]["map"]
+        parameters[name] = {**parameters[name], **{k: parameters[name][k] + shift for k in keys if k in parameters[name]}}
+    return {**row, "parameters": parameters}
 
 
 def _at_own_load_phase(seen: hypotheses.Recording, row: Mapping) -> hypotheses.Recording:

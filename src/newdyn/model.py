@@ -120,6 +120,7 @@ OPERATING_PARAMETERS = tuple(p.name for p in PARAMETERS if p.group == "operating
 # imbalances' angles phi1 and phi4 (rotating the whole shaft by ψ is phi1 and phi4 by ψ).
 RECORD_PARAMETERS = tuple(p.name for p in PARAMETERS if p.group == "record")
 ANGLE_PARAMETERS = tuple(p.name for p in PARAMETERS if p.unit == "rad")
+IMBALANCE_ANGLES = tuple(n for n in ANGLE_PARAMETERS if n in RIG_PARAMETERS)  # phi1, phi4: they turn with the record's start
 
 # The torsional bodies' angles in shaft order, as the state holds them: motor rotor, motor shaft end, motor-side
 # coupling hub, load-side hub, load.

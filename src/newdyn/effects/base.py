@@ -180,7 +180,7 @@ def shaft_angle(name: str, description: str) -> Parameter:
     disks' angles ``s.theta1``, ``s.theta4`` are those of their marks): nobody measures it, so a diagnosis fits it and
     a blind test draws it over the whole turn; 0 is the mark."""
     return Parameter(name, "rad", description, default=0.0, prior=(-math.pi, math.pi), lower=-2 * math.pi, upper=2 * math.pi,
-                     lower_inclusive=True, upper_inclusive=True)
+                     lower_inclusive=True, upper_inclusive=True, on_shaft=True)
 
 
 @dataclass(frozen=True)
@@ -190,7 +190,8 @@ class Parameter:
     ``default`` is a number or a function of the rig's values (a dict).  ``prior`` is the uniform range
     a diagnosis fits over; ``hidden`` the range a blind test draws from (default: ``prior``), chosen
     so that every draw is visible above the noise.  ``sets_rig`` parameters do not enter the force
-    functions: they set rig values through :meth:`Effect.rig_values`.
+    functions: they set rig values through :meth:`Effect.rig_values`.  ``on_shaft`` marks an angle on a shaft
+    (:func:`shaft_angle`): where a record starts turns it as it turns the imbalances' angles.
     """
 
     name: str
@@ -204,6 +205,7 @@ class Parameter:
     lower_inclusive: bool = False
     upper_inclusive: bool = False
     sets_rig: bool = False
+    on_shaft: bool = False
 
     def bounds(self) -> model.Parameter:
         """The physical bounds as a :class:`newdyn.model.Parameter`, which says why a value is not physical."""
