@@ -11,7 +11,7 @@ import xarray as xr
 import yaml
 from matplotlib.figure import Figure
 
-from newdyn import effects, faults, hidden, io, likelihood, model, noise, plots, signatures, simulation, slots, study
+from newdyn import effects, faults, hidden, io, model, noise, plots, signatures, simulation, slots, study
 from newdyn.settings import Settings
 
 BASE = slots.complete()
@@ -626,7 +626,8 @@ def test_an_angle_on_the_shaft_is_scored_in_the_turn_the_imbalances_seen_give(ph
     errors = {e["parameter"]: e for e in hidden._parameter_errors(case, verdict)}
     assert errors["angle"]["truth"] == pytest.approx(3.0) and errors["angle"]["mean"] == pytest.approx(3.01, abs=0.005)
     assert errors["angle"]["in_hdi"] is True and errors["angle"]["relative_error"] is None
-    # The interval holds the turn's own error too (the found angles' precisions added), each side in quadrature.
+    # The interval holds the turn's own error too (the found angles' precisions added), each side in quadrature with
+    # the angle's sd.
     turn_sd = 1 / math.sqrt(phi1_sd**-2 + phi4_sd**-2)
-    assert errors["angle"]["hdi_high"] - errors["angle"]["mean"] == pytest.approx(math.hypot(0.02, likelihood.HDI_Z * turn_sd))
+    assert errors["angle"]["hdi_high"] - errors["angle"]["mean"] == pytest.approx(0.02 * math.hypot(1.0, turn_sd / 0.01))
     assert errors["alpha"]["in_hdi"] is True

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import yaml
 
-from newdyn import alignment, diagnosis, effects, faults, hypotheses, io, machine, model, noise, reference, simulation, slots
+from newdyn import diagnosis, effects, faults, hypotheses, io, machine, model, noise, reference, simulation, slots, turns
 from newdyn.settings import Settings
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -110,8 +110,8 @@ def test_a_crack_recorded_from_two_moments_is_one_crack_at_one_place_on_the_shaf
 
     # (With noise seed 2 the crack leaves part's χ² at 1.12, 1.9 of its sds over 1 on 500 samples, above the fixed 1.1.)
     full, part = recorded("full", FULL_LOAD, 0.8314, 1.1, 1, CHANNELS), recorded("part", PART_LOAD, 1.2072, -2.0, 3, ("w1",))
-    turn, sd = alignment.turn(full.verdict["record"], machine_angles)
-    assert sd < 0.05 and alignment.turn(part.verdict["record"], machine_angles)[1] > 1.0  # w1 alone: its turn unknown
+    turn, sd = turns.between(full.verdict["record"], machine_angles)
+    assert sd < 0.05 and turns.between(part.verdict["record"], machine_angles)[1] > 1.0  # w1 alone: its turn unknown
     assert all(r.verdict["effect"] == "breathing_crack" for r in (full, part))
     assert abs(model.wrap_angle(full.verdict["parameters"]["angle"]["mean"] - turn - crack["angle"])) < 0.05
     v = machine.diagnose("rig", [part, full], SETTINGS).verdict

@@ -42,7 +42,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from . import alignment, effects, faults, io, likelihood, model, noise, provenance, sensors, simulation, slots
+from . import effects, faults, io, model, noise, provenance, sensors, simulation, slots, turns
 from .hidden_sets import case_names, recording_names
 from .verdicts import HEALTHY, NEW_DYNAMICS, PARAMETER_CHANGE, SENSOR_PROBLEM, UNEXPLAINED, VERDICTS
 
@@ -484,16 +484,17 @@ def _parameter_errors(case: Mapping, verdict: Mapping) -> list[dict]:
         mean, low, high = _float(summary.get("mean")), _float(summary.get("hdi_low")), _float(summary.get("hdi_high"))
         angle = _is_shaft_angle(case["class"], name)
         if angle:
-            found = alignment.turn(verdict.get("record") or {}, case["record"])
+            found = turns.between(verdict.get("record") or {}, case["record"])
             if found is None:
                 continue
             turn, turn_sd = found
             miss = mean - turn - truth
             turn -= model.wrap_angle(miss) - miss  # onto the truth's turn of the circle
             mean, low, high = (None if v is None else v - turn for v in (mean, low, high))
-            if low is not None and high is not None:  # the interval widened by the turn's own error, in quadrature
-                low, high = (mean - math.hypot(mean - low, likelihood.HDI_Z * turn_sd),
-                             mean + math.hypot(high - mean, likelihood.HDI_Z * turn_sd))
+            sd = _float(summary.get("sd"))
+            if low is not None and high is not None and sd:  # the interval widened by the turn's own error, in quadrature
+                widen = math.hypot(1.0, turn_sd / sd)
+                low, high = mean - widen * (mean - low), mean + widen * (high - mean)
         errors.append({
             "case": case["name"], "class": case["class"], "parameter": name, "truth": float(truth),
             "mean": mean, "sd": _float(summary.get("sd")), "hdi_low": low, "hdi_high": high,

@@ -18,6 +18,7 @@ from typing import NamedTuple
 
 import numpy as np
 from scipy import optimize
+from scipy.special import erfinv
 
 from . import concurrency, effects, faults, likelihood, model, sensors, simulation, slots
 
@@ -245,7 +246,8 @@ def laplace_parameters(values: Mapping[str, float], covariance: np.ndarray | Non
     if covariance is None:
         return {}
     sd = np.sqrt(np.diag(covariance))
-    return {name: {"map": v, "mean": v, "sd": float(s), "hdi_low": v - likelihood.HDI_Z * float(s), "hdi_high": v + likelihood.HDI_Z * float(s),
+    z = float(np.sqrt(2) * erfinv(likelihood.HDI_PROB))  # the Normal's central interval is mean ± z·sd
+    return {name: {"map": v, "mean": v, "sd": float(s), "hdi_low": v - z * float(s), "hdi_high": v + z * float(s),
                    "method": "laplace"} for (name, v), s in zip(values.items(), sd)}
 
 
@@ -490,7 +492,8 @@ class Recording:
 class JointFit:
     """A hypothesis fitted to several recordings with one set of parameters: per recording its model and misfit.  A
     parameter that each recording has its own value of (``own`` of :func:`fit_joint`) is in ``own_values``, one mapping
-    per recording, and not in ``values``; the covariance is over the shared values, then each recording's own in turn."""
+    per recording, and not in ``values``; the covariance is over the shared values, then each recording's own in turn.
+    ``turns``: how far each recording's angles on a shaft were turned (:meth:`Hypothesis.turned`)."""
 
     hypothesis: Hypothesis
     values: dict[str, float]
@@ -503,6 +506,7 @@ class JointFit:
     covariance: np.ndarray | None = None
     instruments: tuple[sensors.Instruments | None, ...] = ()  # each recording's, once one was widened beyond its datasheets
     own_values: tuple[dict[str, float], ...] = ()
+    turns: tuple[float, ...] = ()  # each recording's turn its angles on a shaft were turned by (Recording.turn, or fitted)
 
     @property
     def theta(self) -> np.ndarray:
@@ -591,6 +595,9 @@ def fit_joint(hypothesis: Hypothesis, recordings: Sequence[Recording], starts: S
     theta_star = low + best.x * span
     models, ll, chi2 = summary(theta_star)
     log_evidence, at_bound, covariance = _laplace(priors, best, theta_star, ll)
+    if covariance is not None and turned:  # the values' marginal: the fitted turns are each recording's, not the machine's
+        covariance = covariance[:-len(turned), :-len(turned)]
     effective = [dict(zip(hypothesis.parameters, admissible(theta_star[None, at])[0].tolist())) for at in columns]
     return JointFit(hypothesis, {p.name: effective[0][p.name] for p in shared_priors}, models, ll, chi2, log_evidence, sum(runs),
-                    at_bound, covariance, own_values=tuple({p.name: e[p.name] for p in own_priors} for e in effective) if own_priors else ())
+                    at_bound, covariance, own_values=tuple({p.name: e[p.name] for p in own_priors} for e in effective) if own_priors else (),
+                    turns=tuple(float(theta_star[turn_at[r]]) if r in turn_at else recordings[r].turn for r in range(n)))

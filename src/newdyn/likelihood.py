@@ -10,18 +10,15 @@ in the paper's figures.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 from scipy import signal, stats
 from scipy.integrate import cumulative_trapezoid, trapezoid
-from scipy.special import erfinv
 
 from . import sensors
 
 HDI_PROB = 0.94  # the credible intervals newdyn reports: ArviZ's default, 94 % highest density
-HDI_Z = float(math.sqrt(2) * erfinv(HDI_PROB))  # a Normal's central 94 % interval is mean ± HDI_Z·sd
 
 
 def _checked(data, model, sigma) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -25,7 +25,20 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from . import alignment, comparison, concurrency, hypotheses, instrument_checks, io, model, next_condition, noise, sensors, slots
+from . import (
+    alignment,
+    comparison,
+    concurrency,
+    hypotheses,
+    instrument_checks,
+    io,
+    model,
+    next_condition,
+    noise,
+    sensors,
+    slots,
+    turns,
+)
 from .discovery import effect_file, force, search, verify
 from .hypotheses import HEALTHY
 from .settings import Settings
@@ -50,13 +63,13 @@ class Diagnosed:
 def recording(diagnosed: Diagnosed, settings: Settings, reference: Mapping | None = None) -> hypotheses.Recording:
     """A recording as the joint fits see it: on the channels, with the noise and where on the shaft's turn and the load's
     cycle (and at which speed) its own diagnosis found it, and how far its start turned the shaft from the ``reference``
-    record's (a recording's ``record``, :func:`reference_record`; :func:`newdyn.alignment.turn`), with that turn's
+    record's (a recording's ``record``, :func:`reference_record`; :func:`newdyn.turns.between`), with that turn's
     standard error: the machine's angles on a shaft are stated for the reference."""
     m, v = diagnosed.measurement, diagnosed.verdict
     channels = tuple(v["channels"])
     colour = noise.Colour.from_summary(v["noise"].get("colour", {}), channels)
     record = v.get("record", {})
-    turn = (0.0, 0.0) if record is reference else alignment.turn(record, reference["values"], reference["sd"]) if reference and record else None
+    turn = (0.0, 0.0) if record is reference else turns.between(record, reference["values"], reference["sd"]) if reference and record else None
     return hypotheses.Recording(
         m.y[[m.channels.index(c) for c in channels]], np.array([v["noise"]["sigma"][c] for c in channels]),
         slots.complete({**settings.rig, **m.operating, **record.get("values", {})}), m.sampling, channels,
@@ -121,9 +134,9 @@ def diagnose(name: str, recordings: Sequence[Diagnosed], settings: Settings) -> 
 
 def reference_record(recordings: Sequence[Diagnosed]) -> Mapping | None:
     """The record whose turn a machine's angles on a shaft are stated for: of the recording whose imbalance angles hold
-    its start best (:func:`newdyn.alignment.turn_precision`), the first of equals; None where no recording has one."""
+    its start best (:func:`newdyn.turns.precision`), the first of equals; None where no recording has one."""
     records = [r.verdict["record"] for r in recordings if r.verdict.get("record")]
-    return max(records, key=alignment.turn_precision) if records else None
+    return max(records, key=turns.precision) if records else None
 
 
 def _turned_back(row: Mapping, hypothesis: hypotheses.Hypothesis, turn: float) -> Mapping:
@@ -289,6 +302,7 @@ def _recording_lines(recordings: Sequence[Diagnosed], seen: Sequence[hypotheses.
             "own_verdict": r.verdict["verdict"], "own_effect": r.verdict["effect"],
             "chi2_before": fits[HEALTHY].chi2_red[i], "chi2_after": found.chi2_red[i],
             "finding_log_bayes_factor": contribution, "finding_visible": contribution > settings.evidence_margin,
+            "turn": found.turns[i] if found.turns else s.turn,
             "instruments_out_of_spec": instrument_checks.out_of_spec(found.instruments[i], s.instruments, s.channels)
             if found.instruments else [],
         })
