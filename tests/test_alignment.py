@@ -1,12 +1,17 @@
 """Where a recording sits on the shaft's turn and the load's cycle, and the speed it runs at, found from its data."""
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
-from newdyn import alignment, io, model, noise, reference, running_speed, slots
-from newdyn.simulation import DEFAULT_MAX_STEP, simulate
+from newdyn import alignment, diagnosis, faults, hypotheses, io, likelihood, model, noise, reference, running_speed, slots
+from newdyn.settings import Settings
+from newdyn.simulation import DEFAULT_MAX_STEP, simulate, simulate_batch
+
+ROOT = Path(__file__).resolve().parents[1]
 
 CHANNELS = ["b1_x", "b2_x", "w1"]
 SAMPLING = model.Sampling()  # the model's record: from the warm-up on
@@ -137,3 +142,32 @@ def test_the_found_load_phase_is_the_truths_within_its_standard_error(recording)
     assert abs(model.wrap_angle(found.values["load_phase"] - turned)) < 4 * found.sd["load_phase"]
     assert all(found.sd[name] < 0.01 for name in ("phi1", "phi4", "load_phase"))
     assert found.summary()["sd"] == found.sd
+
+
+def test_the_load_phase_integrated_out_beside_a_faults_values_is_the_integral_over_the_phase():
+    """A breathing crack's fit with the load's phase (and a kT1 drift) free: at rows of its values out to twice their
+    posterior's spread, the profiled likelihood (one Gauss–Newton step from the phase's conditional mean, along the
+    residual's derivative at the fit) plus what the phase's integral adds is log ∫ L dφ by quadrature over the phase."""
+    settings = Settings.from_config(yaml.safe_load((ROOT / "config" / "config.yaml").read_text()))
+    channels, sampling = ("b1_x", "w1"), model.Sampling(fs=5000.0, t_first=0.5, n_samples=1000)
+    crack = {"alpha": 0.343, "angle": -1.67}
+    truth = faults.scenario_values({"fault": {"kind": "breathing_crack", "parameters": crack}}, model.DEFAULTS)
+    data, sigma = noise.add_noise(simulate(slots.complete({**truth, **RECORD}), sampling, channels), channels, 40.0, 3)
+    sigma = np.asarray(sigma)
+    values = slots.complete({**settings.rig, **{k: model.DEFAULTS[k] for k in model.OPERATING_PARAMETERS}, **RECORD})
+    hypothesis = diagnosis._with_load_phase({h.name: h for h in settings.hypotheses()}["breathing_crack"], RECORD["load_phase"])
+    fit = hypotheses.fit(hypothesis, data, sigma, values, sampling, channels,
+                         [{**crack, "load_phase": RECORD["load_phase"], "kT1": values["kT1"]}], settings.max_step, search=False)
+    names, profiled = alignment.phase_profiled(hypothesis, fit.theta, fit.covariance, data, sigma, channels, sampling,
+                                               settings.max_step, values)
+    own, phase = [hypothesis.parameters.index(n) for n in names], hypothesis.parameters.index("load_phase")
+    rows = np.random.default_rng(1).multivariate_normal(fit.theta[own], 4 * fit.covariance[np.ix_(own, own)], 4)
+    found = profiled(rows)
+    for row, log_likelihood, log_integral, mean, sd in zip(rows, found.log_likelihood, found.log_integral, found.mean[:, 0],
+                                                            found.sd[:, 0]):
+        phases = mean + sd * np.linspace(-7.0, 7.0, 57)
+        at = np.insert(np.repeat(row[None], len(phases), axis=0), phase, phases, axis=1)
+        along = likelihood.log_likelihood(data, simulate_batch(hypothesis.parameter_rows(at, values), sampling, channels,
+                                                               settings.max_step), sigma)
+        exact = along.max() + math.log(np.trapezoid(np.exp(along - along.max()), phases))
+        assert log_likelihood + log_integral == pytest.approx(exact, abs=0.01)

@@ -317,32 +317,33 @@ def phase_profiled(hypothesis, theta: np.ndarray, covariance: np.ndarray, data: 
                    instruments=None) -> tuple[list[str], Callable[[np.ndarray], Profiled]]:
     """The names of ``hypothesis``'s values but the load's phase and a likelihood of rows of them with the phase
     integrated out (:class:`newdyn.posterior.Profiled`): at each row, from the phase's conditional mean under the fit's
-    Laplace approximation (``theta``, ``covariance``), one Gauss–Newton step along the phase, its gradient and
-    curvature from one more simulation.  The phase's posterior is normal and narrow beside a fault's values, so a fault
-    of two values keeps its quadrature instead of sampling three dimensions."""
+    Laplace approximation (``theta``, ``covariance``), one Gauss–Newton step along the phase.  The phase's posterior is
+    normal and narrow beside a fault's values, so a fault of two values keeps its quadrature instead of sampling three
+    dimensions; and the residual's derivative along the phase hardly moves over the values' posterior, so it is taken
+    once, at the fit, and each row costs one simulation."""
     names = list(hypothesis.parameters)
     phase_index = names.index("load_phase")
     own = [i for i in range(len(names)) if i != phase_index]
     slope = np.linalg.solve(covariance[np.ix_(own, own)], covariance[own, phase_index])
+    moved = np.array(theta, dtype=float)
+    moved[phase_index] += JACOBIAN_STEP
+    at_fit = simulation.simulate_batch(hypothesis.parameter_rows(np.vstack([theta, moved]), values), sampling, channels, max_step)
+    r_fit = likelihood.standardized_residuals(data, at_fit, sigma, instruments).reshape(2, -1)
+    along = (r_fit[1] - r_fit[0]) / JACOBIAN_STEP
+    curvature = float(along @ along)
 
     def rows_of(own_rows: np.ndarray) -> Profiled:
-        n = len(own_rows)
         phase = theta[phase_index] + (own_rows - theta[own]) @ slope
         at = np.insert(own_rows, phase_index, phase, axis=1)
-        moved = at.copy()
-        moved[:, phase_index] += JACOBIAN_STEP
-        outputs = simulation.simulate_batch(hypothesis.parameter_rows(np.vstack([at, moved]), values), sampling, channels, max_step)
-        r = likelihood.standardized_residuals(data, outputs, sigma, instruments).reshape(2 * n, -1)
-        along = (r[n:] - r[:n]) / JACOBIAN_STEP
-        curvature = np.einsum("ij,ij->i", along, along)
-        gradient = np.einsum("ij,ij->i", along, r[:n])
-        best = likelihood.log_likelihood(data, outputs[:n], sigma, instruments=instruments) + 0.5 * gradient**2 / curvature
+        outputs = simulation.simulate_batch(hypothesis.parameter_rows(at, values), sampling, channels, max_step)
+        r = likelihood.standardized_residuals(data, outputs, sigma, instruments).reshape(len(at), -1)
+        gradient = r @ along
+        best = likelihood.log_likelihood(data, outputs, sigma, instruments=instruments) + 0.5 * gradient**2 / curvature
         usable = np.isfinite(best) & (curvature > 0)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            return Profiled(np.where(usable, best, -np.inf), np.where(usable, 0.5 * np.log(2 * math.pi / curvature), 0.0),
-                            (phase - gradient / curvature)[:, None], (1.0 / np.sqrt(curvature))[:, None])
+        return Profiled(np.where(usable, best, -np.inf), np.full(len(at), 0.5 * math.log(2 * math.pi / curvature)),
+                        (phase - gradient / curvature)[:, None], np.full((len(at), 1), 1.0 / math.sqrt(curvature)))
 
-    def profiled(own_rows: np.ndarray) -> Profiled:  # a few rows at a time: two simulations of each are in memory at once
+    def profiled(own_rows: np.ndarray) -> Profiled:  # a few rows at a time: their simulations are in memory at once
         parts = [rows_of(own_rows[i : i + likelihood.SCORED_ROWS]) for i in range(0, len(own_rows), likelihood.SCORED_ROWS)]
         return Profiled(*(np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(Profiled)))
 
