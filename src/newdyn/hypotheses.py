@@ -542,12 +542,12 @@ def fit_joint(hypothesis: Hypothesis, recordings: Sequence[Recording], starts: S
     runs = []
     shared_priors = [p for p in hypothesis.priors if p.name not in own]
     own_priors = [p for p in hypothesis.priors if p.name in own]
-    turned = [r for r in range(n) if recordings[r].turn_sd > 0] if hypothesis.on_shaft() else []
+    uncertain = [r for r in range(n) if recordings[r].turn_sd > 0] if hypothesis.on_shaft() else []
     turn_priors = [Prior(f"turn_{r}", recordings[r].turn - math.pi, recordings[r].turn + math.pi, recordings[r].turn, recordings[r].turn_sd)
-                   for r in turned]
+                   for r in uncertain]
     # The fitted vector: the shared values, then each recording's own in turn, then the fitted turns.
     priors = shared_priors + own_priors * n + turn_priors
-    turn_at = {r: len(priors) - len(turned) + i for i, r in enumerate(turned)}
+    turn_at = {r: len(priors) - len(uncertain) + i for i, r in enumerate(uncertain)}
     # Per recording, where each of the hypothesis's parameters sits in the fitted vector.
     columns = [np.array([shared_priors.index(p) if p.name not in own else len(shared_priors) + r * len(own_priors) + own_priors.index(p)
                          for p in hypothesis.priors], dtype=int) for r in range(n)]
@@ -595,8 +595,8 @@ def fit_joint(hypothesis: Hypothesis, recordings: Sequence[Recording], starts: S
     theta_star = low + best.x * span
     models, ll, chi2 = summary(theta_star)
     log_evidence, at_bound, covariance = _laplace(priors, best, theta_star, ll)
-    if covariance is not None and turned:  # the values' marginal: the fitted turns are each recording's, not the machine's
-        covariance = covariance[:-len(turned), :-len(turned)]
+    if covariance is not None and uncertain:  # the values' marginal: the fitted turns are each recording's, not the machine's
+        covariance = covariance[:-len(uncertain), :-len(uncertain)]
     effective = [dict(zip(hypothesis.parameters, admissible(theta_star[None, at])[0].tolist())) for at in columns]
     return JointFit(hypothesis, {p.name: effective[0][p.name] for p in shared_priors}, models, ll, chi2, log_evidence, sum(runs),
                     at_bound, covariance, own_values=tuple({p.name: e[p.name] for p in own_priors} for e in effective) if own_priors else (),

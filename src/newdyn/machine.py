@@ -69,7 +69,9 @@ def recording(diagnosed: Diagnosed, settings: Settings, reference: Mapping | Non
     channels = tuple(v["channels"])
     colour = noise.Colour.from_summary(v["noise"].get("colour", {}), channels)
     record = v.get("record", {})
-    turn = (0.0, 0.0) if record is reference else turns.between(record, reference["values"], reference["sd"]) if reference and record else None
+    turn = None
+    if reference and record and record is not reference:
+        turn = turns.between(record, reference["values"], reference["sd"])
     return hypotheses.Recording(
         m.y[[m.channels.index(c) for c in channels]], np.array([v["noise"]["sigma"][c] for c in channels]),
         slots.complete({**settings.rig, **m.operating, **record.get("values", {})}), m.sampling, channels,
