@@ -153,6 +153,23 @@ def test_recordings_simulated_in_one_batch_get_the_bits_each_gets_alone():
         assert np.array_equal(found, alone)
 
 
+def test_a_recording_whose_start_turned_the_shaft_sees_the_angles_on_the_shaft_turned_with_it():
+    """A crack's angle (on the shaft) turns with a recording's turn, across the circle's seam; its depth and the drift do
+    not, and a hypothesis without such an angle is the same whatever the turn."""
+    crack = next(h for h in SETTINGS.hypotheses() if h.name == "breathing_crack")
+    drift = next(h for h in SETTINGS.hypotheses() if h.name == "parameter_change:kT1")
+    assert crack.on_shaft() == ["angle"] and drift.on_shaft() == []
+    theta = np.array([[0.3, 3.0, 3.1e6], [0.4, -1.0, 2.9e6]])
+    assert crack.parameters == ["alpha", "angle", "kT1"]
+    turned = crack.turned(theta, np.array([0.5, 0.5]))
+    assert turned[:, [0, 2]] == pytest.approx(theta[:, [0, 2]]) and turned[:, 1] == pytest.approx([3.5 - 2 * math.pi, -0.5])
+    base = slots.complete({**SETTINGS.rig, "T0": FULL_LOAD})
+    at_turn = hypotheses.evaluate_each(crack, [theta], [hypotheses.Recording(None, None, base, SAMPLING, CHANNELS, turn=0.5)],
+                                       SETTINGS.max_step)[0]
+    assert np.array_equal(at_turn, hypotheses.evaluate(crack, turned, base, SAMPLING, CHANNELS, SETTINGS.max_step))
+    assert np.array_equal(drift.turned(theta[:, 2:], 0.5), theta[:, 2:])
+
+
 def test_a_consistent_drift_fitted_from_its_one_start_reaches_the_optimum_of_every_recordings_start(drifted):
     """kT1 3.25e6 under two conditions: the recordings' optima agree, so one joint fit starts from one of them, and it
     ends where the fits from each recording's own optimum end."""
