@@ -127,7 +127,7 @@ def diagnose(name: str, recordings: Sequence[Diagnosed], settings: Settings) -> 
         "chi2_before": [line["chi2_before"] for line in lines], "chi2_after": [line["chi2_after"] for line in lines],
         "consistency": {row["hypothesis"]: row["consistency"] for row in ranking},
         "recordings": lines, "ranking": ranking,
-        "record_next": _record_next(ranking, fits, recordings, seen, settings),
+        "record_next": _record_next(ranking, fits, recordings, seen, reference, settings),
         **({"record": reference} if reference else {}),  # the turn the angles on a shaft are stated for
         **({"discovery": discovery} if discovery is not None else {}),
     }
@@ -196,19 +196,21 @@ def _agree(a: Mapping[str, Mapping], b: Mapping[str, Mapping], names: Sequence[s
 
 
 def _record_next(ranking: Sequence[Mapping], fits, recordings: Sequence[Diagnosed], seen: Sequence[hypotheses.Recording],
-                 settings: Settings) -> dict | None:
+                 reference: Mapping | None, settings: Settings) -> dict | None:
     """Where other hypotheses explain every recording with evidences within the margin of the best: the operating
     conditions that would tell them from it (:mod:`newdyn.next_condition`), moved from the first recording's condition,
-    on the configured channels at the recordings' median SNR.  None where the best stands alone, explains nothing or
-    no operating range is configured."""
+    on the configured channels at the recordings' median SNR, the imbalances at the ``reference`` record's angles (the
+    turn the fits' angles on a shaft are stated for).  None where the best stands alone, explains nothing or no
+    operating range is configured."""
     top = ranking[0]
     rivals = [row["hypothesis"] for row in ranking[1:]
               if row["explains"] and top["log_evidence"] - row["log_evidence"] <= settings.evidence_margin]
     if not (top["explains"] and rivals and settings.operating_range):
         return None
     snr_db = float(np.median([noise.at_measured_snr(s.data, s.sigma, s.data)[0] for s in seen]))
+    angles = {n: reference["values"][n] for n in model.IMBALANCE_ANGLES if n in reference["values"]} if reference else {}
     return next_condition.rank(fits[top["hypothesis"]], [fits[n] for n in rivals], recordings[0].measurement.operating,
-                               settings.operating_range, settings.rig, seen[0].sampling, settings.channels, snr_db,
+                               settings.operating_range, {**settings.rig, **angles}, seen[0].sampling, settings.channels, snr_db,
                                settings.max_step, settings.evidence_margin,
                                np.random.default_rng(int(settings.mcmc.get("seed", 0))))
 
