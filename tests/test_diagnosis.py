@@ -590,3 +590,27 @@ def test_under_a_crack_the_load_disks_imbalance_angle_is_free_where_only_the_mot
     found = alignment.Alignment(record, math.nan, math.nan, 0, "lines")
     _, sd = diagnosis._realigned(fit, data, sigma, values, stated, found, sampling, channels, settings)
     assert sd["phi4"] > 0.3 and sd["phi1"] < 0.05
+
+
+def test_an_effects_own_load_phase_far_from_the_records_moves_the_record_and_near_it_does_not():
+    """A crack's fit finds the load's phase beside its values; where the lines had put the record's phase 1.3 rad off
+    (a drift the nominal model lacks shifts the load's line), the record moves to the fit's phase although the angles
+    stay, and the χ² under the fit at the record's phase is far above the fit's own; where they agree nothing moves."""
+    channels = ("b1_x", "w1")
+    record = {"phi1": 0.75, "phi4": -2.38, "load_phase": 1.61}
+    crack = {"alpha": 0.343, "angle": -1.67}
+    clean = simulation.simulate(slots.complete({**fault("breathing_crack", **crack), **record}), SAMPLING, channels)
+    data, sigma = noise.add_noise(clean, channels, 40.0, 3)
+    sigma = np.asarray(sigma)
+    stated = slots.complete({**SETTINGS.rig, **{k: model.DEFAULTS[k] for k in model.OPERATING_PARAMETERS}})
+    hypothesis = diagnosis._with_load_phase({h.name: h for h in SETTINGS.hypotheses()}["breathing_crack"], record["load_phase"])
+    fit = hypotheses.fit(hypothesis, data, sigma, {**stated, **record}, SAMPLING, channels,
+                         [{**crack, "kT1": stated["kT1"], "load_phase": record["load_phase"]}], SETTINGS.max_step, search=False)
+    for lines_phase, moves in ((record["load_phase"] - 1.3, True), (fit.values["load_phase"], False)):
+        found = alignment.Alignment({**record, "load_phase": lines_phase}, math.nan, math.nan, 0, "lines",
+                                    sd={"phi1": 0.01, "phi4": 0.01, "load_phase": 0.01})
+        again, _ = diagnosis._realigned(fit, data, sigma, {**stated, **found.values}, stated, found, SAMPLING, channels, SETTINGS)
+        assert (again is not None) == moves
+        if moves:
+            assert again.values["load_phase"] == fit.values["load_phase"] and again.chi2_stated > 10 * again.chi2_found
+            assert again.values["phi1"] == pytest.approx(record["phi1"], abs=0.05)

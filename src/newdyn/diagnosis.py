@@ -40,6 +40,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 import xarray as xr
+from scipy import stats
 from scipy.integrate import trapezoid
 from scipy.special import logsumexp
 
@@ -74,6 +75,9 @@ log = logging.getLogger("newdyn")
 # nominal model lacks may pull them (most of all on a short record), and a fit at angles pulled off finds its values
 # off too, which the next pass corrects.
 REALIGNMENTS = 3
+# A fit's own finding of a record value (an effect's load phase) moves the record where it lies more sds of their
+# difference from it than a Normal estimate would one time in 1/alignment.KEEP_STATED.
+MOVED_SDS = float(stats.norm.isf(alignment.KEEP_STATED / 2))
 PHASE = "load_phase"  # the record's parameter that every effect's fit finds beside its own values
 
 
@@ -116,8 +120,20 @@ def _realigned(fit: hypotheses.Fit, data, sigma, values, stated, record: alignme
     own = [name for name in record.values if name in fit.hypothesis.parameters]  # its fit's own finding
     sd = {**{name: float(np.sqrt(fit.covariance[i, i])) for i, name in enumerate(fit.hypothesis.parameters)
              if name in own and fit.covariance is not None}, **angles_sd}
-    if found is None:
+    # The fit's own finding (an effect's load phase) moves the record too where it lies farther from the record's than
+    # their errors allow: a drift the nominal model lacks shifts the load's line that placed the record.
+    moved = [name for name in own if name in sd and abs(model.wrap_angle(fit.values[name] - record.values[name])) >
+             MOVED_SDS * math.hypot(sd[name], record.sd.get(name, 0.0))]
+    if found is None and not moved:
         return None, sd
+    if found is None:
+        def chi2(theta):  # per compared number, the whole waveform through the fit's instruments
+            outputs = hypotheses.evaluate(fit.hypothesis, theta, values, sampling, channels, settings.max_step)
+            return float(np.sum(likelihood.standardized_residuals(data, outputs, sigma, fit.instruments) ** 2)) / data.size
+
+        held = fit.theta.copy()
+        held[[fit.hypothesis.parameters.index(name) for name in moved]] = [record.values[name] for name in moved]
+        found = alignment.Alignment({}, chi2(held), chi2(fit.theta), 2, "waveform", record.speed_sd)
     return replace(found, values={**record.values, **{name: fit.values[name] for name in own}, **found.values},
                    sd={**record.sd, **sd}), sd
 
