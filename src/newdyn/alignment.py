@@ -334,13 +334,14 @@ def phase_profiled(hypothesis, theta: np.ndarray, covariance: np.ndarray, data: 
 
     def rows_of(own_rows: np.ndarray) -> Profiled:
         phase = theta[phase_index] + (own_rows - theta[own]) @ slope
+        if not curvature > 0:  # the phase moves nothing the channels record: no point can be integrated
+            return Profiled(np.full(len(phase), -np.inf), np.zeros(len(phase)), phase[:, None], np.zeros((len(phase), 1)))
         at = np.insert(own_rows, phase_index, phase, axis=1)
         outputs = simulation.simulate_batch(hypothesis.parameter_rows(at, values), sampling, channels, max_step)
         r = likelihood.standardized_residuals(data, outputs, sigma, instruments).reshape(len(at), -1)
         gradient = r @ along
         best = likelihood.log_likelihood(data, outputs, sigma, instruments=instruments) + 0.5 * gradient**2 / curvature
-        usable = np.isfinite(best) & (curvature > 0)
-        return Profiled(np.where(usable, best, -np.inf), np.full(len(at), 0.5 * math.log(2 * math.pi / curvature)),
+        return Profiled(np.where(np.isfinite(best), best, -np.inf), np.full(len(at), 0.5 * math.log(2 * math.pi / curvature)),
                         (phase - gradient / curvature)[:, None], np.full((len(at), 1), 1.0 / math.sqrt(curvature)))
 
     def profiled(own_rows: np.ndarray) -> Profiled:  # a few rows at a time: their simulations are in memory at once
