@@ -127,13 +127,13 @@ def _realigned(fit: hypotheses.Fit, data, sigma, values, stated, record: alignme
     if found is None and not moved:
         return None, sd
     if found is None:
-        def chi2(theta):  # per compared number, the whole waveform through the fit's instruments
-            outputs = hypotheses.evaluate(fit.hypothesis, theta, values, sampling, channels, settings.max_step)
+        def chi2(outputs):  # per compared number, the whole waveform through the fit's instruments
             return float(np.sum(likelihood.standardized_residuals(data, outputs, sigma, fit.instruments) ** 2)) / data.size
 
         held = fit.theta.copy()
         held[[fit.hypothesis.parameters.index(name) for name in moved]] = [record.values[name] for name in moved]
-        found = alignment.Alignment({}, chi2(held), chi2(fit.theta), 2, "waveform", record.speed_sd)
+        at_record = hypotheses.evaluate(fit.hypothesis, held, values, sampling, channels, settings.max_step)
+        found = alignment.Alignment({}, chi2(at_record), chi2(fit.model[None]), 1, "waveform", record.speed_sd)
     return replace(found, values={**record.values, **{name: fit.values[name] for name in own}, **found.values},
                    sd={**record.sd, **sd}), sd
 
