@@ -568,6 +568,20 @@ def test_the_speed_is_fitted_within_the_tachometers_spread_only_where_the_record
     assert diagnosis._tachometer_sd(SETTINGS, ("b1_x", "w1"), 1480.0, second) is None  # an exact tachometer: its mean
 
 
+CRACKED_RECORD = {"phi1": 0.75, "phi4": -2.38, "load_phase": 1.61}
+CRACK = {"alpha": 0.343, "angle": -1.67}
+
+
+def cracked(settings, channels, sampling):
+    """A cracked rig (:data:`CRACK`) recorded at :data:`CRACKED_RECORD`'s angles and load phase, 40 dB: its data and σ,
+    the stated rig at the default condition, and the crack's hypothesis with the load's phase free about the record's."""
+    clean = simulation.simulate(slots.complete({**fault("breathing_crack", **CRACK), **CRACKED_RECORD}), sampling, channels)
+    data, sigma = noise.add_noise(clean, channels, 40.0, 3)
+    stated = slots.complete({**settings.rig, **{k: model.DEFAULTS[k] for k in model.OPERATING_PARAMETERS}})
+    library = {h.name: h for h in settings.hypotheses()}
+    return data, np.asarray(sigma), stated, diagnosis._with_load_phase(library["breathing_crack"], CRACKED_RECORD["load_phase"])
+
+
 def test_under_a_crack_the_load_disks_imbalance_angle_is_free_where_only_the_motors_probes_record():
     """Probes at the motor's bearings and its speed, a breathing crack on the load's side: under the crack's fit, with
     the probes' offsets, gains and delays free within their datasheets, the crack's response takes up what disk 4's
@@ -576,18 +590,11 @@ def test_under_a_crack_the_load_disks_imbalance_angle_is_free_where_only_the_mot
     settings = Settings.from_config(yaml.safe_load((ROOT / "config" / "config.yaml").read_text()))  # its probes' datasheets
     channels = ("b1_x", "b2_x", "w1")
     sampling = model.Sampling(fs=5000.0, t_first=0.5, n_samples=5000)
-    record = {"phi1": 0.75, "phi4": -2.38, "load_phase": 1.61}
-    crack = {"alpha": 0.343, "angle": -1.67}
-    clean = simulation.simulate(slots.complete({**fault("breathing_crack", **crack), **record}), sampling, channels)
-    data, sigma = noise.add_noise(clean, channels, 40.0, 3)
-    sigma = np.asarray(sigma)
-    stated = slots.complete({**settings.rig, **{k: model.DEFAULTS[k] for k in model.OPERATING_PARAMETERS}})
-    values = {**stated, **record}
-    library = {h.name: h for h in settings.hypotheses()}
-    hypothesis = diagnosis._with_load_phase(library["breathing_crack"], record["load_phase"])
-    fit = hypotheses.fit(hypothesis, data, sigma, values, sampling, channels, [{**crack, "load_phase": record["load_phase"]}],
+    data, sigma, stated, hypothesis = cracked(settings, channels, sampling)
+    values = {**stated, **CRACKED_RECORD}
+    fit = hypotheses.fit(hypothesis, data, sigma, values, sampling, channels, [{**CRACK, "load_phase": CRACKED_RECORD["load_phase"]}],
                          settings.max_step, search=False, instruments=settings.instruments(sampling.fs))
-    found = alignment.Alignment(record, math.nan, math.nan, 0, "lines")
+    found = alignment.Alignment(CRACKED_RECORD, math.nan, math.nan, 0, "lines")
     _, sd = diagnosis._realigned(fit, data, sigma, values, stated, found, sampling, channels, settings)
     assert sd["phi4"] > 0.3 and sd["phi1"] < 0.05
 
@@ -597,15 +604,10 @@ def test_an_effects_own_load_phase_far_from_the_records_moves_the_record_and_nea
     (a drift the nominal model lacks shifts the load's line), the record moves to the fit's phase although the angles
     stay, and the χ² under the fit at the record's phase is far above the fit's own; where they agree nothing moves."""
     channels = ("b1_x", "w1")
-    record = {"phi1": 0.75, "phi4": -2.38, "load_phase": 1.61}
-    crack = {"alpha": 0.343, "angle": -1.67}
-    clean = simulation.simulate(slots.complete({**fault("breathing_crack", **crack), **record}), SAMPLING, channels)
-    data, sigma = noise.add_noise(clean, channels, 40.0, 3)
-    sigma = np.asarray(sigma)
-    stated = slots.complete({**SETTINGS.rig, **{k: model.DEFAULTS[k] for k in model.OPERATING_PARAMETERS}})
-    hypothesis = diagnosis._with_load_phase({h.name: h for h in SETTINGS.hypotheses()}["breathing_crack"], record["load_phase"])
+    record = CRACKED_RECORD
+    data, sigma, stated, hypothesis = cracked(SETTINGS, channels, SAMPLING)
     fit = hypotheses.fit(hypothesis, data, sigma, {**stated, **record}, SAMPLING, channels,
-                         [{**crack, "kT1": stated["kT1"], "load_phase": record["load_phase"]}], SETTINGS.max_step, search=False)
+                         [{**CRACK, "kT1": stated["kT1"], "load_phase": record["load_phase"]}], SETTINGS.max_step, search=False)
     for lines_phase, moves in ((record["load_phase"] - 1.3, True), (fit.values["load_phase"], False)):
         found = alignment.Alignment({**record, "load_phase": lines_phase}, math.nan, math.nan, 0, "lines",
                                     sd={"phi1": 0.01, "phi4": 0.01, "load_phase": 0.01})
