@@ -508,7 +508,7 @@ def _parameter_errors(case: Mapping, verdict: Mapping) -> list[dict]:
 def _is_shaft_angle(kind: str, name: str) -> bool:
     """Whether ``name`` is an effect's angle on a shaft (:func:`newdyn.effects.shaft_angle`)."""
     effect = effects.active().get(kind)
-    return effect is not None and name in effect.parameter_names() and effect.parameter(name).on_shaft
+    return effect is not None and name in effect.shaft_angles()
 
 
 def _float(value) -> float | None:

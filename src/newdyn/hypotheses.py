@@ -151,8 +151,7 @@ class Hypothesis:
     def on_shaft(self) -> list[str]:
         """The fitted parameters that are angles on a shaft (:func:`newdyn.effects.shaft_angle`)."""
         effect = effects.active().get(self.kind)
-        return [name for name in self.parameters if effect is not None and name in effect.parameter_names()
-                and effect.parameter(name).on_shaft]
+        return [name for name in self.parameters if effect is not None and name in effect.shaft_angles()]
 
     def turned(self, theta: np.ndarray, turn: float | np.ndarray) -> np.ndarray:
         """Rows of fitted values (n, k) for a record whose start turned the shaft by ``turn`` (one for all rows, or one

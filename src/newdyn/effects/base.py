@@ -266,6 +266,11 @@ class Effect:
         return tuple(p.name for p in cls.parameters)
 
     @classmethod
+    def shaft_angles(cls) -> tuple[str, ...]:
+        """Its parameters that are angles on a shaft (:func:`shaft_angle`)."""
+        return tuple(p.name for p in cls.parameters if p.on_shaft)
+
+    @classmethod
     def kernel_parameters(cls) -> tuple[Parameter, ...]:
         """The parameters its force, event and switch functions read (``p``), in declaration order."""
         return tuple(p for p in cls.parameters if not p.sets_rig)
