@@ -6,7 +6,8 @@ record that starts elsewhere gets its own (:func:`with_members`), at the load's 
 fits free the phase from the best member: a box dimension for it would thin every axis of the others).
 
 Members are quasi-random points (a scrambled Sobol sequence) of a hypothesis's prior box, simulated over the fits'
-first search windows.  A fit of a hypothesis with at most :data:`MAX_PARAMETERS` fitted parameters starts its least
+first search windows at a search's precision (:func:`newdyn.simulation.simulate_batch`): they only choose where least
+squares on the exact simulator starts.  A fit of a hypothesis with at most :data:`MAX_PARAMETERS` fitted parameters starts its least
 squares on each of those windows from the member that fits it best, instead of from a differential evolution there:
 :data:`MEMBERS` points put 32 on each axis of a two-parameter box, as dense as the search's own population, and 10 on
 each of a three-parameter one (a crack's depth and where it sits, and a drift: smooth in each, the test suite's
@@ -50,7 +51,7 @@ def spec(hyps: Mapping[str, hypotheses.Hypothesis], signature_entries, kinds: Se
     """What a bank depends on, as plain data: the signature library's and its members' (see :func:`key`)."""
     return {**signatures.spec(hyps, signature_entries, values, sampling, channels, grids, priors, instruments, max_step),
             "members": {"kinds": sorted(banked(hyps, kinds)), "n": MEMBERS, "seed": MEMBER_SEED,
-                        "samples": _search_samples(sampling)}}
+                        "samples": _search_samples(sampling), "search": True}}
 
 
 def key(bank_spec: Mapping) -> str:
@@ -89,8 +90,8 @@ def with_members(bank: xr.Dataset, hyps: Mapping[str, hypotheses.Hypothesis], ki
 
 def member_sets(hyps: Mapping[str, hypotheses.Hypothesis], kinds: Sequence[str], values: Mapping[str, float],
                 sampling: model.Sampling, channels: Sequence[str], max_step: float) -> dict[str, hypotheses.Members]:
-    """The members of each hypothesis of ``kinds`` with parameters, their outputs kept in single precision (they only
-    rank the members; a fit's least squares simulates its own)."""
+    """The members of each hypothesis of ``kinds`` with parameters, simulated at a search's precision and kept in single
+    precision (they only rank the members; a fit's least squares simulates its own)."""
     window = replace(sampling, n_samples=_search_samples(sampling))
     found = {}
     for kind in banked(hyps, kinds):
@@ -98,7 +99,7 @@ def member_sets(hyps: Mapping[str, hypotheses.Hypothesis], kinds: Sequence[str],
         low = np.array([p.low for p in hypothesis.priors])
         span = np.array([p.high for p in hypothesis.priors]) - low
         unit = qmc.Sobol(len(low), seed=MEMBER_SEED).random(MEMBERS)
-        outputs = hypotheses.evaluate(hypothesis, low + unit * span, values, window, channels, max_step)
+        outputs = hypotheses.evaluate(hypothesis, low + unit * span, values, window, channels, max_step, search=True)
         found[kind] = hypotheses.Members(unit, outputs.astype(np.float32), tuple(hypothesis.parameters))
     return found
 
