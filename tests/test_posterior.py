@@ -98,6 +98,48 @@ def test_quadrature_lays_its_lattice_again_where_the_approximation_is_far_too_na
     np.testing.assert_allclose(got_sd, sd, rtol=0.06)
 
 
+def test_quadrature_grows_its_lattice_along_a_ridge_past_its_first_extent_and_nowhere_else():
+    """A Gaussian twelve times wider than the approximation along one diagonal and as narrow across: the lattice grows
+    from ±5 sds along the ridge only, to the cells about it (far fewer than the box around them), and is exact."""
+    rotation = np.array([[1.0, -1.0], [1.0, 1.0]]) / np.sqrt(2)
+    cov = rotation @ np.diag([12.0**2, 1.0]) @ rotation.T
+    evaluated = []
+
+    def log_posterior(theta):
+        evaluated.append(len(theta))
+        log_likelihood = gaussian(np.zeros(2), cov)(theta)
+        return log_likelihood, log_likelihood, np.empty((len(theta), 0))
+
+    theta, log_weight, *_, found = posterior._quadrature(log_posterior, posterior._Whitened.of(np.zeros(2), np.eye(2)), np.zeros(0))
+    reach = 12 * 5.3 / np.sqrt(2) / posterior.STEP  # the ridge's ±5.3 sds (the first lattice's extent) along each axis, in cells
+    assert found["converged"] and found["edge_mass"] < posterior.EDGE_MASS
+    assert sum(evaluated) < 0.2 * (2 * reach + 1) ** 2 and len(evaluated) > 2
+    weight = np.exp(log_weight)
+    got_mean = weight @ theta
+    np.testing.assert_array_less(np.abs(got_mean), 0.01 * 12)
+    np.testing.assert_allclose(np.cov(theta, rowvar=False, aweights=weight, ddof=0), cov, rtol=0.01, atol=0.01)
+
+
+def test_quadrature_after_an_importance_batch_that_missed_is_laid_about_its_draws_at_fewer_points(monkeypatch):
+    """An approximation four times too narrow: its importance batch misses (k̂ > 0.5) but its weighted draws place the
+    posterior; the lattice laid about them needs fewer simulations than one grown from the approximation, and both
+    are exact."""
+    mean, sd = STIFFNESS_AND_DEPTH
+    cov = np.array([[1.0, 0.95], [0.95, 1.0]]) * np.outer(sd, sd)
+    found = {}
+    for laid_on_draws in (True, False):
+        if not laid_on_draws:
+            monkeypatch.setattr(posterior, "LAID_ON_DRAWS_ESS", np.inf)
+        log_likelihood, calls = counted(gaussian(mean, cov))
+        idata = posterior.sample(log_likelihood, box([0, 0], [1e7, 1]), ["k", "a"], mean, cov / 4**2, SETTINGS)
+        assert idata.attrs["method"] == "quadrature" and idata.attrs["converged"] == 1, idata.attrs["reason"]
+        got_mean, got_sd = moments(idata, ["k", "a"])
+        np.testing.assert_array_less(np.abs(got_mean - mean), 4 * sd / np.sqrt(SETTINGS.batch))
+        np.testing.assert_allclose(got_sd, sd, rtol=0.06)
+        found[laid_on_draws] = sum(calls)
+    assert found[True] < 0.7 * found[False]
+
+
 def test_a_lattice_is_laid_again_only_about_weights_that_span_every_parameter():
     equal = np.log(np.full(3, 1 / 3))
     for degenerate in ([[0, 0], [1, 1], [2, 2]], [[1, 2], [1, 2], [1, 2]]):  # on a line, at one point

@@ -5,16 +5,21 @@ Both work in the Laplace approximation's whitened coordinates z, θ = θ* + s �
 their correlation, so that z ~ N(0, I) under the approximation and scales as far apart as a stiffness of 1e6 and a
 ratio of 1 stay well conditioned.
 
-Quadrature (one or two parameters): the midpoint rule on cells of side :data:`STEP` over ±:data:`HALF_WIDTH` in z,
-widened on every side whose outermost row holds more than :data:`EDGE_MASS` of the posterior.  Where the mean and sd
-of every parameter agree to :data:`RESOLUTION` of its sd with those of the lattice's points of even index (the
-lattice at twice the step, which costs no simulation), that is the answer; else every cell but the lightest, which
-hold :data:`UNSPLIT_MASS` of it together, is split in halves, until they agree between two splittings.  Its draws
-are cells spread over their volume, kept in the prior's support.  Where the posterior reaches past the lattice's widest extent,
+Quadrature (one or two parameters), where a first batch of importance sampling (below) leaves the answer unverified:
+the midpoint rule on cells of side :data:`STEP` over ±:data:`HALF_WIDTH` in z (those of that batch's weighted draws'
+mean and covariance where they are enough, :data:`LAID_ON_DRAWS_ESS`, to place a posterior their proposal missed),
+grown where the posterior runs on past it: every cell on the lattice's edge heavier than :data:`GROW_WEIGHT` lays the
+cells it lacks near it, so that the lattice follows a long ridge, however it runs, at the cost of the cells about it
+rather than of a box around it. Where the mean and sd of every parameter agree to :data:`RESOLUTION` of its sd with
+those of the lattice's points of even index (the lattice at twice the step, which costs no simulation), that is the
+answer; else every cell but the lightest, which hold :data:`UNSPLIT_MASS` of it together, is split in halves, until
+they agree between two splittings. Its draws are cells spread over their volume, kept in the prior's support. Where
+the lattice's edge still holds more than :data:`EDGE_MASS` of the posterior, which it can only where it reached
 ±:data:`MAX_HALF_WIDTH`, the approximation's scale is far off, and the lattice is laid again about that lattice's own
-mean and covariance.  Splitting by weight, not by density, refines a thin ridge's long tail too.  Exact to the lattice's resolution whatever the posterior's shape: where a drift trades
-off with an effect along a thin curved ridge (cubic coupling's γ against kT1), a Gaussian proposal's draws miss the
-ridge's ends and importance sampling understates the spread.
+mean and covariance. Splitting by weight, not by density, refines a thin ridge's long tail too. Exact to the lattice's
+resolution whatever the posterior's shape: where a drift trades off with an effect along a thin curved ridge (cubic
+coupling's γ against kT1), a Gaussian proposal's draws miss the ridge's ends and importance sampling understates the
+spread.
 
 Importance sampling (three or more): draws of a Student-t with the approximation's mean and covariance, weighted by
 posterior over proposal and Pareto-smoothed (:func:`arviz.psislw`, Vehtari et al. 2024), a batch at a time until the
@@ -61,9 +66,16 @@ BatchFn = Callable[[np.ndarray], np.ndarray]  # theta (n, k) -> (n,)
 
 STEP = 0.25  # the first lattice's step in z: four points per sd of the approximation, enough to see a ridge thinner than it
 HALF_WIDTH = 5.0  # its first extent
-WIDEN = 3.0  # added to a side whose outermost row holds more than EDGE_MASS
 MAX_HALF_WIDTH = 30.0  # beyond this the approximation is no guide: unverified
 EDGE_MASS = 1e-4
+# A cell of the first lattice heavier than this lays the cells it lacks within GROW_REACH of it: a posterior the
+# approximation matches leaves its corner cells at ±HALF_WIDTH lighter (4e-8), and a few hundred cells on the lattice's
+# edge as light hold far less than EDGE_MASS.
+GROW_WEIGHT = 1e-7
+GROW_REACH = 4  # cells: an sd of the approximation a growth, so that a long ridge is followed in few batches
+# Effective draws of a first importance-sampling batch enough to lay the first lattice about their weighted mean and
+# covariance: the variances' relative error is then about √(2/20) = 0.3, which the lattice's growth absorbs.
+LAID_ON_DRAWS_ESS = 20.0
 UNSPLIT_MASS = 1e-3  # the cells of least weight, together holding at most this much of the posterior, are not split
 RESOLUTION = 0.1  # mean and sd of every parameter agree between two steps to this fraction of its sd: the finer's error
 MAX_REFINEMENTS = 2  # is about half that, or a quarter where no prior bound cuts the lattice
@@ -172,11 +184,15 @@ def sample(
         if checkable else effort, refits=REFITS if verify and not checkable else 0)
     if checkable and not found["converged"]:
         tried = f"importance sampling first: {found['reason']}"
+        # Its weighted draws place the posterior better than the approximation their proposal missed (as a proposal
+        # fitted again to them would): the first lattice is laid about them where they are enough.
+        drawn = _recentred(theta, log_weight) if found["ess_bulk"] >= LAID_ON_DRAWS_ESS else None
+        laid, about = (drawn, "the importance sampler's draws") if drawn is not None else (whitened, "the Laplace approximation")
         theta, log_weight, log_post, log_like, conditional, cells, found = _quadrature(
-            log_posterior, whitened, _ridge(whitened.z(theta), np.exp(log_weight)))
+            log_posterior, laid, _ridge(laid.z(theta), np.exp(log_weight)))
         recentred = _recentred(theta, log_weight) if found["edge_mass"] > EDGE_MASS else None
         if recentred is not None:
-            tried += f"; quadrature about the Laplace approximation: {found['reason']}"
+            tried += f"; quadrature about {about}: {found['reason']}"
             theta, log_weight, log_post, log_like, conditional, cells, found = _quadrature(
                 log_posterior, recentred, _ridge(recentred.z(theta), np.exp(log_weight)))
         found["tried"] = tried
@@ -231,22 +247,17 @@ def _quadrature(log_posterior, whitened: _Whitened, ridge: np.ndarray):
             known.update({keys[i]: np.concatenate([[post[j], like[j]], conditional[j]]) for j, i in enumerate(new)})
         return np.array([known[key] for key in keys], dtype=float).reshape(len(z), -1)
 
-    low, high = np.full(k, -HALF_WIDTH), np.full(k, HALF_WIDTH)
-    while True:  # widen the first lattice until its edges hold no weight
-        axes = [np.arange(round(low[i] / STEP), round(high[i] / STEP) + 1) * STEP for i in range(k)]
-        z = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, k)
-        values = evaluate(z)
-        weight = _normalized(values[:, 0]).reshape([len(a) for a in axes])
-        edges = [(i, side) for i in range(k) for side in (0, -1) if np.take(weight, side, axis=i).sum() > EDGE_MASS
-                 and (low[i] if side == 0 else -high[i]) > -MAX_HALF_WIDTH]
-        if not edges:
+    index = np.stack(np.meshgrid(*[np.arange(-round(HALF_WIDTH / STEP), round(HALF_WIDTH / STEP) + 1)] * k, indexing="ij"),
+                     axis=-1).reshape(-1, k)
+    values = evaluate(index * STEP)
+    while True:  # grow the first lattice where the posterior runs on past it
+        grown = _beyond(index, (_normalized(values[:, 0]) > GROW_WEIGHT) & _on_edge(index), GROW_REACH, round(MAX_HALF_WIDTH / STEP))
+        if not len(grown):
             break
-        for i, side in edges:
-            if side == 0:
-                low[i] = max(low[i] - WIDEN, -MAX_HALF_WIDTH)
-            else:
-                high[i] = min(high[i] + WIDEN, MAX_HALF_WIDTH)
-    edge_mass = max(float(np.take(weight, side, axis=i).sum()) for i in range(k) for side in (0, -1))
+        index = np.concatenate([index, grown])
+        values = np.concatenate([values, evaluate(grown * STEP)])
+    z = index * STEP
+    edge_mass = float(_normalized(values[:, 0])[_on_edge(index)].sum())
     size = np.full(len(z), STEP)  # each cell's side
     moments = _moments(theta_at(z), values[:, 0] + k * np.log(size))
     # The lattice at twice the step is the points of even index: where its moments agree with the full lattice's, the
@@ -272,13 +283,33 @@ def _quadrature(log_posterior, whitened: _Whitened, ridge: np.ndarray):
             break
     failed = []
     if edge_mass > EDGE_MASS:
-        failed.append(f"{edge_mass:.2g} of the posterior at the lattice's edge {MAX_HALF_WIDTH:g} sds from the Laplace approximation")
+        failed.append(f"{edge_mass:.2g} of the posterior at the lattice's edge {MAX_HALF_WIDTH:g} sds from its centre")
     if not converged:
         failed.append(f"mean or sd still moved by more than {RESOLUTION:g} sd when the cells were split to {step:g} sd")
     found = {"method": QUADRATURE, "converged": not failed, "reason": "; ".join(failed), "step": step, "edge_mass": edge_mass,
              "n_points": len(known)}
     return (theta_at(z), _normalized(values[:, 0] + k * np.log(size), log=True), values[:, 0], values[:, 1], values[:, 2:],
             (z, size, theta_at), found)
+
+
+def _on_edge(index: np.ndarray) -> np.ndarray:
+    """Which cells of a lattice (their integer indices, (n, k)) miss a neighbour along an axis."""
+    known = set(map(tuple, index.tolist()))
+    edge = np.zeros(len(index), dtype=bool)
+    for step in np.vstack([np.eye(index.shape[1], dtype=np.int64), -np.eye(index.shape[1], dtype=np.int64)]):
+        edge |= np.array([cell not in known for cell in map(tuple, (index + step).tolist())])
+    return edge
+
+
+def _beyond(index: np.ndarray, sources: np.ndarray, reach: int, limit: int) -> np.ndarray:
+    """The cells within ``reach`` along every axis of the ``sources`` rows of a lattice's ``index`` that it lacks, each
+    index within ±``limit``."""
+    k = index.shape[1]
+    offsets = np.stack(np.meshgrid(*[np.arange(-reach, reach + 1)] * k, indexing="ij"), axis=-1).reshape(-1, k)
+    near = (index[sources][:, None, :] + offsets[None]).reshape(-1, k)
+    near = np.unique(near[np.all(np.abs(near) <= limit, axis=1)], axis=0)
+    known = set(map(tuple, index.tolist()))
+    return near[np.array([cell not in known for cell in map(tuple, near.tolist())], dtype=bool)].reshape(-1, k)
 
 
 def _settled(coarser: tuple[np.ndarray, np.ndarray], finer: tuple[np.ndarray, np.ndarray]) -> bool:
