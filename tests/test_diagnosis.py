@@ -616,3 +616,29 @@ def test_an_effects_own_load_phase_far_from_the_records_moves_the_record_and_nea
         if moves:
             assert again.values["load_phase"] == fit.values["load_phase"] and again.chi2_stated > 10 * again.chi2_found
             assert again.values["phi1"] == pytest.approx(record["phi1"], abs=0.05)
+
+
+def test_where_nothing_explains_the_data_a_record_the_best_fit_places_elsewhere_is_placed_before_the_global_search(monkeypatch):
+    """A cracked rig's record given with the load's phase 1.3 rad off, and a χ² limit no fit meets, so that the
+    four-parameter stick-slip must search globally: the crack's fit places the record at its own phase, and the
+    diagnosis runs again from there before searching, so the search runs once, in the second pass, not once at the
+    phase the next pass corrects and again."""
+    settings = replace(SETTINGS, chi2_max=0.5, discovery="never")
+    truth = slots.complete({**fault("breathing_crack", **CRACK), **CRACKED_RECORD})
+    clean = simulation.simulate(truth, SAMPLING, CHANNELS)
+    y, sigma = noise.add_noise(clean, CHANNELS, 40.0, 3)
+    m = io.Measurement("crack", CHANNELS, y, SAMPLING, {k: model.DEFAULTS[k] for k in model.OPERATING_PARAMETERS}, sigma)
+    record = alignment.Alignment({**CRACKED_RECORD, "load_phase": CRACKED_RECORD["load_phase"] - 1.3}, math.nan, math.nan, 0,
+                                 "lines", sd={"phi1": 0.01, "phi4": 0.01, "load_phase": 0.01})
+    searches, fit = [], hypotheses.fit
+
+    def counted(hypothesis, *args, **kwargs):
+        if bank.needs_search(hypothesis) and kwargs.get("members") is None and kwargs.get("search", True):
+            searches.append(hypothesis.name)
+        return fit(hypothesis, *args, **kwargs)
+
+    monkeypatch.setattr(hypotheses, "fit", counted)
+    found = diagnosis.diagnose(m, settings, record=record)
+    assert found.verdict["record"]["passes"] == 2
+    assert found.verdict["record"]["values"]["load_phase"] == pytest.approx(CRACKED_RECORD["load_phase"], abs=0.05)
+    assert searches == ["stick_slip"]
