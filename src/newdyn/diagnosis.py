@@ -319,12 +319,14 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
                                      lambda done: bool(explaining({**fits, **done})))
     explained = explaining({**fits, **{kind: fitted[kind] for kind in small}})
     # Where nothing explains the data, the best fit so far may place the record elsewhere (a fault the nominal model
-    # lacks pulled its angles): the pass is run again from there before a global search spends its thousands of
-    # simulations at angles the next pass corrects.
+    # lacks pulled its angles) and explain the data there: the pass is run again from there before a global search
+    # spends its thousands of simulations at angles the next pass corrects.  A record placed under a fit that would
+    # still not explain it is not taken before the search: under a misfit its angles are pulled as under the nominal
+    # model (a stick-slip rig's best drift, χ² 15, moved disk 4's imbalance half a turn).
     placed = None
     if not explained and realigned < REALIGNMENTS:
         placed = _placed_by_best({**fits, **fitted}, data, sigma, values, stated, record, sampling, channels, settings)
-        if placed.again is not None:
+        if placed.again is not None and placed.again.chi2_found <= settings.chi2_max:
             stage(f"the record's angles found again under {placed.under}: {placed.again.values}; again from there, before the "
                   "global search")
             return diagnose(measurement, configured, grid_paths, colour, level, bank_path, searched, placed.again, realigned + 1,
