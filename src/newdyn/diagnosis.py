@@ -140,12 +140,11 @@ def _realigned(fit: hypotheses.Fit, data, sigma, values, stated, record: alignme
 
 @dataclass(frozen=True)
 class _Placement:
-    """Where the record sits under the best of some fits: that fit (None when it is healthy's, which places it where
-    the nominal model did), its name, the new alignment (None where the record stays) and the record values' standard
-    errors under it."""
+    """Where the record sits under the best of some fits: that fit, the new alignment (None where the record stays:
+    always under healthy's fit, which places it where the nominal model did) and the record values' standard errors
+    under it."""
 
-    fit: hypotheses.Fit | None
-    under: str
+    fit: hypotheses.Fit
     again: alignment.Alignment | None
     sd: dict[str, float]
 
@@ -155,9 +154,8 @@ def _placed_by_best(fits: Mapping[str, hypotheses.Fit], data, sigma, values, sta
     """:func:`_realigned` under the fit of most evidence among ``fits``."""
     best = max(fits.values(), key=lambda fit: fit.log_evidence)
     if best.hypothesis.kind == HEALTHY:
-        return _Placement(None, best.hypothesis.name, None, {})
-    again, sd = _realigned(best, data, sigma, values, stated, record, sampling, channels, settings)
-    return _Placement(best, best.hypothesis.name, again, sd)
+        return _Placement(best, None, {})
+    return _Placement(best, *_realigned(best, data, sigma, values, stated, record, sampling, channels, settings))
 
 
 def _tachometer_sd(settings: Settings, recorded: Sequence[str], speed_rpm: float, sampling: model.Sampling) -> float | None:
@@ -327,8 +325,8 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
     if not explained and realigned < REALIGNMENTS:
         placed = _placed_by_best({**fits, **fitted}, data, sigma, values, stated, record, sampling, channels, settings)
         if placed.again is not None and placed.again.chi2_found <= settings.chi2_max:
-            stage(f"the record's angles found again under {placed.under}: {placed.again.values}; again from there, before the "
-                  "global search")
+            stage(f"the record's angles found again under {placed.fit.hypothesis.name}: {placed.again.values}; again from "
+                  "there, before the global search")
             return diagnose(measurement, configured, grid_paths, colour, level, bank_path, searched, placed.again, realigned + 1,
                             bank)
     if not explained:
@@ -351,7 +349,7 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
             placed = _placed_by_best(fits, data, sigma, values, stated, record, sampling, channels, settings)
         record = replace(record, sd={**record.sd, **placed.sd})
         if placed.again is not None:
-            stage(f"the record's angles found again under {placed.under}: {placed.again.values}; again from there")
+            stage(f"the record's angles found again under {placed.fit.hypothesis.name}: {placed.again.values}; again from there")
             return diagnose(measurement, configured, grid_paths, colour if colour.ar.any() else None, level, bank_path,
                             searched, placed.again, realigned + 1, bank)
 
