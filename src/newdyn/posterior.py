@@ -8,7 +8,7 @@ ratio of 1 stay well conditioned.
 Quadrature (one or two parameters), where a first batch of importance sampling (below) leaves the answer unverified:
 the midpoint rule on cells of side :data:`STEP` over ±:data:`HALF_WIDTH` in z (those of that batch's weighted draws'
 mean and covariance where they are enough, :data:`LAID_ON_DRAWS_ESS`, to place a posterior their proposal missed),
-grown where the posterior runs on past it: every cell on the lattice's edge heavier than :data:`GROW_WEIGHT` lays the
+grown where the posterior runs on past it: every cell on the lattice's edge denser than :data:`GROW_DENSITY` lays the
 cells it lacks near it, so that the lattice follows a long ridge, however it runs, at the cost of the cells about it
 rather than of a box around it. Where the mean and sd of every parameter agree to :data:`RESOLUTION` of its sd with
 those of the lattice's points of even index (the lattice at twice the step, which costs no simulation), that is the
@@ -64,21 +64,27 @@ CHECKED_PARETO_K = 0.5
 REFITS = 2  # times importance sampling (three or more parameters) may fit its proposal again to its weighted draws
 BatchFn = Callable[[np.ndarray], np.ndarray]  # theta (n, k) -> (n,)
 
-STEP = 0.25  # the first lattice's step in z: four points per sd of the approximation, enough to see a ridge thinner than it
+# The first lattice's step in z: two points per sd of the approximation. A posterior as wide as it or wider (a ridge the
+# approximation misses is wider along it) is then exact to far below RESOLUTION; a thinner one shows in the comparison
+# with the lattice at twice the step, and its cells are split.
+STEP = 0.5
 HALF_WIDTH = 5.0  # its first extent
 MAX_HALF_WIDTH = 30.0  # beyond this the approximation is no guide: unverified
 EDGE_MASS = 1e-4
-# A cell of the first lattice heavier than this lays the cells it lacks within GROW_REACH of it: a posterior the
-# approximation matches leaves its corner cells at ±HALF_WIDTH lighter (4e-8), and a few hundred cells on the lattice's
-# edge as light hold far less than EDGE_MASS.
-GROW_WEIGHT = 1e-7
-GROW_REACH = 4  # cells: an sd of the approximation a growth, so that a long ridge is followed in few batches
+# A cell of the first lattice whose weight per unit volume in z exceeds this lays the cells it lacks within GROW_REACH
+# of it: a posterior the approximation matches has less at the middle of the lattice's edge at ±HALF_WIDTH (5.9e-7 in
+# two dimensions, 1.5e-6 in one), and the cells on the lattice's edge hold far less than EDGE_MASS together.
+GROW_DENSITY = 2e-6
+GROW_REACH = 4  # cells: two sds of the approximation a growth, so that a long ridge is followed in few batches
 # Effective draws of a first importance-sampling batch enough to lay the first lattice about their weighted mean and
 # covariance: the variances' relative error is then about √(2/20) = 0.3, which the lattice's growth absorbs.
 LAID_ON_DRAWS_ESS = 20.0
 UNSPLIT_MASS = 1e-3  # the cells of least weight, together holding at most this much of the posterior, are not split
 RESOLUTION = 0.1  # mean and sd of every parameter agree between two steps to this fraction of its sd: the finer's error
-MAX_REFINEMENTS = 2  # is about half that, or a quarter where no prior bound cuts the lattice
+MAX_REFINEMENTS = 3  # is about half that, or a quarter where no prior bound cuts the lattice
+# Draws a posterior that nothing rests on proposes (``verify`` off): enough to show how much of the fault the data leave
+# room for, a quarter of a verified batch's simulations.
+UNVERIFIED_BATCH = 250
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -157,8 +163,8 @@ def sample(
     support, where the likelihood is never called; the likelihood must return −inf, never NaN, where a simulation
     fails.  With ``to_values`` the functions and the approximation are in coordinates of the caller's choosing (the
     prior's density with its Jacobian), where a ridge may be straighter, and the draws are mapped to the values by it.
-    Without ``verify`` (nothing the caller concludes rests on it) one batch of importance sampling, verified only if
-    that batch is enough, and no quadrature.  With ``nuisance`` names, the likelihood integrates those parameters out
+    Without ``verify`` (nothing the caller concludes rests on it) one batch of at most :data:`UNVERIFIED_BATCH` draws
+    of importance sampling, verified only if that batch is enough, and no quadrature.  With ``nuisance`` names, the likelihood integrates those parameters out
     itself and returns a :class:`Profiled` for its rows: the posterior of ``names`` is sampled, and each draw's
     nuisance values are drawn from their conditional normal at the point it was drawn from."""
     whitened = _Whitened.of(mean, covariance)
@@ -178,7 +184,8 @@ def sample(
         return lp + ll, ll, conditional
 
     checkable = verify and len(names) <= MAX_QUADRATURE_PARAMETERS
-    effort = settings if verify else dataclasses.replace(settings, max_draws=settings.batch)
+    unverified = min(settings.batch, UNVERIFIED_BATCH)
+    effort = settings if verify else dataclasses.replace(settings, batch=unverified, max_draws=unverified)
     theta, log_weight, log_post, log_like, conditional, cells, found = _importance(
         log_posterior, whitened, dataclasses.replace(effort, pareto_k_max=min(effort.pareto_k_max, CHECKED_PARETO_K))
         if checkable else effort, refits=REFITS if verify and not checkable else 0)
@@ -251,7 +258,8 @@ def _quadrature(log_posterior, whitened: _Whitened, ridge: np.ndarray):
                      axis=-1).reshape(-1, k)
     values = evaluate(index * STEP)
     while True:  # grow the first lattice where the posterior runs on past it
-        grown = _beyond(index, (_normalized(values[:, 0]) > GROW_WEIGHT) & _on_edge(index), GROW_REACH, round(MAX_HALF_WIDTH / STEP))
+        heavy = _normalized(values[:, 0]) > GROW_DENSITY * STEP**k
+        grown = _beyond(index, heavy & _on_edge(index), GROW_REACH, round(MAX_HALF_WIDTH / STEP))
         if not len(grown):
             break
         index = np.concatenate([index, grown])
