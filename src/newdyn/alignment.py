@@ -27,7 +27,7 @@ from dataclasses import dataclass, field, fields
 import numpy as np
 from scipy import optimize, stats
 
-from . import likelihood, model, running_speed, simulation
+from . import concurrency, likelihood, model, running_speed, simulation
 from .posterior import Profiled
 
 LOAD_PHASES = 48  # grid of the load's phase for the first guess
@@ -43,6 +43,11 @@ KEEP_STATED = 1e-3
 # shorter record the line tells the speed no better, and a probe's gain the nominal model lacks pulled it until the
 # tachometer read out of its spec (a 0.1-s record).
 SPEED_TURN = 0.1  # rad
+FREE_EVALUATIONS = 30  # least squares' evaluations at most with the angles free
+# ... and with them held (where the file states them, where the record was placed): only the hypothesis's values move,
+# from their fit, and where the held angles are where the data put them that settles within a few evaluations; a chain
+# still falling after this many is at angles the data tell apart from the found ones by far more than KEEP_STATED's.
+HELD_EVALUATIONS = 10
 # An effect's fit finds the load's phase beside its own values, this far either side of where the lines put it: a fault
 # that reshapes the torsional response moves even the load's fundamental.
 FIT_HALF_WIDTH = math.pi
@@ -225,13 +230,13 @@ def align_jointly(data: np.ndarray, sigma: np.ndarray, channels: Sequence[str], 
     compare = waveform(channels, {}, sampling)
     target = compare(data / sigma[:, None])
     k = len(names)
-    count = [0]
+    simulated = []  # each batch's rows: least squares from each start runs in a thread of its own
     angle_low, angle_high = _bounds(names, angles)
 
     speed = list(names).index("speed_rpm") if "speed_rpm" in names else None
 
     def residuals(x: np.ndarray) -> np.ndarray:
-        count[0] += len(x)
+        simulated.append(len(x))
         outputs = simulation.simulate_batch(rows(x), sampling, channels, max_step)
         if instruments is None:
             misfit = compare(outputs / sigma[:, None]) - target[None]
@@ -260,7 +265,8 @@ def align_jointly(data: np.ndarray, sigma: np.ndarray, channels: Sequence[str], 
             found = residuals(points)
             return ((found[1:] - found[0]) / steps[:, None]).T
 
-        found = optimize.least_squares(fun, x[free], jac=jac, bounds=(lower, upper), method="trf", x_scale="jac", max_nfev=30)
+        found = optimize.least_squares(fun, x[free], jac=jac, bounds=(lower, upper), method="trf", x_scale="jac",
+                                       max_nfev=FREE_EVALUATIONS if free_angles else HELD_EVALUATIONS)
         x[free] = found.x
         return 2.0 * found.cost, x[:k], found.jac
 
@@ -282,18 +288,21 @@ def align_jointly(data: np.ndarray, sigma: np.ndarray, channels: Sequence[str], 
                       and chi2[j] < at_current + threshold]
             if basins:
                 starts.append({**current, name: current[name] + turn[min(basins, key=lambda j: chi2[j])]})
-    chi2_free, found_angles, jacobian = min((best(start, True) for start in starts), key=lambda found: found[0])
-    chi2_stated, _, _ = best(angles, False)
+    # Each least squares is a chain of small batches that leaves a core idle: the free starts and the angles held where
+    # the file states them and where the record was placed run side by side.
+    found = concurrency.in_parallel({**{i: (lambda start=start: best(start, True)) for i, start in enumerate(starts)},
+                                     "stated": lambda: best(angles, False), "current": lambda: best(current, False)})
+    chi2_free, found_angles, jacobian = min((found[i] for i in range(len(starts))), key=lambda found: found[0])
+    chi2_stated, chi2_current = found["stated"][0], found["current"][0]
     stated = chi2_stated - chi2_free < threshold
     if stated:  # the file's own angles stand, wherever the lines had put them
         found_angles, chi2_free = np.array([angles[n] for n in names]), chi2_stated
     sd = standard_errors(jacobian, names)
     if all(found_angles[i] == current[n] for i, n in enumerate(names)):
         return None, sd
-    chi2_current, _, _ = best(current, False)
     if not stated and chi2_current - chi2_free < threshold:
         return None, sd
-    return Alignment(_found(names, found_angles), chi2_current / data.size, chi2_free / data.size, count[0], "waveform", speed_sd,
+    return Alignment(_found(names, found_angles), chi2_current / data.size, chi2_free / data.size, sum(simulated), "waveform", speed_sd,
                      sd), sd
 
 
