@@ -52,7 +52,7 @@ SEARCH_POPULATION = 16  # members per fitted parameter
 SEARCH_WINDOW = 0.05  # s
 SEARCHES = 2  # on the first this many windows
 # Where a fit's least squares started besides its given starts: the bank's members, or a differential evolution.
-SEARCHED_FROM = ("members", "differential evolution", "the white-noise pass's differential evolution")
+SEARCHED_FROM = ("members", "differential evolution", "an earlier pass's differential evolution")
 
 
 @dataclass(frozen=True)
