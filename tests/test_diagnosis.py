@@ -152,7 +152,9 @@ def test_stick_slip_is_new_dynamics_and_adding_it_brings_chi2_to_the_noise(diagn
     v = d.verdict
     assert (v["verdict"], v["effect"]) == ("new_dynamics", "stick_slip")
     assert v["chi2_before"] > 10 and v["chi2_after"] <= 1.1
-    assert search_of(v, "stick_slip") == "differential evolution"  # nothing else explains it: its fit decides
+    # nothing else explains it: its fit decides, from a global search (this pass's, or the one before where this fit
+    # placed the record again by its own load phase)
+    assert search_of(v, "stick_slip") in hypotheses.SEARCHED_FROM[1:]
     assert search_of(v, "breathing_crack") == "members"  # its depth, angle and drift: the members find its basin
     assert v["where_it_fails"] and all(f["channel"] in SETTINGS.channels for f in v["where_it_fails"])
     assert v["statement"].startswith("new dynamics: stick_slip added to the model, with T_max = ")
@@ -349,16 +351,18 @@ def test_a_stick_slip_fit_over_several_load_cycles_reaches_the_misfit_of_the_tru
 
 def test_a_whitened_pass_fits_what_the_white_pass_searched_from_that_searchs_optimum(diagnosed):
     """The second, whitened pass of a diagnosis does not search the same data again: a hypothesis the first pass searched
-    globally starts its least squares from that search's optimum, and ends there in a tenth of the simulations."""
+    globally starts its least squares from that search's optimum, and ends there in a tenth of one search's
+    simulations."""
     first = diagnosed["stick_slip"].fits["stick_slip"]
-    assert first.search == hypotheses.SEARCHED_FROM[1]
+    assert first.search in hypotheses.SEARCHED_FROM[1:]
+    one_search = hypotheses.SEARCH_POPULATION * len(first.hypothesis.parameters) * hypotheses.SEARCH_GENERATIONS
     record = alignment.Alignment(diagnosed["stick_slip"].verdict["record"]["values"], math.nan, math.nan, 0, "lines")
     again = diagnosis.diagnose(measurement("stick_slip", STICK_SLIP), SETTINGS, searched={"stick_slip": first}, record=record,
                                realigned=diagnosis.REALIGNMENTS)  # where the first pass placed the record
     refit = again.fits["stick_slip"]
     assert search_of(again.verdict, "stick_slip") == hypotheses.SEARCHED_FROM[2]
     assert search_of(again.verdict, "breathing_crack") == "members"
-    assert refit.chi2_red <= first.chi2_red + 1e-3 and refit.n_simulations < 0.1 * first.n_simulations
+    assert refit.chi2_red <= first.chi2_red + 1e-3 and refit.n_simulations < 0.1 * one_search
     assert refit.values == pytest.approx(first.values, rel=1e-3)
     assert again.verdict["verdict"] == diagnosed["stick_slip"].verdict["verdict"]
 
