@@ -355,9 +355,10 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
             # next pass's too: where it searched globally, that pass fits it from there instead of searching again.
             # Where the angles moved, each hypothesis searches again: a stick-slip optimum found at angles 0.4 rad off
             # was a side basin the search at the new angles left (χ² 0.914 against 0.912).
-            placer = placed.fit.hypothesis
-            kept = all(placed.again.values[name] == record.values[name] for name in record.values if name not in placer.parameters)
-            reused = {placer.name: fits[placer.name]} if kept and fits[placer.name].search == hypotheses.SEARCHED_FROM[1] else {}
+            placer = placed.fit
+            stayed = all(placed.again.values[name] == record.values[name] for name in record.values
+                         if name not in placer.hypothesis.parameters)
+            reused = {placer.hypothesis.name: placer} if stayed and placer.search == hypotheses.SEARCHED_FROM[1] else {}
             return diagnose(measurement, configured, grid_paths, colour if colour.ar.any() else None, level, bank_path,
                             {**searched, **reused}, placed.again, realigned + 1, bank)
 
