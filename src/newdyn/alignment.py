@@ -290,10 +290,10 @@ def align_jointly(data: np.ndarray, sigma: np.ndarray, channels: Sequence[str], 
                 starts.append({**current, name: current[name] + turn[min(basins, key=lambda j: chi2[j])]})
     # Each least squares is a chain of small batches that leaves a core idle: the free starts and the angles held where
     # the file states them and where the record was placed run side by side.
-    found = concurrency.in_parallel({**{i: (lambda start=start: best(start, True)) for i, start in enumerate(starts)},
-                                     "stated": lambda: best(angles, False), "current": lambda: best(current, False)})
-    chi2_free, found_angles, jacobian = min((found[i] for i in range(len(starts))), key=lambda found: found[0])
-    chi2_stated, chi2_current = found["stated"][0], found["current"][0]
+    chains = concurrency.in_parallel({**{i: (lambda start=start: best(start, True)) for i, start in enumerate(starts)},
+                                      "stated": lambda: best(angles, False), "current": lambda: best(current, False)})
+    chi2_free, found_angles, jacobian = min((chains[i] for i in range(len(starts))), key=lambda chain: chain[0])
+    chi2_stated, chi2_current = chains["stated"][0], chains["current"][0]
     stated = chi2_stated - chi2_free < threshold
     if stated:  # the file's own angles stand, wherever the lines had put them
         found_angles, chi2_free = np.array([angles[n] for n in names]), chi2_stated

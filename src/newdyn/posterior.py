@@ -164,9 +164,10 @@ def sample(
     fails.  With ``to_values`` the functions and the approximation are in coordinates of the caller's choosing (the
     prior's density with its Jacobian), where a ridge may be straighter, and the draws are mapped to the values by it.
     Without ``verify`` (nothing the caller concludes rests on it) one batch of at most :data:`UNVERIFIED_BATCH` draws
-    of importance sampling, verified only if that batch is enough, and no quadrature.  With ``nuisance`` names, the likelihood integrates those parameters out
-    itself and returns a :class:`Profiled` for its rows: the posterior of ``names`` is sampled, and each draw's
-    nuisance values are drawn from their conditional normal at the point it was drawn from."""
+    of importance sampling, verified only if that batch is enough, and no quadrature.  With ``nuisance`` names, the
+    likelihood integrates those parameters out itself and returns a :class:`Profiled` for its rows: the posterior of
+    ``names`` is sampled, and each draw's nuisance values are drawn from their conditional normal at the point it was
+    drawn from."""
     whitened = _Whitened.of(mean, covariance)
     n_nuisance = len(nuisance)
 
