@@ -9,11 +9,17 @@ command ends it with one line on stderr naming the file and the problem, and exi
 from __future__ import annotations
 
 import argparse
+import atexit
+import gc
 import json
 import logging
 import sys
 import time
 from pathlib import Path
+
+# The process ends with its outputs written: its last garbage collection, through every object the libraries made,
+# would only delay the job's end (and the next job's start).
+atexit.register(gc.freeze)
 
 log = logging.getLogger("newdyn")
 DIAGNOSIS_FIGURES = ("overlays", "residuals", "hypotheses", "error_fall", "discovery", "effect_posterior")
