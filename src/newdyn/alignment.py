@@ -38,6 +38,10 @@ JACOBIAN_STEP = 1e-4  # rad: far above the simulator's rounding, below the angle
 RELATIVE_STEP = 1e-6  # of a speed or a hypothesis's value, for the same reasons
 # The stated angles stand unless moving them lowers χ² by more than noise alone would with this probability.
 KEEP_STATED = 1e-3
+# ... but a record placed in one basin of an imbalance's turn moves to another basin that fits better by more than this
+# in χ² (its posterior odds beyond e to 1), however little: the two are not a refinement that noise could make, and a
+# fault's values taken in the worse one carry its bias (a crack's angle 2 sds off).
+OTHER_BASIN = 2.0
 # A disk speed's mean is the running speed to its tachometer's spread; the speed is fitted from the shaft's line where
 # that spread turns the line by at least this much over the record (a 0.1 % gain at 1480 rpm: over 0.65 s).  On a
 # shorter record the line tells the speed no better, and a probe's gain the nominal model lacks pulled it until the
@@ -292,7 +296,8 @@ def align_jointly(data: np.ndarray, sigma: np.ndarray, channels: Sequence[str], 
     # the file states them and where the record was placed run side by side.
     chains = concurrency.in_parallel({**{i: (lambda start=start: best(start, True)) for i, start in enumerate(starts)},
                                       "stated": lambda: best(angles, False), "current": lambda: best(current, False)})
-    chi2_free, found_angles, jacobian = min((chains[i] for i in range(len(starts))), key=lambda chain: chain[0])
+    basin = min(range(len(starts)), key=lambda i: chains[i][0])
+    chi2_free, found_angles, jacobian = chains[basin]
     chi2_stated, chi2_current = chains["stated"][0], chains["current"][0]
     stated = chi2_stated - chi2_free < threshold
     if stated:  # the file's own angles stand, wherever the lines had put them
@@ -300,7 +305,9 @@ def align_jointly(data: np.ndarray, sigma: np.ndarray, channels: Sequence[str], 
     sd = standard_errors(jacobian, names)
     if all(found_angles[i] == current[n] for i, n in enumerate(names)):
         return None, sd
-    if not stated and chi2_current - chi2_free < threshold:
+    elsewhere = basin and any(abs(model.wrap_angle(found_angles[i] - current[n])) > 2 * math.pi / ANGLE_SCAN
+                              for i, n in enumerate(names) if n in model.IMBALANCE_ANGLES)
+    if not stated and chi2_current - chi2_free < (OTHER_BASIN if elsewhere else threshold):
         return None, sd
     return Alignment(_found(names, found_angles), chi2_current / data.size, chi2_free / data.size, sum(simulated), "waveform", speed_sd,
                      sd), sd
