@@ -38,9 +38,12 @@ JACOBIAN_STEP = 1e-4  # rad: far above the simulator's rounding, below the angle
 RELATIVE_STEP = 1e-6  # of a speed or a hypothesis's value, for the same reasons
 # The stated angles stand unless moving them lowers χ² by more than noise alone would with this probability.
 KEEP_STATED = 1e-3
-# ... but a record placed in one basin of an imbalance's turn moves to another basin that fits better by more than this
-# in χ² (its posterior odds beyond e to 1), however little: the two are not a refinement that noise could make, and a
-# fault's values taken in the worse one carry its bias (a crack's angle 2 sds off).
+# A found value lies elsewhere than an earlier one where it is more of its sds from it than a Normal estimate would be
+# one time in 1/KEEP_STATED.
+MOVED_SDS = float(stats.norm.isf(KEEP_STATED / 2))
+# ... and a record placed in one basin of an imbalance's turn moves to another (that imbalance's angle MOVED_SDS away)
+# that fits better by more than this in χ², odds beyond e to 1, however far short of KEEP_STATED's test: two basins are
+# no refinement noise could make, and a fault's values taken in the worse one carry its bias (a crack's angle).
 OTHER_BASIN = 2.0
 # A disk speed's mean is the running speed to its tachometer's spread; the speed is fitted from the shaft's line where
 # that spread turns the line by at least this much over the record (a 0.1 % gain at 1480 rpm: over 0.65 s).  On a
@@ -296,8 +299,7 @@ def align_jointly(data: np.ndarray, sigma: np.ndarray, channels: Sequence[str], 
     # the file states them and where the record was placed run side by side.
     chains = concurrency.in_parallel({**{i: (lambda start=start: best(start, True)) for i, start in enumerate(starts)},
                                       "stated": lambda: best(angles, False), "current": lambda: best(current, False)})
-    basin = min(range(len(starts)), key=lambda i: chains[i][0])
-    chi2_free, found_angles, jacobian = chains[basin]
+    chi2_free, found_angles, jacobian = min((chains[i] for i in range(len(starts))), key=lambda chain: chain[0])
     chi2_stated, chi2_current = chains["stated"][0], chains["current"][0]
     stated = chi2_stated - chi2_free < threshold
     if stated:  # the file's own angles stand, wherever the lines had put them
@@ -305,8 +307,8 @@ def align_jointly(data: np.ndarray, sigma: np.ndarray, channels: Sequence[str], 
     sd = standard_errors(jacobian, names)
     if all(found_angles[i] == current[n] for i, n in enumerate(names)):
         return None, sd
-    elsewhere = basin and any(abs(model.wrap_angle(found_angles[i] - current[n])) > 2 * math.pi / ANGLE_SCAN
-                              for i, n in enumerate(names) if n in model.IMBALANCE_ANGLES)
+    elsewhere = any(abs(model.wrap_angle(found_angles[i] - current[n])) > MOVED_SDS * sd[n]
+                    for i, n in enumerate(names) if n in model.IMBALANCE_ANGLES)
     if not stated and chi2_current - chi2_free < (OTHER_BASIN if elsewhere else threshold):
         return None, sd
     return Alignment(_found(names, found_angles), chi2_current / data.size, chi2_free / data.size, sum(simulated), "waveform", speed_sd,

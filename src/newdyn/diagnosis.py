@@ -40,7 +40,6 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 import xarray as xr
-from scipy import stats
 from scipy.integrate import trapezoid
 from scipy.special import logsumexp
 
@@ -75,9 +74,6 @@ log = logging.getLogger("newdyn")
 # nominal model lacks may pull them (most of all on a short record), and a fit at angles pulled off finds its values
 # off too, which the next pass corrects.
 REALIGNMENTS = 3
-# A fit's own finding of a record value (an effect's load phase) moves the record where it lies more sds of their
-# difference from it than a Normal estimate would one time in 1/alignment.KEEP_STATED.
-MOVED_SDS = float(stats.norm.isf(alignment.KEEP_STATED / 2))
 PHASE = "load_phase"  # the record's parameter that every effect's fit finds beside its own values
 
 
@@ -123,7 +119,7 @@ def _realigned(fit: hypotheses.Fit, data, sigma, values, stated, record: alignme
     # The fit's own finding (an effect's load phase) moves the record too where it lies farther from the record's than
     # their errors allow: a drift the nominal model lacks shifts the load's line that placed the record.
     moved = [name for name in own if name in sd and abs(model.wrap_angle(fit.values[name] - record.values[name])) >
-             MOVED_SDS * math.hypot(sd[name], record.sd.get(name, 0.0))]
+             alignment.MOVED_SDS * math.hypot(sd[name], record.sd.get(name, 0.0))]
     if found is None and not moved:
         return None, sd
     if found is None:
@@ -753,8 +749,8 @@ def _sample_effect(fit: hypotheses.Fit, log_likelihood, observed, support, setti
 
 
 def _best_draw(idata, names) -> np.ndarray:
-    stats = idata.sample_stats["log_likelihood"].values
-    chain, draw = np.unravel_index(np.argmax(stats), stats.shape)
+    log_likelihood = idata.sample_stats["log_likelihood"].values
+    chain, draw = np.unravel_index(np.argmax(log_likelihood), log_likelihood.shape)
     return np.array([float(idata.posterior[n].values[chain, draw]) for n in names])
 
 
