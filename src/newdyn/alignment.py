@@ -228,10 +228,10 @@ def align_jointly(data: np.ndarray, sigma: np.ndarray, channels: Sequence[str], 
                   instruments=None, speed_sd: float | None = None) -> tuple[Alignment | None, dict[str, float]]:
     """Where the record sits under a fitted hypothesis, its fitted values ``theta`` (in [``low``, ``high``]) free beside
     the angles ``names``, on the whole waveform as the fit saw it (through its ``instruments``, whose delays take up what
-    the angles need not): ``rows`` makes kernel parameter rows of (angles, theta).  Returns the
-    alignment where the data place the angles farther from ``current`` than noise would (its χ² at ``current`` and at
-    the found angles), else None; the ``angles`` stated where the data cannot tell those from the found ones (and then
-    wherever ``current`` is).  Beside it, the angles' standard errors under the hypothesis (:func:`standard_errors`):
+    the angles need not): ``rows`` makes kernel parameter rows of (angles, theta).  Returns the alignment where the
+    data place the angles farther from ``current`` than noise would, or in another basin of an imbalance's turn that
+    fits better by :data:`OTHER_BASIN` (its χ² at ``current`` and at the found angles), else None; the ``angles``
+    stated where the data cannot tell those from the found ones (and then wherever ``current`` is).  Beside it, the angles' standard errors under the hypothesis (:func:`standard_errors`):
     a fault may take up what an imbalance would show, and instruments' delays what its angle would.  A fitted speed
     keeps its prior (``speed_sd``, :func:`align`)."""
     compare = waveform(channels, {}, sampling)
