@@ -231,9 +231,9 @@ def align_jointly(data: np.ndarray, sigma: np.ndarray, channels: Sequence[str], 
     the angles need not): ``rows`` makes kernel parameter rows of (angles, theta).  Returns the alignment where the
     data place the angles farther from ``current`` than noise would, or in another basin of an imbalance's turn that
     fits better by :data:`OTHER_BASIN` (its χ² at ``current`` and at the found angles), else None; the ``angles``
-    stated where the data cannot tell those from the found ones (and then wherever ``current`` is).  Beside it, the angles' standard errors under the hypothesis (:func:`standard_errors`):
-    a fault may take up what an imbalance would show, and instruments' delays what its angle would.  A fitted speed
-    keeps its prior (``speed_sd``, :func:`align`)."""
+    stated where the data cannot tell those from the found ones (and then wherever ``current`` is).  Beside it, the
+    angles' standard errors under the hypothesis (:func:`standard_errors`): a fault may take up what an imbalance would
+    show, and instruments' delays what its angle would.  A fitted speed keeps its prior (``speed_sd``, :func:`align`)."""
     compare = waveform(channels, {}, sampling)
     target = compare(data / sigma[:, None])
     k = len(names)
