@@ -564,11 +564,11 @@ def score_hidden(truth: str, verdict_paths: list[str], output: str, table: str, 
 
 
 def _warm_up(spec: dict) -> float:
-    """How long the model runs before it is compared with a recording: the study's warm-up, or longer where the rig
-    needs it to forget its initial state (:func:`newdyn.model.settling_time`)."""
+    """How long the model runs from its steady state before it is compared with a recording: until the rig has
+    forgotten what the linear steady state left out (:func:`newdyn.model.settling_time`)."""
     from . import model
 
-    return max(float(spec["sampling"]["t_first"]), model.settling_time({**spec["rig"], **spec["operating"]}))
+    return model.settling_time({**spec["rig"], **spec["operating"]}, steady=True)
 
 
 def _sampling(window: dict):

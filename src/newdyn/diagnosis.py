@@ -370,10 +370,19 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
     effect_posterior = _effect_posterior(fits[best_fault], data, sigma, values, sampling, channels, settings, unneeded)
     if ahead is None:
         polished = _polished(fits[best_fault], effect_posterior, data, sigma, values, sampling, channels, settings, instruments)
-        if unneeded and _unneeded(polished, None, settings.chi2_max) is None:  # polished to the noise: the verdict may rest on it
+        # The posterior again about the better optimum where the first missed it, or where the verdict may now rest on
+        # the fault (polished to the noise).
+        if polished is not fits[best_fault] and (not effect_posterior.attrs["converged"] if unneeded is None
+                                                 else _unneeded(polished, None, settings.chi2_max) is None):
             unneeded = None
             effect_posterior = _effect_posterior(polished, data, sigma, values, sampling, channels, settings, unneeded)
         fits[best_fault] = polished
+    if not effect_posterior.attrs["converged"] and unneeded is None:
+        effect_posterior = _sample_effect(fits[best_fault], data, sigma, values, sampling, channels, settings,
+                                          f"{effect_posterior.attrs['method']} unverified ({effect_posterior.attrs['reason']})")
+        if ahead is None:
+            fits[best_fault] = _polished(fits[best_fault], effect_posterior, data, sigma, values, sampling, channels, settings,
+                                         instruments)
     stage(f"posterior of {best_fault} by {effect_posterior.attrs['method']}" + (f" ({unneeded})" if unneeded else ""))
 
     verdict = _verdict(fits, calibrations, signatures, settings, values, sampling, data, sigma)
@@ -502,19 +511,13 @@ def _drift_fit(hypothesis: hypotheses.Hypothesis, cal: calibration.Calibration, 
 
 def _effect_posterior(fit: hypotheses.Fit, data, sigma, values, sampling, channels, settings: Settings, unneeded: str | None):
     """The posterior of a fault model's parameters (InferenceData) from its fit's Laplace approximation, by quadrature or
-    importance sampling (:mod:`newdyn.posterior`) where that is verified; else, where the verdict may rest on the fault,
-    emcee to convergence, up to ``max_rounds`` rounds.  Where it cannot (``unneeded`` says why, :func:`_unneeded`), one
-    batch of importance sampling: how much of the fault the data leave room for."""
+    importance sampling (:mod:`newdyn.posterior`), converged where that is verified (else the caller samples it by
+    MCMC, :func:`_sample_effect`, where the verdict may rest on the fault).  Where it cannot (``unneeded`` says why,
+    :func:`_unneeded`), one batch of importance sampling: how much of the fault the data leave room for."""
     hypothesis = fit.hypothesis
-
-    def log_likelihood(rows):
-        ll = likelihood.log_likelihood(data, hypotheses.evaluate(hypothesis, rows, values, sampling, channels, settings.max_step), sigma,
-                                       instruments=fit.instruments)
-        return np.where(np.isnan(ll), -np.inf, ll)
-
-    observed = {"y": xr.DataArray(data, dims=("channel", "time"), coords={"channel": list(channels), "time": sampling.times})}
-    support = {p.name: [p.low, p.high] for p in hypothesis.priors}
-    attrs = {"hypothesis": hypothesis.name, "support": support}
+    log_likelihood = _log_likelihood(fit, data, sigma, values, sampling, channels, settings.max_step)
+    attrs = {"hypothesis": hypothesis.name, "support": _support(hypothesis)}
+    observed = _observed(data, channels, sampling)
     if PHASE in hypothesis.parameters and fit.covariance is not None and len(hypothesis.parameters) > 1:
         # The load's phase integrated out at each point: a fault of two values stays on the quadrature.
         names, profiled = alignment.phase_profiled(hypothesis, fit.theta, fit.covariance, data, sigma, channels, sampling,
@@ -531,15 +534,30 @@ def _effect_posterior(fit: hypotheses.Fit, data, sigma, values, sampling, channe
     else:
         posterior = posterior_module.sample(log_likelihood, hypothesis.log_prior, hypothesis.parameters, fit.theta, fit.covariance,
                                             settings.posterior, observed=observed, attrs=attrs, verify=unneeded is None)
-    if posterior.attrs["converged"]:
-        return posterior
-    if unneeded is not None:
+    if not posterior.attrs["converged"] and unneeded is not None:
         # No verdict rests on the fault: the unverified answer shows how much of it the data leave room for, and
         # sampling it further would change nothing.
         posterior.attrs["reason"] = f"{unneeded}; {posterior.attrs['reason']}"
-        return posterior
-    return _sample_effect(fit, log_likelihood, observed, support, settings,
-                          f"{posterior.attrs['method']} unverified ({posterior.attrs['reason']})")
+    return posterior
+
+
+def _log_likelihood(fit: hypotheses.Fit, data, sigma, values, sampling, channels, max_step):
+    """The log-likelihood of rows of ``fit``'s hypothesis's parameters, through its instruments; −inf where a
+    simulation fails."""
+    def log_likelihood(rows):
+        ll = likelihood.log_likelihood(data, hypotheses.evaluate(fit.hypothesis, rows, values, sampling, channels, max_step), sigma,
+                                       instruments=fit.instruments)
+        return np.where(np.isnan(ll), -np.inf, ll)
+
+    return log_likelihood
+
+
+def _observed(data, channels, sampling) -> dict:
+    return {"y": xr.DataArray(data, dims=("channel", "time"), coords={"channel": list(channels), "time": sampling.times})}
+
+
+def _support(hypothesis: hypotheses.Hypothesis) -> dict:
+    return {p.name: [p.low, p.high] for p in hypothesis.priors}
 
 
 # A posterior draw that beats the fit by more than this log-likelihood shows least squares stopped short of the
@@ -723,8 +741,9 @@ def _missing_channels(missing: Sequence[str], verdict: Mapping, fits, values, sa
              "separates": rows[c]["expected_log_bayes_factor"] > settings.evidence_margin} for c in missing]
 
 
-def _sample_effect(fit: hypotheses.Fit, log_likelihood, observed, support, settings: Settings, why: str):
-    """emcee posterior (InferenceData) of a fault model's parameters, started from its Laplace approximation."""
+def _sample_effect(fit: hypotheses.Fit, data, sigma, values, sampling, channels, settings: Settings, why: str):
+    """emcee posterior (InferenceData) of a fault model's parameters, started from its Laplace approximation, to
+    convergence, up to ``max_rounds`` rounds."""
     from .sampling import MCMCSettings
 
     mcmc = MCMCSettings.from_config(settings.mcmc)
@@ -741,8 +760,9 @@ def _sample_effect(fit: hypotheses.Fit, log_likelihood, observed, support, setti
     initial = mcmc_calibration.sampled_rows(variables, mcmc_calibration.draw_inside(
         lambda n: rng.multivariate_normal(fit.theta, fit.covariance, n), low, high, mcmc.n_walkers))
     idata = mcmc_calibration.sample_posterior(
-        variables, log_likelihood, initial, mcmc, rng, observed,
-        {"hypothesis": hypothesis.name, "start": "Laplace approximation at the least-squares fit", "support": support, "why": why},
+        variables, _log_likelihood(fit, data, sigma, values, sampling, channels, settings.max_step), initial, mcmc, rng,
+        _observed(data, channels, sampling),
+        {"hypothesis": hypothesis.name, "start": "Laplace approximation at the least-squares fit", "support": _support(hypothesis), "why": why},
     )
     idata.attrs["method"] = "mcmc"
     return idata

@@ -28,6 +28,7 @@ from .measurement_files import CONDITIONS
 OPERATING_ATTRS = model.OPERATING_PARAMETERS  # speed_rpm, T0, load_amp, load_freq, load_harm
 TIME_JITTER = 1e-2  # allowed deviation of a time stamp from the uniform grid, in sample intervals
 FS_MAX = 1.0e6  # above this the fixed-step kernel would need too many steps to be useful
+STEADY_WARM_UP = model.settling_time(steady=True)  # [s] the reference rig's
 NETCDF_SIGNATURES = (b"CDF", b"\x89HDF")  # the first bytes of a classic NetCDF file and of a NetCDF-4 (HDF5) one
 
 
@@ -143,9 +144,10 @@ def _finite_json(value):
 
 
 def read_measurement(path: str | os.PathLike, operating_defaults: Mapping[str, float] | None = None,
-                     warm_up: float | None = model.Sampling().t_first) -> Measurement:
+                     warm_up: float | None = STEADY_WARM_UP) -> Measurement:
     """Read and check a ``.nc`` or ``.csv`` measurement; operating values missing from it take the defaults.  Its
-    sampling is the model's: the first sample ``warm_up`` (rounded up to the grid k/fs) after the model's start; its
+    sampling is the model's: the first sample ``warm_up`` (rounded up to the grid k/fs) after the model's start in its
+    steady state (by default when the reference rig has settled there, :func:`newdyn.model.settling_time`); its
     running speed is the one its data show (:func:`newdyn.running_speed.measured`).  With ``warm_up`` None the file is
     one of the study's own simulations, on the model's clock at its stated condition (the study's calibrations)."""
     path = Path(path)
@@ -319,9 +321,10 @@ def _recorder_rate(times: np.ndarray) -> float:
 
 
 def model_sampling(fs: float, n_samples: int, warm_up: float) -> model.Sampling:
-    """Where the model takes a record of ``n_samples`` at ``fs``: from the first instant k/fs at or after ``warm_up``,
-    when its start-up has died out (the kernel and discovery's search step on that grid)."""
-    return model.Sampling(fs=fs, t_first=math.ceil(warm_up * fs - 1e-9) / fs, n_samples=n_samples)
+    """Where the model, started in its steady state, takes a record of ``n_samples`` at ``fs``: from the first instant
+    k/fs at or after ``warm_up``, when what the linear steady state left out has died out (the kernel and discovery's
+    search step on that grid)."""
+    return model.Sampling(fs=fs, t_first=math.ceil(warm_up * fs - 1e-9) / fs, n_samples=n_samples, steady=True)
 
 
 def _check_time(path: Path, times: np.ndarray, operating: Mapping[str, float], warm_up: float | None) -> model.Sampling:

@@ -704,10 +704,10 @@ def _pad(w, n_lanes):
 
 
 @njit(**_JIT)
-def _setup_lane(w, lane, p, steps, settle):
-    """Parameters, derived quantities, modes and the rig.md initial state of one lane, which takes ``steps[0]`` steps
+def _setup_lane(w, lane, p, steps, settle, start):
+    """Parameters, derived quantities, modes and the initial state of one lane, which takes ``steps[0]`` steps
     per step for ``settle`` seconds after a switch of its effects and ``steps[1]`` while its slip joint is open after
-    that."""
+    that: the state ``start`` (NY values) where it has them, else rig.md's."""
     for k in range(N_PAR):
         w[_at(k, lane)] = p[k]
     omega = 2.0 * math.pi * p[SPEED] / 60.0
@@ -731,7 +731,9 @@ def _setup_lane(w, lane, p, steps, settle):
         w[_at(R_MODES + k, lane)] = 0.0
     w[_at(R_FINE_UNTIL, lane)] = settle if _joint_open(w, lane) != 0.0 else -math.inf  # a joint open at t = 0 settles
     for i in range(NY):
-        w[_at(R_Y + i, lane)] = 0.0
+        w[_at(R_Y + i, lane)] = start[i] if start.shape[0] == NY else 0.0
+    if start.shape[0] == NY:
+        return
     theta3 = p[T0] / p[KT3]
     theta2 = theta3 + p[T0] / p[KT2]
     for i, theta in enumerate((theta2 + p[T0] / p[KT1], theta2, theta2, theta3, 0.0)):
@@ -764,10 +766,10 @@ def _record(w, codes, out, sims, k, n_lanes, t):
 
 
 @njit(**_JIT)
-def _simulate_block(params, fine_steps, settle, sims, t_first, fs, n_samples, substeps, codes, out):
-    """Simulate rows ``sims`` of ``params`` together, one per lane, with ``substeps`` RK4 steps per
-    sample interval (and each row's ``fine_steps`` times as many while it settles after a switch or its slip joint is
-    open)."""
+def _simulate_block(params, states, fine_steps, settle, sims, t_first, fs, n_samples, substeps, codes, out):
+    """Simulate rows ``sims`` of ``params`` together, one per lane, from their rows of ``states`` (rig.md's state where
+    they are empty), with ``substeps`` RK4 steps per sample interval (and each row's ``fine_steps`` times as many while it
+    settles after a switch or its slip joint is open)."""
     n_lanes = sims.shape[0]
     h_target = 1.0 / (fs * substeps)
     w = np.zeros(N_ROWS * LANES)  # unused lanes stay finite: the flat copy in _step reads them
@@ -779,7 +781,7 @@ def _simulate_block(params, fine_steps, settle, sims, t_first, fs, n_samples, su
     events_possible = np.bool_(False)  # not a literal False: see _step's counters
     for lane in range(n_lanes):
         row = sims[lane]
-        _setup_lane(w, lane, params[row], fine_steps[row], settle[row])
+        _setup_lane(w, lane, params[row], fine_steps[row], settle[row], states[min(row, states.shape[0] - 1)])
         for slot in SWITCHING_ON:
             events_possible = events_possible or params[row, slot] != 0.0
     n_run = _pad(w, n_lanes)
@@ -803,14 +805,14 @@ def _simulate_block(params, fine_steps, settle, sims, t_first, fs, n_samples, su
 
 
 @njit(cache=True, error_model="numpy", parallel=True, nogil=True)
-def _simulate_batch(params, fine_steps, settle, order, starts, counts, substeps, t_first, fs, n_samples, codes):
-    """Simulate the blocks of rows order[starts[b] : starts[b] + counts[b]] of ``params`` in parallel, with
-    ``substeps`` RK4 steps per sample interval (each row's ``fine_steps`` times as many while its joint settles or is
-    open)."""
+def _simulate_batch(params, states, fine_steps, settle, order, starts, counts, substeps, t_first, fs, n_samples, codes):
+    """Simulate the blocks of rows order[starts[b] : starts[b] + counts[b]] of ``params`` in parallel, each from its
+    row of ``states`` (n, NY), or each from rig.md's initial state where ``states`` is (1, 0), with ``substeps`` RK4
+    steps per sample interval (each row's ``fine_steps`` times as many while its joint settles or is open)."""
     out = np.empty((params.shape[0], codes.shape[0], n_samples))
     for b in prange(starts.shape[0]):
         rows = order[starts[b] : starts[b] + counts[b]]
-        _simulate_block(params, fine_steps, settle, rows, t_first, fs, n_samples, substeps, codes, out)
+        _simulate_block(params, states, fine_steps, settle, rows, t_first, fs, n_samples, substeps, codes, out)
     return out
 
 
@@ -839,7 +841,7 @@ def _compile_events():
     _events(w, R_Y, lane, t)
     _interior_events(w, lane, t, t)
     _first_interior_event(w, lane, t, t)
-    _setup_lane(w, lane, w, w, t)
+    _setup_lane(w, lane, w, w, t, w)
     _pad(w, lane)
     sims = np.zeros(1, dtype=np.int64)
     _record(w, sims, np.zeros((1, 1, 1)), sims, lane, lane, t)

@@ -583,7 +583,7 @@ def lane_order(params: np.ndarray, steps: np.ndarray, active: dict[str, type[eff
 
 
 def _run(kernel: ModuleType, params: np.ndarray, t_first, fs, n_samples, substeps, codes, active=None,
-         search: bool = False) -> np.ndarray:
+         search: bool = False, states: np.ndarray | None = None) -> np.ndarray:
     # The thread count is read here: inside a compiled function it would make it uncacheable.
     starts, counts = blocks(params.shape[0], get_num_threads(), kernel.LANES, kernel.VECTOR)
     steps, settle = fine_steps(params, active, search)
@@ -591,14 +591,20 @@ def _run(kernel: ModuleType, params: np.ndarray, t_first, fs, n_samples, substep
     # Blocks are handed to the threads one at a time as they come free: a block of slipping lanes costs several
     # others, and the lane order puts such blocks last, where an even split would leave them to one thread.
     with numba.parallel_chunksize(1):
-        return kernel._simulate_batch(params, steps, settle, order, starts, counts, substeps, t_first, fs, n_samples, codes)
+        return kernel._simulate_batch(params, RIG_START if states is None else states, steps, settle, order, starts, counts,
+                                      substeps, t_first, fs, n_samples, codes)
 
 
-def simulate_batch(params: np.ndarray, t_first, fs, n_samples, substeps, codes, search: bool = False) -> np.ndarray:
+RIG_START = np.empty((1, 0))  # no start state given: every row starts from rig.md's
+
+
+def simulate_batch(params: np.ndarray, t_first, fs, n_samples, substeps, codes, search: bool = False,
+                   states: np.ndarray | None = None) -> np.ndarray:
     """Simulate each row of ``params`` (n, len(slots.slot_names())); returns (n, len(codes), n_samples).
 
-    Samples lie at t_first + k/fs; the model starts from the rig.md initial state at t = 0.  Each
+    Samples lie at t_first + k/fs; the model starts at t = 0 from each row of ``states`` (n, 42), or from the rig.md
+    initial state where they are None.  Each
     sample interval takes ``substeps`` RK4 steps, times the row's :func:`fine_steps` while it settles after a switch
     or its slip joint is open (fewer for a ``search``); the warm-up up to t_first takes steps of the same length or less.
     """
-    return _run(module(), params, t_first, fs, n_samples, substeps, codes, search=search)
+    return _run(module(), params, t_first, fs, n_samples, substeps, codes, search=search, states=states)

@@ -143,11 +143,14 @@ def omega(values: Mapping[str, float]) -> float:
 
 @dataclass(frozen=True)
 class Sampling:
-    """Recorded samples: ``t_k = t_first + k / fs`` for ``k = 0 … n_samples-1``; the model starts at t = 0."""
+    """Recorded samples: ``t_k = t_first + k / fs`` for ``k = 0 … n_samples-1``; the model starts at t = 0 from
+    rig.md's state (at rest laterally), or, ``steady``, from its linearized steady state there (:func:`steady_states`),
+    as a recording that starts at any moment is compared."""
 
     fs: float = 5000.0
     t_first: float = 0.5
     n_samples: int = 5000
+    steady: bool = False
 
     @classmethod
     def from_window(cls, fs: float, t_warm: float, t_rec: float) -> Sampling:
@@ -212,21 +215,93 @@ def _eigenvalues(M: np.ndarray, C: np.ndarray, K: np.ndarray) -> np.ndarray:
     return np.linalg.eigvals(np.block([[np.zeros((n, n)), np.eye(n)], [-Minv @ K, -Minv @ C]]))
 
 
-SETTLING_TIMES = 5  # time constants of the slowest mode the model runs before it is compared with a recording
+SETTLING_TIMES = 5  # time constants of the slowest mode the model runs from rig.md's state before it is compared with a recording
+STEADY_SETTLING_TIMES = 2  # the same from its linearized steady state
 
 
-def settling_time(values: Mapping[str, float] | None = None) -> float:
+def settling_time(values: Mapping[str, float] | None = None, steady: bool = False) -> float:
     """How long the linearized rig takes to forget its initial state [s]: :data:`SETTLING_TIMES` time constants of its
-    most slowly decaying mode (an undamped one never forgets it and is left out).  A recording is in steady state; the
-    model, started from rig.md's state, is compared with it from then on (the reference rig: 0.48 s, after which the start-up is below 3e-4 of a channel's std in b1, b2 and
-    the torsional channels, 1.5e-3 in b3, b4; tests/test_physics.py)."""
+    most slowly decaying mode (an undamped one never forgets it and is left out) from rig.md's state, at rest
+    laterally; :data:`STEADY_SETTLING_TIMES` from its linearized steady state (``steady``, :func:`steady_states`), which
+    leaves only what the linearization leaves out to die away.  A recording is in steady state; the model is compared
+    with it from then on (the reference rig: 0.48 s from rest, after which the start-up is below 3e-4 of a channel's std
+    in b1, b2 and the torsional channels, 1.5e-3 in b3, b4; 0.19 s from the steady state, after which it is below 5e-4
+    of a channel's std with each library effect; tests/test_physics.py)."""
     decay = -_eigenvalues(*linear_matrices(values)).real
-    return SETTLING_TIMES / float(np.min(decay[decay > 1e-9 * np.max(decay)]))
+    times = STEADY_SETTLING_TIMES if steady else SETTLING_TIMES
+    return times / float(np.min(decay[decay > 1e-9 * np.max(decay)]))
 
 
 def wrap_angle(angle: float) -> float:
     """``angle`` [rad] on the circle's turn [−π, π)."""
     return float((angle + math.pi) % (2 * math.pi) - math.pi)
+
+
+def steady_states(values: Mapping[str, np.ndarray]) -> np.ndarray:
+    """The state at t = 0 (:func:`initial_state`'s layout) of the rig's linearized steady state, one row per element of
+    the arrays ``values`` (each parameter's name → its values): the pre-twist of rig.md's start, plus the response of
+    the healthy rig linearized about its speed Ω (:func:`linear_matrices`, J2a and J2b one body) to each load harmonic
+    on disk 4 and to the imbalances' forces u Ω² at Ω on nodes m1 and m4, at the angles θ + φ of their disks' mean
+    angles; the rotation's own angle is rig.md's (θ4 = 0 on average).  What the linearization leaves out (the
+    imbalances' coupling of lateral and torsional motion, an effect's force) starts as a transient that dies out with
+    the rig's modes."""
+    v = {name: np.atleast_1d(np.asarray(values[name], dtype=float)) for name in PARAMETER_NAMES}
+    n = max(a.size for a in v.values())
+    v = {name: np.broadcast_to(a, (n,)) for name, a in v.items()}
+    speed = 2.0 * math.pi * v["speed_rpm"] / 60.0
+    twist3 = v["T0"] / v["kT3"]
+    twist2 = twist3 + v["T0"] / v["kT2"]
+    twist1 = twist2 + v["T0"] / v["kT1"]
+    state = np.zeros((n, 42))
+    state[:, 0:5] = np.stack([twist1, twist2, twist2, twist3, np.zeros(n)], 1)
+    state[:, 21:26] = speed[:, None]
+
+    def response(mass, stiffness, damping, frequency, force):  # (n, d) complex amplitudes at ``frequency`` (n,)
+        w = frequency[:, None, None]
+        return np.linalg.solve(stiffness - w**2 * mass + 1j * w * damping, force[..., None])[..., 0]
+
+    # torsion: θ1, θ2 (= θ2a = θ2b), θ3, θ4
+    inertia = np.zeros((n, 4, 4))
+    for i, name in enumerate(("J1", None, "J3", "J4")):
+        inertia[:, i, i] = v[name] if name else v["J2a"] + v["J2b"]
+    stiffness = np.zeros((n, 4, 4))
+    for i, name in enumerate(("kT1", "kT2", "kT3")):
+        stiffness[:, i, i] += v[name]
+        stiffness[:, i + 1, i + 1] += v[name]
+        stiffness[:, i, i + 1] -= v[name]
+        stiffness[:, i + 1, i] -= v[name]
+    damping = v["beta"][:, None, None] * stiffness
+    damping[:, 0, 0] += v["T0"] / (v["slip"] * speed)
+    for h in range(1, int(np.max(v["load_harm"])) + 1):
+        amplitude = np.where(h <= v["load_harm"], v["T0"] * v["load_amp"] / h, 0.0)  # −T0 a sin(h x)/h on disk 4
+        force = np.zeros((n, 4), dtype=complex)
+        force[:, 3] = 1j * amplitude * np.exp(1j * h * v["load_phase"])
+        frequency = 2.0 * math.pi * h * v["load_freq"]
+        turn = response(inertia, stiffness, damping, frequency, force)
+        angles = turn[:, [0, 1, 1, 2, 3]]
+        state[:, 0:5] += angles.real
+        state[:, 21:26] += (1j * frequency[:, None] * angles).real
+    # lateral, x and y: the imbalance's force u Ω² (cos, sin)(Ωt + θ̄ + φ) at its node
+    mass = np.zeros((n, 8, 8))
+    for node, name in enumerate(NODE_MASSES):
+        mass[:, node, node] = v[name]
+    chain = np.zeros((n, 8, 8))
+    for a, b, name in LATERAL_SPRINGS:
+        chain[:, a, a] += v[name]
+        chain[:, b, b] += v[name]
+        chain[:, a, b] -= v[name]
+        chain[:, b, a] -= v[name]
+    force = np.zeros((n, 8), dtype=complex)
+    for disk, mean_angle in (("1", twist1), ("4", np.zeros(n))):
+        force[:, DISK_NODES[disk]] = v[f"u{disk}"] * speed**2 * np.exp(1j * (mean_angle + v[f"phi{disk}"]))
+    for offset, ground, phase in ((5, "k_bx", 1.0), (13, "k_by", -1j)):
+        stiffness = chain.copy()
+        for node in BEARING_NODES:
+            stiffness[:, node, node] += v[ground]
+        moved = response(mass, stiffness, v["beta"][:, None, None] * stiffness, speed, phase * force)
+        state[:, offset:offset + 8] = moved.real
+        state[:, 21 + offset:21 + offset + 8] = (1j * speed[:, None] * moved).real
+    return state
 
 
 def initial_state(values: Mapping[str, float]) -> np.ndarray:

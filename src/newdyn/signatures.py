@@ -65,6 +65,7 @@ def spec(hyps: Mapping[str, hypotheses.Hypothesis], signature_entries, values: M
     kinds = sorted({name for name, _ in signature_entries} & set(effects.active()))
     return {
         "values": dict(slots.complete(values)), "fs": sampling.fs, "t_first": sampling.t_first, "n_samples": sampling.n_samples,
+        "steady": sampling.steady,
         "channels": list(channels), "grids": {p: [g.low, g.high, g.points] for p, g in grids.items()},
         "priors": {p: [prior.mean, prior.sd] for p, prior in priors.items()},
         "entries": sorted(json.dumps([name, v], sort_keys=True) for name, v in signature_entries),  # in any order

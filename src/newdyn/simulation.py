@@ -69,8 +69,14 @@ def simulate_batch(
         raise ValueError(f"parameter array must be (n, {len(slots.slot_names())}), got {params.shape}")
     return kernels.simulate_batch(
         params, float(sampling.t_first), float(sampling.fs), int(sampling.n_samples), substeps(sampling.fs, max_step), output_codes(outputs),
-        search,
+        search, steady_states(params) if sampling.steady else None,
     )
+
+
+def steady_states(params: np.ndarray) -> np.ndarray:
+    """:func:`newdyn.model.steady_states` of rows of kernel parameters (laid out as ``slots.slot_names()``)."""
+    index = slots.slot_index()
+    return model.steady_states({name: params[:, index[name]] for name in model.PARAMETER_NAMES})
 
 
 def simulate_parts(parts: Sequence[np.ndarray], sampling: model.Sampling, outputs: Sequence[str], max_step: float) -> list[np.ndarray]:

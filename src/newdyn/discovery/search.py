@@ -135,7 +135,7 @@ def discover(residual: np.ndarray, sigma: np.ndarray, values: Mapping[str, float
     residual = _whitened(residual, nuisance)
     first = record_start(sampling)
     n_grid = first + sampling.n_samples
-    trajectory = Trajectory.simulate(values, sampling.fs, n_grid, max_step)
+    trajectory = Trajectory.simulate(values, sampling.fs, n_grid, max_step, sampling.steady)
     linear = LinearRig.build(values, sampling.fs, n_grid, channels)
     peaks = spectral_peaks(residual, sigma, sampling.fs)
 

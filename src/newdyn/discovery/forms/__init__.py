@@ -61,10 +61,10 @@ class Trajectory:
     values: Mapping[str, float]  # the model values it was simulated with
 
     @classmethod
-    def simulate(cls, values: Mapping[str, float], fs: float, n_samples: int, max_step: float) -> Trajectory:
+    def simulate(cls, values: Mapping[str, float], fs: float, n_samples: int, max_step: float, steady: bool = False) -> Trajectory:
         states = sorted({name for pair in _COORDINATES.values() for name in pair if name})
         outputs = states + [f"d{name}" for name in states]
-        run = dict(zip(outputs, simulation.simulate(values, model.Sampling(fs, 0.0, n_samples), outputs, max_step)))
+        run = dict(zip(outputs, simulation.simulate(values, model.Sampling(fs, 0.0, n_samples, steady), outputs, max_step)))
 
         def coordinate(place, prefix):
             a, b = _COORDINATES[place]
