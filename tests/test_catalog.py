@@ -1,5 +1,6 @@
 """The index of measurement files: each file is read once per size, time stamp and settings."""
 
+import math
 import os
 import re
 from pathlib import Path
@@ -7,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from newdyn import catalog, model, noise
+from newdyn import catalog, io, model, noise
 from newdyn.simulation import simulate
 
 OPERATING = {name: model.DEFAULTS[name] for name in model.OPERATING_PARAMETERS}
@@ -80,7 +81,9 @@ def test_a_record_starting_between_the_model_grids_instants_is_taken_onto_its_gr
     assert sorted(good) == ["off_grid", "rounded"] and problems == []
     for path in good.values():
         sampling = catalog.checked_measurement(path, OPERATING, CHANNELS, 1000.0).sampling
-        assert sampling.fs == fs and sampling.t_first * fs == 1500
+        first = sampling.t_first * fs
+        assert sampling.fs == fs and first == pytest.approx(round(first), abs=1e-9)
+        assert round(first) == math.ceil(io.STEADY_WARM_UP * fs)  # the first instant of the grid after the warm-up
 
 
 @pytest.mark.parametrize("reserved", catalog.MACHINE_FOLDERS)

@@ -31,7 +31,7 @@ def test_netcdf_round_trip(tmp_path):
     assert m.name == "m" and m.channels == tuple(CHANNELS)
     np.testing.assert_array_equal(m.y, ds["y"].values)
     np.testing.assert_array_equal(m.sigma, [1e-9, 4e-3])
-    assert m.sampling.n_samples == SAMPLING.n_samples and m.sampling.t_first == SAMPLING.t_first
+    assert m.sampling.n_samples == SAMPLING.n_samples and m.sampling.steady  # compared with the model's steady state
     assert m.sampling.fs == pytest.approx(SAMPLING.fs, rel=1e-12)
     assert m.operating == OPERATING  # attributes override the defaults
     assert m.attrs["parameters"] == '{"kT1": 3000000.0}'
