@@ -582,6 +582,9 @@ def lane_order(params: np.ndarray, steps: np.ndarray, active: dict[str, type[eff
     return np.lexsort((*reversed(joint), steps[:, 1], steps[:, 0])).astype(np.int64)  # lexsort's last key is its first
 
 
+RIG_START = np.empty((1, 0))  # no start state given: every row starts from rig.md's
+
+
 def _run(kernel: ModuleType, params: np.ndarray, t_first, fs, n_samples, substeps, codes, active=None,
          search: bool = False, states: np.ndarray | None = None) -> np.ndarray:
     # The thread count is read here: inside a compiled function it would make it uncacheable.
@@ -593,9 +596,6 @@ def _run(kernel: ModuleType, params: np.ndarray, t_first, fs, n_samples, substep
     with numba.parallel_chunksize(1):
         return kernel._simulate_batch(params, RIG_START if states is None else states, steps, settle, order, starts, counts,
                                       substeps, t_first, fs, n_samples, codes)
-
-
-RIG_START = np.empty((1, 0))  # no start state given: every row starts from rig.md's
 
 
 def simulate_batch(params: np.ndarray, t_first, fs, n_samples, substeps, codes, search: bool = False,

@@ -256,52 +256,57 @@ def steady_states(values: Mapping[str, np.ndarray]) -> np.ndarray:
     state[:, 0:5] = np.stack([twist1, twist2, twist2, twist3, np.zeros(n)], 1)
     state[:, 21:26] = speed[:, None]
 
-    def response(mass, stiffness, damping, frequency, force):  # (n, d) complex amplitudes at ``frequency`` (n,)
-        w = frequency[:, None, None]
-        return np.linalg.solve(stiffness - w**2 * mass + 1j * w * damping, force[..., None])[..., 0]
-
-    # torsion: θ1, θ2 (= θ2a = θ2b), θ3, θ4
-    inertia = np.zeros((n, 4, 4))
-    for i, name in enumerate(("J1", None, "J3", "J4")):
-        inertia[:, i, i] = v[name] if name else v["J2a"] + v["J2b"]
-    stiffness = np.zeros((n, 4, 4))
-    for i, name in enumerate(("kT1", "kT2", "kT3")):
-        stiffness[:, i, i] += v[name]
-        stiffness[:, i + 1, i + 1] += v[name]
-        stiffness[:, i, i + 1] -= v[name]
-        stiffness[:, i + 1, i] -= v[name]
+    # Torsion (θ1, θ2 = θ2a = θ2b, θ3, θ4), every load harmonic h at once: −T0 a sin(h x)/h on disk 4.
+    harmonics = np.arange(1, int(np.max(v["load_harm"])) + 1)
+    mass, stiffness = _chain(np.stack([v["J1"], v["J2a"] + v["J2b"], v["J3"], v["J4"]], 1), np.stack([v["kT1"], v["kT2"], v["kT3"]], 1))
     damping = v["beta"][:, None, None] * stiffness
     damping[:, 0, 0] += v["T0"] / (v["slip"] * speed)
-    for h in range(1, int(np.max(v["load_harm"])) + 1):
-        amplitude = np.where(h <= v["load_harm"], v["T0"] * v["load_amp"] / h, 0.0)  # −T0 a sin(h x)/h on disk 4
-        force = np.zeros((n, 4), dtype=complex)
-        force[:, 3] = 1j * amplitude * np.exp(1j * h * v["load_phase"])
-        frequency = 2.0 * math.pi * h * v["load_freq"]
-        turn = response(inertia, stiffness, damping, frequency, force)
-        angles = turn[:, [0, 1, 1, 2, 3]]
-        state[:, 0:5] += angles.real
-        state[:, 21:26] += (1j * frequency[:, None] * angles).real
-    # lateral, x and y: the imbalance's force u Ω² (cos, sin)(Ωt + θ̄ + φ) at its node
-    mass = np.zeros((n, 8, 8))
-    for node, name in enumerate(NODE_MASSES):
-        mass[:, node, node] = v[name]
-    chain = np.zeros((n, 8, 8))
-    for a, b, name in LATERAL_SPRINGS:
-        chain[:, a, a] += v[name]
-        chain[:, b, b] += v[name]
-        chain[:, a, b] -= v[name]
-        chain[:, b, a] -= v[name]
-    force = np.zeros((n, 8), dtype=complex)
-    for disk, mean_angle in (("1", twist1), ("4", np.zeros(n))):
-        force[:, DISK_NODES[disk]] = v[f"u{disk}"] * speed**2 * np.exp(1j * (mean_angle + v[f"phi{disk}"]))
-    for offset, ground, phase in ((5, "k_bx", 1.0), (13, "k_by", -1j)):
-        stiffness = chain.copy()
-        for node in BEARING_NODES:
-            stiffness[:, node, node] += v[ground]
-        moved = response(mass, stiffness, v["beta"][:, None, None] * stiffness, speed, phase * force)
-        state[:, offset:offset + 8] = moved.real
-        state[:, 21 + offset:21 + offset + 8] = (1j * speed[:, None] * moved).real
+    force = np.zeros((n, harmonics.size, 4), dtype=complex)
+    amplitude = np.where(harmonics <= v["load_harm"][:, None], (v["T0"] * v["load_amp"])[:, None] / harmonics, 0.0)
+    force[:, :, 3] = 1j * amplitude * np.exp(1j * harmonics * v["load_phase"][:, None])
+    angles = _steady_response(mass[:, None], stiffness[:, None], damping[:, None], 2.0 * math.pi * v["load_freq"][:, None] * harmonics,
+                              force)
+    state[:, 0:5] += angles[0][:, :, [0, 1, 1, 2, 3]].sum(axis=1)
+    state[:, 21:26] += angles[1][:, :, [0, 1, 1, 2, 3]].sum(axis=1)
+    # Lateral, x and y at once: each imbalance's force u Ω² (cos, sin)(Ωt + θ̄ + φ) at its node, θ̄ its disk's pre-twist.
+    springs = np.stack([v[name] for _, _, name in LATERAL_SPRINGS], 1)
+    mass, stiffness = _chain(np.stack([v[name] for name in NODE_MASSES], 1), springs)
+    stiffness = np.repeat(stiffness[:, None], 2, axis=1)  # (n, direction, 8, 8)
+    for node in BEARING_NODES:
+        stiffness[:, 0, node, node] += v["k_bx"]
+        stiffness[:, 1, node, node] += v["k_by"]
+    force = np.zeros((n, 2, 8), dtype=complex)
+    for disk, mean_angle in (("1", twist1), ("4", 0.0)):
+        whirl = v[f"u{disk}"] * speed**2 * np.exp(1j * (mean_angle + v[f"phi{disk}"]))
+        force[:, :, DISK_NODES[disk]] = whirl[:, None] * np.array([1.0, -1j])  # cos = Re e^{iΩt}, sin = Re −i e^{iΩt}
+    moved = _steady_response(mass[:, None], stiffness, v["beta"][:, None, None, None] * stiffness,
+                             np.repeat(speed[:, None], 2, axis=1), force)
+    for direction, offset in enumerate((5, 13)):
+        state[:, offset:offset + 8] = moved[0][:, direction]
+        state[:, 21 + offset:21 + offset + 8] = moved[1][:, direction]
     return state
+
+
+def _chain(masses: np.ndarray, springs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mass and stiffness matrices (n, m, m) of chains of ``masses`` (n, m) joined by ``springs`` (n, m − 1)."""
+    n, m = masses.shape
+    mass = np.zeros((n, m, m))
+    mass[:, range(m), range(m)] = masses
+    stiffness = np.zeros((n, m, m))
+    for i in range(m - 1):
+        stiffness[:, i, i] += springs[:, i]
+        stiffness[:, i + 1, i + 1] += springs[:, i]
+        stiffness[:, i, i + 1] -= springs[:, i]
+        stiffness[:, i + 1, i] -= springs[:, i]
+    return mass, stiffness
+
+
+def _steady_response(mass, stiffness, damping, frequency, force) -> tuple[np.ndarray, np.ndarray]:
+    """Displacements and velocities at t = 0 of M q'' + C q' + K q = Re(F e^{iωt}) in steady state, for matrices (…, d, d),
+    ``frequency`` ω (…) and ``force`` F (…, d)."""
+    w = frequency[..., None, None]
+    amplitude = np.linalg.solve(stiffness - w**2 * mass + 1j * w * damping, force[..., None])[..., 0]
+    return amplitude.real, (1j * frequency[..., None] * amplitude).real
 
 
 def initial_state(values: Mapping[str, float]) -> np.ndarray:

@@ -55,7 +55,8 @@ def simulate_batch(
     """Simulate many parameter sets at once: (n_sets, len(outputs), n_samples).
 
     ``values`` is a sequence of parameter mappings or an array of parameter vectors
-    (rows laid out as ``slots.slot_names()``).  Each sample interval is split into the fewest
+    (rows laid out as ``slots.slot_names()``), each started at t = 0 as ``sampling`` says (rig.md's state, or its
+    linearized steady state, :func:`steady_states`).  Each sample interval is split into the fewest
     equal RK4 steps no longer than ``max_step``, and finer where an effect has switched (``kernels.fine_steps``).  For a
     ``search`` those finer steps are twice as long (``kernels.SEARCH_STEP_FACTOR``): cheaper where the joint slips, and
     less accurate where kinetic friction is well below static — for a global search that only chooses where least
