@@ -237,6 +237,38 @@ def test_importance_sampling_fits_its_proposal_again_where_the_approximation_is_
     np.testing.assert_allclose(got_sd, sd, rtol=4 / np.sqrt(2 * ess))
 
 
+@pytest.mark.parametrize("short_of_optimum", [True, False])
+def test_importance_sampling_stops_before_fitting_its_proposal_again_where_a_draw_beats_the_fit(short_of_optimum):
+    """An approximation a quarter as wide as the posterior, about a point 10 nats short of its optimum, as a fit that
+    stopped short leaves it.  Told to stop where a draw's log-likelihood beats the fit's by 1, the sampler returns its
+    first batch, unverified and saying why, for the caller to fit again from its best draw: no proposal is fitted
+    again.  Where no draw can beat it by that much (the bar above the optimum's log-likelihood, 0), it samples as it
+    would untold, to the same draws."""
+    mean, sd = np.array([3.0e6, 0.35, 2000.0]), np.array([8.0e3, 1.0e-3, 0.5])
+    cov = np.array([[1.0, -0.9, 0.3], [-0.9, 1.0, -0.2], [0.3, -0.2, 1.0]]) * np.outer(sd, sd)
+    fitted = mean + np.array([1.0, 1.0, 0.0]) * sd
+    fit_log_likelihood = float(gaussian(mean, cov)(fitted[None])[0])
+    assert fit_log_likelihood < -10.0
+    bar = fit_log_likelihood + 1.0 if short_of_optimum else 0.5
+
+    def run(refit_below):
+        likelihood, calls = counted(gaussian(mean, cov))
+        idata = posterior.sample(likelihood, box([0, 0, 0], [1e7, 1, 1e4]), ["k", "a", "t"], fitted, cov / 16, SETTINGS,
+                                 refit_below=refit_below)
+        return idata, sum(calls)
+
+    idata, simulated = run(bar)
+    best = float(idata.weighted["log_likelihood"].max())
+    if short_of_optimum:
+        assert idata.attrs["converged"] == 0 and idata.attrs["refits"] == 0 and simulated == SETTINGS.batch
+        assert idata.attrs["reason"].endswith("; a draw fits better than the approximation's optimum")
+        assert best > bar
+    else:
+        untold, untold_simulated = run(None)
+        assert idata.attrs["refits"] >= 1 and simulated == untold_simulated
+        np.testing.assert_array_equal(idata.posterior["k"].values, untold.posterior["k"].values)
+
+
 def test_importance_sampling_refuses_a_posterior_with_a_second_mode_in_the_approximations_tail():
     """As much mass again 5 sds from where the approximation sits, within the proposal's reach but far in its
     tail: the few draws there carry huge weights, and k̂ says the estimate cannot be trusted."""

@@ -367,7 +367,8 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
         stage(f"discovery ({len(discovery.section['candidates'])} candidates)")
     ahead = _explaining_ahead(fits, calibrations, best_fault, settings.chi2_max, discovery and discovery.fit)
     unneeded = _unneeded(fits[best_fault], ahead, settings.chi2_max)
-    effect_posterior = _effect_posterior(fits[best_fault], data, sigma, values, sampling, channels, settings, unneeded)
+    effect_posterior = _effect_posterior(fits[best_fault], data, sigma, values, sampling, channels, settings, unneeded,
+                                         polishing=ahead is None)
     if ahead is None:
         polished = _polished(fits[best_fault], effect_posterior, data, sigma, values, sampling, channels, settings, instruments)
         # The posterior again about the better optimum where the first missed it, or where the verdict may now rest on
@@ -375,6 +376,9 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
         if polished is not fits[best_fault] and (not effect_posterior.attrs["converged"] if unneeded is None
                                                  else _unneeded(polished, None, settings.chi2_max) is None):
             unneeded = None
+            effect_posterior = _effect_posterior(polished, data, sigma, values, sampling, channels, settings, unneeded)
+        elif not effect_posterior.attrs["converged"] and _beaten(fits[best_fault], effect_posterior):
+            # The sampling stopped for a polish that found nothing better: sampled about the fit to the end.
             effect_posterior = _effect_posterior(polished, data, sigma, values, sampling, channels, settings, unneeded)
         fits[best_fault] = polished
     if not effect_posterior.attrs["converged"] and unneeded is None:
@@ -509,15 +513,19 @@ def _drift_fit(hypothesis: hypotheses.Hypothesis, cal: calibration.Calibration, 
                           instruments=instruments)
 
 
-def _effect_posterior(fit: hypotheses.Fit, data, sigma, values, sampling, channels, settings: Settings, unneeded: str | None):
+def _effect_posterior(fit: hypotheses.Fit, data, sigma, values, sampling, channels, settings: Settings, unneeded: str | None,
+                      polishing: bool = False):
     """The posterior of a fault model's parameters (InferenceData) from its fit's Laplace approximation, by quadrature or
     importance sampling (:mod:`newdyn.posterior`), converged where that is verified (else the caller samples it by
     MCMC, :func:`_sample_effect`, where the verdict may rest on the fault).  Where it cannot (``unneeded`` says why,
-    :func:`_unneeded`), one batch of importance sampling: how much of the fault the data leave room for."""
+    :func:`_unneeded`), one batch of importance sampling: how much of the fault the data leave room for.  Where the
+    caller is ``polishing`` the fit (:func:`_polished`), a batch that is not enough and holds a draw that beats the fit
+    by :data:`POLISH_MARGIN` ends the sampling: the caller fits again from there and samples about the new fit."""
     hypothesis = fit.hypothesis
     log_likelihood = _log_likelihood(fit, data, sigma, values, sampling, channels, settings.max_step)
     attrs = {"hypothesis": hypothesis.name, "support": _support(hypothesis)}
     observed = _observed(data, channels, sampling)
+    refit_below = fit.log_likelihood + POLISH_MARGIN if polishing else None
     if PHASE in hypothesis.parameters and fit.covariance is not None and len(hypothesis.parameters) > 1:
         # The load's phase integrated out at each point: a fault of two values stays on the quadrature.
         names, profiled = alignment.phase_profiled(hypothesis, fit.theta, fit.covariance, data, sigma, channels, sampling,
@@ -530,10 +538,11 @@ def _effect_posterior(fit: hypotheses.Fit, data, sigma, values, sampling, channe
 
         posterior = posterior_module.sample(profiled, log_prior, names, fit.theta[own], fit.covariance[np.ix_(own, own)],
                                             settings.posterior, observed=observed, attrs={**attrs, "integrated": PHASE},
-                                            verify=unneeded is None, nuisance=[PHASE])
+                                            verify=unneeded is None, nuisance=[PHASE], refit_below=refit_below)
     else:
         posterior = posterior_module.sample(log_likelihood, hypothesis.log_prior, hypothesis.parameters, fit.theta, fit.covariance,
-                                            settings.posterior, observed=observed, attrs=attrs, verify=unneeded is None)
+                                            settings.posterior, observed=observed, attrs=attrs, verify=unneeded is None,
+                                            refit_below=refit_below)
     if not posterior.attrs["converged"] and unneeded is not None:
         # No verdict rests on the fault: the unverified answer shows how much of it the data leave room for, and
         # sampling it further would change nothing.
@@ -565,10 +574,15 @@ def _support(hypothesis: hypotheses.Hypothesis) -> dict:
 POLISH_MARGIN = 1.0
 
 
+def _beaten(fit: hypotheses.Fit, posterior) -> bool:
+    """Whether a draw of ``posterior`` beats ``fit`` by more than :data:`POLISH_MARGIN`."""
+    return float(posterior.sample_stats["log_likelihood"].max()) > fit.log_likelihood + POLISH_MARGIN
+
+
 def _polished(fit: hypotheses.Fit, posterior, data, sigma, values, sampling, channels, settings: Settings, instruments) -> hypotheses.Fit:
     """``fit`` again (through the datasheets' ``instruments``, then checked) from the posterior's best draw where that
     beats it by more than :data:`POLISH_MARGIN`: stick-slip's misfit has narrow valleys the least squares may miss."""
-    if float(posterior.sample_stats["log_likelihood"].max()) <= fit.log_likelihood + POLISH_MARGIN:
+    if not _beaten(fit, posterior):
         return fit
     hypothesis = fit.hypothesis
     best = _best_draw(posterior, hypothesis.parameters)

@@ -157,6 +157,7 @@ def sample(
     to_values: BatchFn | None = None,
     verify: bool = True,
     nuisance: Sequence[str] = (),
+    refit_below: float | None = None,
 ):
     """The posterior of ``names`` around the Laplace approximation (``mean``, ``covariance``): by quadrature for up to
     :data:`MAX_QUADRATURE_PARAMETERS`, else by importance sampling.  ``log_prior_batch`` is −inf outside the prior's
@@ -167,7 +168,9 @@ def sample(
     of importance sampling, verified only if that batch is enough, and no quadrature.  With ``nuisance`` names, the
     likelihood integrates those parameters out itself and returns a :class:`Profiled` for its rows: the posterior of
     ``names`` is sampled, and each draw's nuisance values are drawn from their conditional normal at the point it was
-    drawn from."""
+    drawn from.  With ``refit_below`` (a log-likelihood), a batch that leaves the answer unverified and holds a draw
+    above it ends the sampling, unverified, before any proposal is fitted again: the approximation's optimum was
+    missed, and the caller fits again from the best draw and samples about that fit instead."""
     whitened = _Whitened.of(mean, covariance)
     n_nuisance = len(nuisance)
 
@@ -189,7 +192,8 @@ def sample(
     effort = settings if verify else dataclasses.replace(settings, batch=unverified, max_draws=unverified)
     theta, log_weight, log_post, log_like, conditional, cells, found = _importance(
         log_posterior, whitened, dataclasses.replace(effort, pareto_k_max=min(effort.pareto_k_max, CHECKED_PARETO_K))
-        if checkable else effort, refits=REFITS if verify and not checkable else 0)
+        if checkable else effort, refits=REFITS if verify and not checkable else 0,
+        refit_below=refit_below)
     if checkable and not found["converged"]:
         tried = f"importance sampling first: {found['reason']}"
         # Its weighted draws place the posterior better than the approximation their proposal missed (as a proposal
@@ -327,16 +331,21 @@ def _settled(coarser: tuple[np.ndarray, np.ndarray], finer: tuple[np.ndarray, np
                 and np.all(np.abs(finer[1] - coarser[1]) <= RESOLUTION * finer[1]))
 
 
-def _importance(log_posterior, whitened: _Whitened, settings: PosteriorSettings, refits: int = 0):
+def _importance(log_posterior, whitened: _Whitened, settings: PosteriorSettings, refits: int = 0,
+                refit_below: float | None = None):
     """Importance sampling from a Student-t around the approximation, its proposal fitted again to its weighted draws
-    after a batch that leaves the answer unverified, up to ``refits`` times (module docstring): (the last proposal's θ, smoothed
-    normalized log weights, log posteriors, log-likelihoods, nuisances' conditionals, None, what it found)."""
+    after a batch that leaves the answer unverified, up to ``refits`` times (module docstring), but not after one that
+    holds a log-likelihood above ``refit_below`` (:func:`sample`): (the last proposal's θ, smoothed normalized log
+    weights, log posteriors, log-likelihoods, nuisances' conditionals, None, what it found)."""
     missed, proposal = [], "the Laplace approximation"
     one_batch = dataclasses.replace(settings, max_draws=settings.batch)
     while True:
         effort = settings if len(missed) == refits else one_batch
         theta, log_weight, log_post, log_like, conditional, found = _importance_from(log_posterior, whitened, effort, proposal)
         if found["converged"] or len(missed) == refits:
+            break
+        if refit_below is not None and np.max(log_like) > refit_below:
+            found["reason"] += "; a draw fits better than the approximation's optimum"
             break
         refitted = _recentred(theta, log_weight)
         if refitted is None:
