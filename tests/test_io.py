@@ -53,7 +53,7 @@ def test_the_recorders_clock_may_start_anywhere_and_the_model_compares_from_its_
     m = read_measurement(tmp_path / "m.nc", warm_up=0.3)
     assert m.sampling == model.Sampling(SAMPLING.fs, 0.3, SAMPLING.n_samples, steady=True)
     settled = read_measurement(tmp_path / "m.nc").sampling  # by default when the reference rig has settled
-    assert settled.steady and settled.t_first == pytest.approx(model.settling_time(steady=True), abs=1 / SAMPLING.fs)
+    assert settled.steady and settled.t_first == pytest.approx(model.settling_time(), abs=1 / SAMPLING.fs)
 
 
 def test_a_speed_the_data_contradict_is_replaced_a_few_rpm_off_and_refused_far_off(tmp_path):

@@ -346,16 +346,24 @@ def test_started_in_its_steady_state_the_rig_is_in_it_from_the_first_instant():
     assert at_rest[:8].min() > 0.3
 
 
-@pytest.mark.parametrize("kind", [None, *(k for k, effect in effects.builtin().items() if effect.acts_on != "slip_joint")])
-def test_from_its_steady_state_the_rig_forgets_its_start_within_the_steady_settling_time(kind):
+# machines_07's first recording (a loose bearing on b2_x alone at its own condition), which two time constants from the
+# steady state left fitted to chi2 1.6 where five explain it
+LOOSE_AT_ITS_CONDITION = {"T0": 1442.6, "load_amp": 0.148, "speed_rpm": 1439.9}
+
+
+@pytest.mark.parametrize(("kind", "condition"), [
+    *((k, {}) for k in [None, *(k for k, effect in effects.builtin().items() if effect.acts_on != "slip_joint")]),
+    ("loose_bearing", LOOSE_AT_ITS_CONDITION),
+])
+def test_from_its_steady_state_the_rig_forgets_its_start_within_the_settling_time(kind, condition):
     """What the linear steady state leaves out (an effect's force, the imbalances' coupling) dies out with the rig's
-    modes: after model.settling_time(steady=True) (0.19 s on the reference rig) every channel is within 1.5e-3 of its
-    std (0.15 of 40-dB noise) of the same rig started a second earlier, as rig.md's start is after 0.5 s.  (A slipping
-    joint ratchets the load's angle on by each slip, so a rig that slipped a second longer has turned its load
-    imbalance further: no start to compare it with.)"""
-    values = slots.complete({**(visible_values(kind) if kind else {}), **ANGLES})
-    warm_up = model.settling_time(values, steady=True)
-    assert 0.15 < warm_up < 0.25
+    modes: after model.settling_time (0.48 s on the reference rig) every channel is within 1e-4 of its std (a
+    hundredth of 40-dB noise) of the same rig started a second earlier.  (A slipping joint ratchets the load's angle on
+    by each slip, so a rig that slipped a second longer has turned its load imbalance further: no start to compare it
+    with.)"""
+    values = slots.complete({**(visible_values(kind) if kind else {}), **condition, **ANGLES})
+    warm_up = model.settling_time(values)
+    assert 0.4 < warm_up < 0.55
     record = model.Sampling(5000.0, warm_up, 1000, steady=True)
     settled = simulate(_started_earlier(values, 1.0), model.Sampling(5000.0, warm_up + 1.0, 1000, steady=True), model.CHANNELS)
-    assert reference.relative_rms(simulate(values, record, model.CHANNELS), settled).max() < 1.5e-3
+    assert reference.relative_rms(simulate(values, record, model.CHANNELS), settled).max() < 1e-4

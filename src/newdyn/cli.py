@@ -568,7 +568,7 @@ def _warm_up(spec: dict) -> float:
     forgotten what the linear steady state left out (:func:`newdyn.model.settling_time`)."""
     from . import model
 
-    return model.settling_time({**spec["rig"], **spec["operating"]}, steady=True)
+    return model.settling_time({**spec["rig"], **spec["operating"]})
 
 
 def _sampling(window: dict):

@@ -28,7 +28,7 @@ from .measurement_files import CONDITIONS
 OPERATING_ATTRS = model.OPERATING_PARAMETERS  # speed_rpm, T0, load_amp, load_freq, load_harm
 TIME_JITTER = 1e-2  # allowed deviation of a time stamp from the uniform grid, in sample intervals
 FS_MAX = 1.0e6  # above this the fixed-step kernel would need too many steps to be useful
-STEADY_WARM_UP = model.settling_time(steady=True)  # [s] the reference rig's
+STEADY_WARM_UP = model.settling_time()  # [s] the reference rig's
 NETCDF_SIGNATURES = (b"CDF", b"\x89HDF")  # the first bytes of a classic NetCDF file and of a NetCDF-4 (HDF5) one
 
 
