@@ -377,9 +377,9 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
                                                  else _unneeded(polished, None, settings.chi2_max) is None):
             unneeded = None
             effect_posterior = _effect_posterior(polished, data, sigma, values, sampling, channels, settings, unneeded)
-        elif not effect_posterior.attrs["converged"] and _beaten(fits[best_fault], effect_posterior):
+        elif unneeded is None and not effect_posterior.attrs["converged"] and _beaten(fits[best_fault], effect_posterior):
             # The sampling stopped for a polish that found nothing better: sampled about the fit to the end.
-            effect_posterior = _effect_posterior(polished, data, sigma, values, sampling, channels, settings, unneeded)
+            effect_posterior = _effect_posterior(fits[best_fault], data, sigma, values, sampling, channels, settings, unneeded)
         fits[best_fault] = polished
     if not effect_posterior.attrs["converged"] and unneeded is None:
         effect_posterior = _sample_effect(fits[best_fault], data, sigma, values, sampling, channels, settings,

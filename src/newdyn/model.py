@@ -223,7 +223,7 @@ def settling_time(values: Mapping[str, float] | None = None) -> float:
     most slowly decaying mode (an undamped one never forgets it and is left out).  A recording is in steady state; the
     model is compared with it from then on (the reference rig: 0.48 s, after which the start-up from rig.md's state is
     below 3e-4 of a channel's std in b1, b2 and the torsional channels, 1.5e-3 in b3, b4; from the linearized steady
-    state, :func:`steady_states`, below 1e-5 with each library effect but stick-slip; tests/test_physics.py).  From the
+    state, :func:`steady_states`, below 1e-4 with each library effect but stick-slip; tests/test_physics.py).  From the
     steady state two time constants left less than 1e-3 of a channel's std at the study's condition, but a loose bearing
     and a stick-slip joint recorded at other conditions were then fitted to χ² 1.6 and 2.2 where five explain them
     (docs/validation.md)."""
