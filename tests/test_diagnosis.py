@@ -350,6 +350,32 @@ def test_a_stick_slip_fit_over_several_load_cycles_reaches_the_misfit_of_the_tru
     assert refit.chi2_red < at_truth.chi2_red + 0.05 and refit.n_simulations < 0.2 * fit.n_simulations
 
 
+def test_a_stick_slip_fit_looks_into_the_neighbouring_basins_of_its_whole_records_misfit():
+    """Over a whole recording (1 s from the steady start, eight load cycles) a slipping joint's misfit has a basin per
+    slip pattern along the J2a share: least squares on the whole record from a share of 0.19 stays in that basin, the
+    truth's fits the noise far better, and the look into the neighbouring basins finds it; from the truth's basin it
+    finds nothing better."""
+    record = io.model_sampling(5000.0, 5000, io.STEADY_WARM_UP)
+    channels = ("b1_x", "b2_x", "w1")
+    truth = {"T_max": 1871.6, "r_k": 0.949, "J2a_share": 0.303, "kT1": 3e6}
+    record_values = {"phi1": 2.98, "phi4": 1.12, "load_phase": -0.4, "speed_rpm": 1478.9}
+    base = slots.complete(record_values)
+    clean = simulation.simulate({**fault("stick_slip", **{k: v for k, v in truth.items() if k != "kT1"}), **record_values}, record,
+                                channels)
+    y, sigma = noise.add_noise(clean, channels, 40.0, 8)
+    stick = next(h for h in SETTINGS.hypotheses() if h.name == "stick_slip")
+    args = (stick, y, sigma, base, record, channels)
+    aside = hypotheses.fit(*args, [{**truth, "J2a_share": 0.19}], search=False, whole_record=True)
+    at_truth = hypotheses.fit(*args, [truth], search=False, whole_record=True)
+    assert aside.values["J2a_share"] == pytest.approx(0.19, abs=0.01)
+    assert at_truth.values["J2a_share"] == pytest.approx(0.303, abs=0.02) and at_truth.chi2_red < 1.02
+    assert at_truth.log_likelihood > aside.log_likelihood + 20.0
+    found = hypotheses.in_neighbouring_basins(aside, *args[1:])
+    assert found.values["J2a_share"] == pytest.approx(at_truth.values["J2a_share"], abs=1e-3)
+    assert found.log_likelihood == pytest.approx(at_truth.log_likelihood, abs=0.1)
+    assert hypotheses.in_neighbouring_basins(at_truth, *args[1:]).log_likelihood < at_truth.log_likelihood + 0.1
+
+
 def test_a_whitened_pass_fits_what_the_white_pass_searched_from_that_searchs_optimum(diagnosed):
     """The second, whitened pass of a diagnosis does not search the same data again: a hypothesis the first pass searched
     globally starts its least squares from that search's optimum, and ends there in a tenth of one search's

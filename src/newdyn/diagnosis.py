@@ -366,6 +366,11 @@ def diagnose(measurement: io.Measurement, settings: Settings, grid_paths: Mappin
                                     settings)
         stage(f"discovery ({len(discovery.section['candidates'])} candidates)")
     ahead = _explaining_ahead(fits, calibrations, best_fault, settings.chi2_max, discovery and discovery.fit)
+    if ahead is None and fits[best_fault].search in hypotheses.SEARCHED_FROM[1:]:
+        # A searched misfit has a basin per switching pattern: the verdict may rest on this fault, so its fit looks
+        # into the neighbouring ones before its posterior is sampled about it.
+        fits[best_fault] = _in_best_basin(fits[best_fault], data, sigma, values, sampling, channels, settings, instruments)
+        stage(f"{best_fault}'s neighbouring basins looked into (chi2 {fits[best_fault].chi2_red:.4g})")
     unneeded = _unneeded(fits[best_fault], ahead, settings.chi2_max)
     effect_posterior = _effect_posterior(fits[best_fault], data, sigma, values, sampling, channels, settings, unneeded,
                                          polishing=ahead is None)
@@ -580,16 +585,28 @@ def _beaten(fit: hypotheses.Fit, posterior) -> bool:
 
 
 def _polished(fit: hypotheses.Fit, posterior, data, sigma, values, sampling, channels, settings: Settings, instruments) -> hypotheses.Fit:
-    """``fit`` again (through the datasheets' ``instruments``, then checked) from the posterior's best draw where that
-    beats it by more than :data:`POLISH_MARGIN`: stick-slip's misfit has narrow valleys the least squares may miss."""
+    """``fit`` again (through the datasheets' ``instruments``) from the posterior's best draw where that beats it by
+    more than :data:`POLISH_MARGIN`: stick-slip's misfit has narrow valleys the least squares may miss."""
     if not _beaten(fit, posterior):
         return fit
     hypothesis = fit.hypothesis
     best = _best_draw(posterior, hypothesis.parameters)
-    refit = hypotheses.fit(hypothesis, data, sigma, values, sampling, channels, [dict(zip(hypothesis.parameters, best))],
-                           settings.max_step, search=False, instruments=instruments)
-    polished = instrument_checks.checked(refit, data, sigma, settings.evidence_margin)
-    return polished if polished.log_likelihood > fit.log_likelihood else fit
+    return _better(fit, hypotheses.fit(hypothesis, data, sigma, values, sampling, channels, [dict(zip(hypothesis.parameters, best))],
+                                       settings.max_step, search=False, instruments=instruments), data, sigma, settings)
+
+
+def _in_best_basin(fit: hypotheses.Fit, data, sigma, values, sampling, channels, settings: Settings, instruments) -> hypotheses.Fit:
+    """``fit``, or its hypothesis's best fit in a neighbouring basin (through the datasheets' ``instruments``,
+    :func:`newdyn.hypotheses.in_neighbouring_basins`) where that fits better; found from where ``fit``'s search
+    ended, it keeps the search's name."""
+    neighbour = hypotheses.in_neighbouring_basins(fit, data, sigma, values, sampling, channels, settings.max_step, instruments)
+    return fit if neighbour is None else _better(fit, replace(neighbour, search=fit.search), data, sigma, settings)
+
+
+def _better(fit: hypotheses.Fit, refit: hypotheses.Fit, data, sigma, settings: Settings) -> hypotheses.Fit:
+    """``refit``, its instruments checked, where it fits better than ``fit``; else ``fit``."""
+    checked = instrument_checks.checked(refit, data, sigma, settings.evidence_margin)
+    return checked if checked.log_likelihood > fit.log_likelihood else fit
 
 
 def _explains(fit: hypotheses.Fit, calibrations, chi2_max: float) -> bool:

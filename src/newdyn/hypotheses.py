@@ -312,6 +312,7 @@ def fit(
     members: Members | None = None,
     chains: int | None = None,
     stop: threading.Event | None = None,
+    whole_record: bool = False,
 ) -> Fit:
     """Best fit of ``hypothesis`` by bounded least squares on the simulator (misfit standardized by
     ``sigma``, plus the Normal priors' terms), the best of several starts kept; with ``instruments`` the
@@ -326,6 +327,9 @@ def fit(
     stick-slip's misfit has many local minima, and only a short window shows the truth's basin wide.  With ``chains``,
     only that many starts are followed: those that fit the longest search window best.  Once ``stop`` is set, the next
     simulation raises :class:`newdyn.concurrency.Stopped` instead (a fit run on speculation that is no longer wanted).
+    With ``whole_record``, the given starts are fitted on the whole record alone, each by the coarse pass (it stays in
+    the record's basin it starts in, where the short windows would lead it to the basin of the record's start), and the
+    best of them by the fine pass (:func:`in_neighbouring_basins`).
 
     Log-evidence by the Laplace approximation in unit coordinates u = (θ − low)/(high − low):
     log Z ≈ log L(u*) + log π(u*) + (k/2) log 2π − ½ log det H − (parameters at a bound)·log 2, with H the
@@ -365,7 +369,8 @@ def fit(
     windows = fit_windows(sampling)
     given = [[start.get(p.name, p.mean if p.sd is not None else p.low + 0.5 * (p.high - p.low)) for p in hypothesis.priors]
              for start in starts]
-    u_starts = [((np.array(theta) - low) / span, 0) for theta in given]  # (start, index of its first window)
+    # (start, index of its first window)
+    u_starts = [((np.array(theta) - low) / span, len(windows) - 1 if whole_record else 0) for theta in given]
     searched_from = None if not search else SEARCHED_FROM[0] if members is not None else SEARCHED_FROM[1]
     if search and members is not None:
         # A parameter the members do not vary (the load's phase) is where they were simulated: the base's value.
@@ -384,10 +389,10 @@ def fit(
             )
             u_starts.append((evolved.x, first))
 
-    def follow(u0, from_window):  # least squares through the windows from the from_window-th to the whole record
+    def follow(u0, from_window, fine=True):  # least squares through the windows from the from_window-th to the whole record
         for n_samples in windows[from_window:]:
             result = _passes(lambda rows, n=n_samples: residuals(rows, n), u0,
-                             JACOBIAN_STEPS if n_samples == windows[-1] else JACOBIAN_STEPS[:1])
+                             JACOBIAN_STEPS if n_samples == windows[-1] and fine else JACOBIAN_STEPS[:1])
             u0 = result.x
         return result
 
@@ -401,15 +406,21 @@ def fit(
         result = follow(u0, first)
         # A given start that is already good over the whole record (the truth, a posterior's best
         # draw) can be led off by the short windows into a minimum of the record's start only.
-        if given_start and len(windows) > 1 and (
+        if given_start and first < len(windows) - 1 and (
             result.cost > 0.5 * np.sum(residuals(np.clip(u0, 1e-6, 1 - 1e-6)[None], windows[-1]) ** 2)
         ):
             result = follow(u0, len(windows) - 1)
         return result
 
     # Each start's chain of least squares runs few simulations at a time: the chains side by side fill the cores.
-    followed = concurrency.in_parallel({number: lambda start=start: chain(*start) for number, start in enumerate(starts)})
-    best = min(followed.values(), key=lambda result: result.cost)  # the first of equals, as the starts are ordered
+    if whole_record:  # the coarse pass from each start shows its basin; the fine one runs in the best basin only
+        followed = concurrency.in_parallel({number: lambda u0=u0, first=first: follow(u0, first, fine=False)
+                                               for number, (u0, first, _) in enumerate(starts)})
+        best = _passes(lambda rows: residuals(rows, windows[-1]), min(followed.values(), key=lambda result: result.cost).x,
+                       JACOBIAN_STEPS[1:])
+    else:
+        followed = concurrency.in_parallel({number: lambda start=start: chain(*start) for number, start in enumerate(starts)})
+        best = min(followed.values(), key=lambda result: result.cost)  # the first of equals, as the starts are ordered
     theta_star = low + best.x * span
     model_star = simulate(theta_star[None])[0]
     ll = float(likelihood.log_likelihood(data, model_star, sigma, instruments=instruments))
@@ -419,6 +430,29 @@ def fit(
         float(likelihood.reduced_chi2(data, model_star, sigma, n_fitted=k, instruments=instruments)), log_evidence, sum(runs), at_bound,
         covariance, instruments, searched_from,
     )
+
+
+# How far a neighbouring basin is looked for along each value, in its prior box: a slipping joint's misfit over the
+# whole record has a basin every 0.05-0.06 of the J2a share (its box 0.8 wide, docs/validation.md), one slip pattern
+# each, and the search's windows end in any of them.
+NEIGHBOUR_STEP = 0.075
+
+
+def in_neighbouring_basins(found: Fit, data: np.ndarray, sigma: np.ndarray, base: Mapping[str, float], sampling: model.Sampling,
+                           channels: Sequence[str], max_step: float = simulation.DEFAULT_MAX_STEP,
+                           instruments: sensors.Instruments | None = None) -> Fit | None:
+    """The best least squares on the whole record from ``found``'s values moved :data:`NEIGHBOUR_STEP` of the prior box
+    up and down along each value it fitted, those chains side by side (None where every move leaves the box): a misfit
+    with a basin per switching pattern, whose search ends in the basin its short windows favour, may fit better in
+    another."""
+    hypothesis = found.hypothesis
+    starts = [{**found.values, p.name: moved} for p in hypothesis.priors
+              for moved in (found.values[p.name] + sign * NEIGHBOUR_STEP * (p.high - p.low) for sign in (-1.0, 1.0))
+              if p.low < moved < p.high]
+    if not starts:
+        return None
+    return fit(hypothesis, data, sigma, base, sampling, channels, starts, max_step, search=False, instruments=instruments,
+               whole_record=True)
 
 
 def _passes(residuals, u0: np.ndarray, passes) -> optimize.OptimizeResult:
