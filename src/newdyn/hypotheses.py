@@ -442,11 +442,13 @@ def in_neighbouring_basins(found: Fit, data: np.ndarray, sigma: np.ndarray, base
                            channels: Sequence[str], max_step: float = simulation.DEFAULT_MAX_STEP,
                            instruments: sensors.Instruments | None = None) -> Fit | None:
     """The best least squares on the whole record from ``found``'s values moved :data:`NEIGHBOUR_STEP` of the prior box
-    up and down along each value it fitted, those chains side by side (None where every move leaves the box): a misfit
-    with a basin per switching pattern, whose search ends in the basin its short windows favour, may fit better in
-    another."""
+    up and down along each of its effect's own values, those chains side by side (None where there are none, or every
+    move leaves the box): a misfit with a basin per switching pattern, which the effect's values set, and whose search
+    ends in the basin its short windows favour, may fit better in another."""
     hypothesis = found.hypothesis
-    starts = [{**found.values, p.name: moved} for p in hypothesis.priors
+    effect = effects.active().get(hypothesis.kind)
+    switching = [p for p in hypothesis.priors if effect is not None and p.name in effect.parameter_names()]
+    starts = [{**found.values, p.name: moved} for p in switching
               for moved in (found.values[p.name] + sign * NEIGHBOUR_STEP * (p.high - p.low) for sign in (-1.0, 1.0))
               if p.low < moved < p.high]
     if not starts:
