@@ -632,10 +632,13 @@ def test_under_a_crack_the_load_disks_imbalance_angle_is_free_where_only_the_mot
     assert sd["phi4"] > 0.3 and sd["phi1"] < 0.05
 
 
-def test_an_effects_own_load_phase_far_from_the_records_moves_the_record_and_near_it_does_not():
+@pytest.mark.parametrize("lines_sd", [0.01, 2.0])
+def test_an_effects_own_load_phase_far_from_the_records_moves_the_record_and_near_it_does_not(lines_sd):
     """A crack's fit finds the load's phase beside its values; where the lines had put the record's phase 1.3 rad off
     (a drift the nominal model lacks shifts the load's line), the record moves to the fit's phase although the angles
-    stay, and the χ² under the fit at the record's phase is far above the fit's own; where they agree nothing moves."""
+    stay, and the χ² under the fit at the record's phase is far above the fit's own; where they agree nothing moves.
+    The same where the lines hardly placed the phase (2 rad of sd: a probe alone at a speed whose line the load's
+    second harmonic overlies), which the difference's sd alone would not move."""
     channels = ("b1_x", "w1")
     record = CRACKED_RECORD
     data, sigma, stated, hypothesis = cracked(SETTINGS, channels, SAMPLING)
@@ -643,7 +646,7 @@ def test_an_effects_own_load_phase_far_from_the_records_moves_the_record_and_nea
                          [{**CRACK, "kT1": stated["kT1"], "load_phase": record["load_phase"]}], SETTINGS.max_step, search=False)
     for lines_phase, moves in ((record["load_phase"] - 1.3, True), (fit.values["load_phase"], False)):
         found = alignment.Alignment({**record, "load_phase": lines_phase}, math.nan, math.nan, 0, "lines",
-                                    sd={"phi1": 0.01, "phi4": 0.01, "load_phase": 0.01})
+                                    sd={"phi1": 0.01, "phi4": 0.01, "load_phase": lines_sd})
         again, _ = diagnosis._realigned(fit, data, sigma, {**stated, **found.values}, stated, found, SAMPLING, channels, SETTINGS)
         assert (again is not None) == moves
         if moves:
@@ -678,6 +681,17 @@ def test_where_nothing_explains_the_data_a_record_the_best_fit_places_elsewhere_
     passes = found.verdict["record"]["passes"]
     assert passes > 1 and found.verdict["record"]["values"]["phi1"] == pytest.approx(CRACKED_RECORD["phi1"], abs=0.05)
     assert searches == ([] if explains_there else ["stick_slip"] * passes)
+
+
+def test_a_precise_finding_moves_a_value_held_vaguely_and_a_vague_one_does_not_move_a_precise_value():
+    """The rule of a found angle against a held one is the precision-weighted mean's distance in its own sds: of two as
+    precise it is their difference against its sd; a held value of unknown precision moves by the finding's sd."""
+    threshold = alignment.MOVED_SDS * math.sqrt(2) * 0.01
+    assert alignment.moves(0.0, 0.01, 1.01 * threshold, 0.01) and not alignment.moves(0.0, 0.01, 0.99 * threshold, 0.01)
+    assert alignment.moves(0.0, 2.0, 0.1, 0.01) and not alignment.moves(0.0, 0.01, 0.1, 2.0)
+    assert alignment.moves(0.0, math.inf, 1.01 * alignment.MOVED_SDS * 0.01, 0.01)
+    assert not alignment.moves(0.0, math.inf, 0.99 * alignment.MOVED_SDS * 0.01, 0.01)
+    assert not alignment.moves(3.13, 0.01, -3.13, 0.01)  # across the turn's end they are 0.023 apart, not 6.26
 
 
 def test_a_loose_bearings_fit_with_disk_4s_imbalance_half_a_turn_off_finds_it_again_where_it_is():

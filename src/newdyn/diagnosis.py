@@ -116,10 +116,11 @@ def _realigned(fit: hypotheses.Fit, data, sigma, values, stated, record: alignme
     own = [name for name in record.values if name in fit.hypothesis.parameters]  # its fit's own finding
     sd = {**{name: float(np.sqrt(fit.covariance[i, i])) for i, name in enumerate(fit.hypothesis.parameters)
              if name in own and fit.covariance is not None}, **angles_sd}
-    # The fit's own finding (an effect's load phase) moves the record too where it lies farther from the record's than
-    # their errors allow: a drift the nominal model lacks shifts the load's line that placed the record.
-    moved = [name for name in own if name in sd and abs(model.wrap_angle(fit.values[name] - record.values[name])) >
-             alignment.MOVED_SDS * math.hypot(sd[name], record.sd.get(name, 0.0))]
+    # The fit's own finding (an effect's load phase) moves the record too where the data place it elsewhere: a drift the
+    # nominal model lacks shifts the load's line that placed the record, and where the channels barely see the load
+    # (a probe alone) the lines hardly place its phase at all.
+    moved = [name for name in own if name in sd and alignment.moves(record.values[name], record.sd.get(name, math.inf),
+                                                                    fit.values[name], sd[name])]
     if found is None and not moved:
         return None, sd
     if found is None:
