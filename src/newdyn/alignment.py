@@ -41,20 +41,6 @@ KEEP_STATED = 1e-3
 # A found value lies elsewhere than an earlier one where it is more of its sds from it than a Normal estimate would be
 # one time in 1/KEEP_STATED.
 MOVED_SDS = float(stats.norm.isf(KEEP_STATED / 2))
-
-
-def moves(held: float, held_sd: float, found: float, found_sd: float) -> bool:
-    """Whether an angle ``found`` ± ``found_sd`` moves one ``held`` ± ``held_sd`` (an sd of inf: nothing known of its
-    precision): whether their precision-weighted mean lies more than :data:`MOVED_SDS` of its sd from ``held``.  Of two
-    as precise, whether they differ by MOVED_SDS of their difference's sd; a precise finding moves a value the data
-    hardly held (a record's load phase where the lines barely see the load) however near it, and a vague one does not
-    move a precise value."""
-    if not math.isfinite(held_sd):
-        return abs(model.wrap_angle(found - held)) > MOVED_SDS * found_sd
-    weight = held_sd**2 / (held_sd**2 + found_sd**2)
-    return abs(model.wrap_angle(found - held)) * weight > MOVED_SDS * held_sd * found_sd / math.hypot(held_sd, found_sd)
-
-
 # ... and a record placed in one basin of an imbalance's turn moves to another (that imbalance's angle MOVED_SDS away)
 # that fits better by more than this in χ², odds beyond e to 1, however far short of KEEP_STATED's test: two basins are
 # no refinement noise could make, and a fault's values taken in the worse one carry its bias (a crack's angle).
@@ -79,6 +65,18 @@ SEGMENT_CYCLES = 3  # the lines are read over segments of at least this many loa
 MAX_SEGMENTS = 4  # so that the once-per-revolution line's phase shows how fast the shaft turns
 
 Compared = Callable[[np.ndarray], np.ndarray]  # (..., channel, time) over σ -> (..., what is compared)
+
+
+def moves(held: float, held_sd: float, found: float, found_sd: float) -> bool:
+    """Whether an angle ``found`` ± ``found_sd`` moves one ``held`` ± ``held_sd`` (an sd of inf: nothing known of its
+    precision): whether their precision-weighted mean lies more than :data:`MOVED_SDS` of its sd from ``held``.  Of two
+    as precise, whether they differ by MOVED_SDS of their difference's sd; a precise finding moves a value the data
+    hardly held (a record's load phase where the lines barely see the load) however near it, and a vague one does not
+    move a precise value."""
+    if not math.isfinite(held_sd):
+        return abs(model.wrap_angle(found - held)) > MOVED_SDS * found_sd
+    weight = held_sd**2 / (held_sd**2 + found_sd**2)
+    return abs(model.wrap_angle(found - held)) * weight > MOVED_SDS * held_sd * found_sd / math.hypot(held_sd, found_sd)
 
 
 @dataclass(frozen=True)
