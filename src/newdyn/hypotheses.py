@@ -433,8 +433,8 @@ def fit(
 
 
 # How far a neighbouring basin is looked for along each value, in its prior box: a slipping joint's misfit over the
-# whole record has a basin every 0.05-0.06 of the J2a share (its box 0.8 wide, docs/validation.md), one slip pattern
-# each, and the search's windows end in any of them.
+# whole record has a basin every 0.05-0.06 of the J2a share (docs/validation.md), one slip pattern each, and the
+# search's windows end in any of them; 0.075 of the share's box (0.8 wide) is one basin over.
 NEIGHBOUR_STEP = 0.075
 
 
