@@ -73,10 +73,8 @@ def moves(held: float, held_sd: float, found: float, found_sd: float) -> bool:
     as precise, whether they differ by MOVED_SDS of their difference's sd; a precise finding moves a value the data
     hardly held (a record's load phase where the lines barely see the load) however near it, and a vague one does not
     move a precise value."""
-    if not math.isfinite(held_sd):
-        return abs(model.wrap_angle(found - held)) > MOVED_SDS * found_sd
-    weight = held_sd**2 / (held_sd**2 + found_sd**2)
-    return abs(model.wrap_angle(found - held)) * weight > MOVED_SDS * held_sd * found_sd / math.hypot(held_sd, found_sd)
+    # The mean lies |d| h²/(h² + f²) from the held value, its sd is h f/√(h² + f²): their ratio against MOVED_SDS.
+    return abs(model.wrap_angle(found - held)) > MOVED_SDS * found_sd * math.hypot(1.0, found_sd / held_sd)
 
 
 @dataclass(frozen=True)
